@@ -1,0 +1,73 @@
+"""Effective joint geometry of the robot: nominal values + deviations, scaled by part temperatures.
+
+Frames: the base frame is the world frame, origin at the base centre, z up; the robot hangs
+below the base (platform at negative z). Chain i has its actuator axis through ``B[i]`` along
+``axis[i]``; the arm angle ``theta`` is the right-hand rotation about that axis, positive down.
+Rod j of chain i joins elbow point ``A[i, j]`` to platform point ``P0[i, j]`` (platform frame).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .params import RobotParams
+
+ROD_SIDES = np.array([+1.0, -1.0])  # rod j sits at +/- half width along the actuator axis
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Joint geometry at the parts' temperatures (all m / rad, float64)."""
+    B: np.ndarray          # (3,3) actuator axis point, base frame
+    axis: np.ndarray       # (3,3) unit actuator axis
+    radial: np.ndarray     # (3,3) unit radial direction of each chain (nominal)
+    arm_vec: np.ndarray    # (3,2,3) B -> elbow hinge of each rod, arm at theta = 0
+    elbow_vec: np.ndarray  # (3,3) B -> elbow centre, arm at theta = 0
+    P0: np.ndarray         # (3,2,3) platform hinge of each rod, platform frame
+    L: np.ndarray          # (3,2) rod lengths, hinge centre to hinge centre
+    theta_zero: np.ndarray  # (3,) arm angle at motor coordinate 0 (home + encoder offset)
+    stroke: np.ndarray     # (2,) motor coordinate limits
+    cube_offset: np.ndarray  # (3,) mirror cube centre, platform frame
+
+    def theta(self, q: np.ndarray) -> np.ndarray:
+        """Arm angles (rad) for motor coordinates ``q`` (..., 3)."""
+        return np.asarray(q, dtype=np.float64) + self.theta_zero
+
+
+def part_scale(params: RobotParams, part: str, T_C) -> np.ndarray:
+    """Thermal scale factor 1 + CTE * (T - T_ref) of a part at temperature(s) ``T_C``."""
+    cte = params.material(part).cte_per_K
+    return 1.0 + cte * (np.asarray(T_C, dtype=np.float64) - params.reference_temperature_C)
+
+
+def build_geometry(params: RobotParams) -> Geometry:
+    p = params
+    az = np.deg2rad(p.actuator_azimuth_deg)
+    radial = np.stack([np.cos(az), np.sin(az), np.zeros(3)], axis=1)
+    tangent = np.stack([-np.sin(az), np.cos(az), np.zeros(3)], axis=1)
+    up = np.array([0.0, 0.0, 1.0])
+    # actuator axes: nominal tangent tilted towards radial and vertical by small angles
+    axis = tangent + p.actuator_axis_tilt_rad[:, :1] * radial + p.actuator_axis_tilt_rad[:, 1:] * up
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+
+    s_base = part_scale(p, "base", p.T_base_C)
+    s_arm = part_scale(p, "arms", p.T_arms_C)[:, None]
+    s_rod = part_scale(p, "rods", p.T_rods_C)
+    s_plat = part_scale(p, "platform", p.T_platform_C)
+
+    B = s_base * (p.base_radius_m * radial + p.d_base_joint_m)
+    arm_len = (p.arm_length_m + p.d_arm_length_m)[:, None]
+    elbow_vec = s_arm * arm_len * radial
+    side = ROD_SIDES[None, :, None]
+    arm_vec = s_arm[:, :, None] * ((arm_len * radial)[:, None, :]
+                                   + side * p.elbow_half_width_m * tangent[:, None, :]
+                                   + p.d_elbow_joint_m)
+    P0 = s_plat * ((p.platform_radius_m * radial)[:, None, :]
+                   + side * p.platform_half_width_m * tangent[:, None, :]
+                   + p.d_platform_joint_m)
+    L = s_rod * (p.rod_length_m + p.d_rod_length_m)
+    cube = s_plat * p.mirror_cube_offset_m
+    return Geometry(B=B, axis=axis, radial=radial, arm_vec=arm_vec, elbow_vec=elbow_vec, P0=P0, L=L,
+                    theta_zero=p.home_angle_rad + p.encoder_offset_rad, stroke=p.stroke_rad.copy(),
+                    cube_offset=cube)

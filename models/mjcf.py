@@ -1,0 +1,237 @@
+"""The robot as a MuJoCo model, built in code with ``mujoco.MjSpec`` from one parameter set.
+
+Kinematic tree (the world frame is the base frame, z up, metres, radians):
+  world -> arm{i} (hinge ``q{i}``: the actuator, qpos = motor coordinate) -> arm{i}_flex
+  (three pseudo-rigid-body hinges: arm bending in and out of plane, torsion) -> rod{i}{j}
+  (flexure hinge: two bending hinges ``rod{i}{j}_bx/by``, then axial slide ``rod{i}{j}_ax``)
+  -> site ``rod{i}{j}_end``;  world -> platform (free joint) with sites ``plat{i}{j}``.
+Six site-to-site connect equalities close the loops.  MuJoCo's soft constraints cannot hold a
+statically loaded loop to nanometres, so static poses come from ``twin.statics``; this model
+carries geometry, inertia and stiffness, and ``pose_model`` puts an exactly solved
+configuration into it.  Joint stiffnesses are the element stiffnesses of models/stiffness.py
+(the platform-side flexures and hinge torsion have no tree joint and live only in the statics).
+"""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .geometry import Geometry, build_geometry
+from .meshes import notch_hinge, platform_plate
+from .params import RobotParams
+from .stiffness import element_stiffness
+
+INSTRUMENT_SITES = {
+    # name: (origin offset from the cube centre in the world frame at home, beam direction)
+    "interferometer_x": (np.array([-0.25, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])),
+    "interferometer_y": (np.array([0.0, -0.25, 0.0]), np.array([0.0, 1.0, 0.0])),
+    "interferometer_z": (np.array([0.0, 0.25, 0.06]), np.array([0.0, -1.0, 0.0])),  # via 45 deg mirror
+    "autocollimator_1": (np.array([-0.25, 0.0, 0.005]), np.array([1.0, 0.0, 0.0])),
+    "autocollimator_2": (np.array([0.0, -0.25, 0.005]), np.array([0.0, 1.0, 0.0])),
+}
+
+
+def _quat_z_to(direction: np.ndarray) -> np.ndarray:
+    """MuJoCo quaternion (w,x,y,z) of a frame whose z axis points along ``direction``."""
+    d = direction / np.linalg.norm(direction)
+    rot, _ = Rotation.align_vectors([d], [[0.0, 0.0, 1.0]])
+    x, y, z, w = rot.as_quat()
+    return np.array([w, x, y, z])
+
+
+def _quat(rot: Rotation) -> np.ndarray:
+    x, y, z, w = rot.as_quat()
+    return np.array([w, x, y, z])
+
+
+def rod_frames(geom: Geometry) -> np.ndarray:
+    """Rotation (3,2,3,3) of each rod body in its arm body frame: z along the rod at home."""
+    from twin.kinematics import elbow_points, forward
+    home = forward(geom, np.zeros((1, 3)), check=False)
+    A = elbow_points(geom, geom.theta(np.zeros((1, 3))))[0]
+    P = home.p[0] + np.einsum("ab,ijb->ija", home.R[0], geom.P0)
+    frames = np.empty((3, 2, 3, 3))
+    for i in range(3):
+        arm0 = Rotation.from_rotvec(geom.axis[i] * geom.theta_zero[i])
+        for j in range(2):
+            d_local = arm0.inv().apply(P[i, j] - A[i, j])
+            frames[i, j] = Rotation.align_vectors([d_local], [[0.0, 0.0, 1.0]])[0].as_matrix()
+    return frames
+
+
+def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSpec:
+    """The MjSpec of the robot, its metrology frame and its force simulator coils."""
+    from twin.kinematics import forward
+    geom = geom or build_geometry(params)
+    k = element_stiffness(params, geom)
+    spec = mujoco.MjSpec()
+    spec.modelname = params.name
+    spec.compiler.degree = False
+    spec.option.gravity = [0.0, 0.0, -9.80665]
+    rho = {part: params.material(part).density_kg_m3 for part in ("base", "arms", "rods", "platform")}
+
+    hinge = notch_hinge(params.flexure_neck_diameter_m, params.flexure_notch_radius_m,
+                        params.rod_diameter_m)
+    spec.add_mesh(name="flexure_hinge", uservert=hinge.vertices.ravel().tolist(),
+                  userface=hinge.faces.ravel().tolist())
+    plate = platform_plate(geom.P0, 0.006)
+    spec.add_mesh(name="platform_plate", uservert=plate.vertices.ravel().tolist(),
+                  userface=plate.faces.ravel().tolist())
+
+    world = spec.worldbody
+    world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.3, 0.3, 0.02],
+                   pos=[0.0, 0.0, -0.25], contype=0, conaffinity=0, rgba=[0.4, 0.4, 0.45, 1])
+    base = world.add_body(name="base")
+    base.add_geom(name="base_plate", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                  size=[params.base_radius_m + 0.025, 0.01], pos=[0.0, 0.0, 0.03],
+                  density=rho["base"], contype=0, conaffinity=0, rgba=[0.6, 0.6, 0.65, 1])
+    frames = rod_frames(geom)
+    for i in range(3):
+        arm0 = Rotation.from_rotvec(geom.axis[i] * geom.theta_zero[i])
+        arm = world.add_body(name=f"arm{i + 1}", pos=geom.B[i], quat=_quat(arm0))
+        arm.add_joint(name=f"q{i + 1}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=geom.axis[i],
+                      range=geom.stroke, limited=mujoco.mjtLimited.mjLIMITED_TRUE)
+        arm.add_geom(name=f"motor{i + 1}", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                     size=[0.02, 0.03], quat=_quat_z_to(geom.axis[i]), density=7800.0,
+                     contype=0, conaffinity=0, rgba=[0.2, 0.2, 0.2, 1])
+        elbow = geom.elbow_vec[i]
+        a_dir = elbow / np.linalg.norm(elbow)
+        e_n = np.cross(a_dir, geom.axis[i])
+        pivot = (1.0 - params.prbm_gamma) * elbow
+        flex = arm.add_body(name=f"arm{i + 1}_flex", pos=pivot)
+        for name, ax, stiff in (("inplane", geom.axis[i], k.arm[0]), ("outplane", e_n, k.arm[1]),
+                                ("torsion", a_dir, k.arm[2])):
+            flex.add_joint(name=f"arm{i + 1}_{name}", type=mujoco.mjtJoint.mjJNT_HINGE,
+                           axis=ax, stiffness=stiff)
+        flex.add_geom(name=f"arm{i + 1}_beam", type=mujoco.mjtGeom.mjGEOM_BOX,
+                      size=[np.linalg.norm(elbow) / 2, params.arm_width_m / 2, params.arm_thickness_m / 2],
+                      pos=elbow / 2 - pivot, quat=_quat(Rotation.align_vectors(
+                          [a_dir, geom.axis[i]], [[1, 0, 0], [0, 1, 0]])[0]),
+                      density=rho["arms"], contype=0, conaffinity=0, rgba=[0.7, 0.7, 0.75, 1])
+        for j in range(2):
+            L = geom.L[i, j]
+            rod = flex.add_body(name=f"rod{i + 1}{j + 1}", pos=geom.arm_vec[i, j] - pivot,
+                                quat=_quat(Rotation.from_matrix(frames[i, j])))
+            rod.add_joint(name=f"rod{i + 1}{j + 1}_bx", type=mujoco.mjtJoint.mjJNT_HINGE,
+                          axis=[1, 0, 0], stiffness=k.hinge_bending)
+            rod.add_joint(name=f"rod{i + 1}{j + 1}_by", type=mujoco.mjtJoint.mjJNT_HINGE,
+                          axis=[0, 1, 0], stiffness=k.hinge_bending)
+            rod.add_joint(name=f"rod{i + 1}{j + 1}_ax", type=mujoco.mjtJoint.mjJNT_SLIDE,
+                          axis=[0, 0, 1], stiffness=k.rod_axial[i, j])
+            rod.add_geom(name=f"rod{i + 1}{j + 1}_body", type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                         fromto=[0, 0, 0.004, 0, 0, L - 0.004], size=[params.rod_diameter_m / 2],
+                         density=rho["rods"], contype=0, conaffinity=0, rgba=[0.8, 0.8, 0.85, 1])
+            for end, z in (("top", 0.0), ("bottom", L)):
+                rod.add_geom(name=f"rod{i + 1}{j + 1}_hinge_{end}", type=mujoco.mjtGeom.mjGEOM_MESH,
+                             meshname="flexure_hinge", pos=[0, 0, z], contype=0, conaffinity=0,
+                             density=rho["rods"], rgba=[0.9, 0.6, 0.2, 1])
+            rod.add_site(name=f"rod{i + 1}{j + 1}_end", pos=[0, 0, L])
+        act = spec.add_actuator(name=f"drive{i + 1}", target=f"q{i + 1}",
+                                trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_position(kp=k.drive)
+
+    home = forward(geom, np.zeros((1, 3)), check=False)
+    plat = world.add_body(name="platform", pos=home.p[0])
+    plat.add_freejoint(name="platform_free")
+    plat.add_geom(name="platform_plate", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="platform_plate",
+                  density=rho["platform"], contype=0, conaffinity=0, rgba=[0.6, 0.65, 0.7, 1])
+    s = params.mirror_cube_size_m
+    plat.add_geom(name="mirror_cube", type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2] * 3,
+                  pos=geom.cube_offset, density=params.material("mirror_cube").density_kg_m3,
+                  contype=0, conaffinity=0, rgba=[0.6, 0.8, 1.0, 0.7])
+    plat.add_site(name="mirror_cube_centre", pos=geom.cube_offset)
+    for i, m in enumerate(magnet_positions(params)):
+        plat.add_geom(name=f"magnet{i + 1}", type=mujoco.mjtGeom.mjGEOM_BOX,
+                      size=[0.0075, 0.0075, 0.0015], pos=m, density=7500.0,
+                      contype=0, conaffinity=0, rgba=[0.75, 0.75, 0.7, 1])
+        # coil below its magnet at the home pose, across the nominal gap
+        coil_top = home.p[0] + m - [0.0, 0.0, 0.0015 + params.coil_gap_m]
+        coil = world.add_body(name=f"coil{i + 1}", pos=coil_top - [0.0, 0.0, 0.015])
+        coil.add_geom(name=f"coil{i + 1}_winding", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                      size=[0.012, 0.015], contype=0, conaffinity=0, rgba=[0.72, 0.45, 0.2, 1])
+        coil.add_site(name=f"coil{i + 1}_face", pos=[0.0, 0.0, 0.015])
+    for i in range(3):
+        for j in range(2):
+            plat.add_site(name=f"plat{i + 1}{j + 1}", pos=geom.P0[i, j])
+            spec.add_equality(name=f"loop{i + 1}{j + 1}", type=mujoco.mjtEq.mjEQ_CONNECT,
+                              objtype=mujoco.mjtObj.mjOBJ_SITE, name1=f"rod{i + 1}{j + 1}_end",
+                              name2=f"plat{i + 1}{j + 1}", solref=[0.002, 1.0])
+    frame = world.add_body(name="metrology_frame")
+    cube_home = home.point(geom.cube_offset)[0]
+    for name, (offset, direction) in INSTRUMENT_SITES.items():
+        frame.add_site(name=name, pos=cube_home + offset, quat=_quat_z_to(direction),
+                       size=[0.004, 0.004, 0.004])
+    return spec
+
+
+def magnet_positions(params: RobotParams) -> np.ndarray:
+    """Magnet centres (3,3) in the platform frame, under the plate."""
+    az = np.deg2rad(params.magnet_azimuth_deg)
+    r = params.magnet_radius_m
+    return np.stack([r * np.cos(az), r * np.sin(az), np.full(3, -0.006 - 0.0015)], axis=1)
+
+
+def build_model(params: RobotParams) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
+    spec = build_spec(params)
+    return spec, spec.compile()
+
+
+def update_model(model: mujoco.MjModel, params: RobotParams) -> None:
+    """Write new geometry (errors, temperatures) into a compiled model without recompiling:
+    actuator axis points, elbow and platform hinge positions, rod lengths."""
+    geom = build_geometry(params)
+    frames = rod_frames(geom)
+    for i in range(3):
+        arm = model.body(f"arm{i + 1}")
+        model.body_pos[arm.id] = geom.B[i]
+        model.body_quat[arm.id] = _quat(Rotation.from_rotvec(geom.axis[i] * geom.theta_zero[i]))
+        model.jnt_axis[model.joint(f"q{i + 1}").id] = geom.axis[i]
+        flex = model.body(f"arm{i + 1}_flex")
+        pivot = (1.0 - params.prbm_gamma) * geom.elbow_vec[i]
+        model.body_pos[flex.id] = pivot
+        for j in range(2):
+            rod = model.body(f"rod{i + 1}{j + 1}")
+            model.body_pos[rod.id] = geom.arm_vec[i, j] - pivot
+            model.body_quat[rod.id] = _quat(Rotation.from_matrix(frames[i, j]))
+            model.site_pos[model.site(f"rod{i + 1}{j + 1}_end").id] = [0.0, 0.0, geom.L[i, j]]
+            model.site_pos[model.site(f"plat{i + 1}{j + 1}").id] = geom.P0[i, j]
+    model.site_pos[model.site("mirror_cube_centre").id] = geom.cube_offset
+
+
+def pose_model(model: mujoco.MjModel, data: mujoco.MjData, q: np.ndarray, p: np.ndarray,
+               R: np.ndarray, arm_flex: np.ndarray | None = None) -> float:
+    """Put one configuration into MuJoCo: motor coordinates q (3,) (plus drive deflection),
+    platform pose (p, R), optional arm pseudo-rigid-body angles (3,3).  Rod joints are solved
+    so each rod reaches its platform hinge.  Returns the largest rod stretch |slide| (m) and
+    leaves ``data`` at the configuration (mj_kinematics done)."""
+    data.qpos[:] = 0.0
+    for i in range(3):
+        data.qpos[model.joint(f"q{i + 1}").qposadr[0]] = q[i]
+        if arm_flex is not None:
+            for k, name in enumerate(("inplane", "outplane", "torsion")):
+                data.qpos[model.joint(f"arm{i + 1}_{name}").qposadr[0]] = arm_flex[i, k]
+    adr = model.joint("platform_free").qposadr[0]
+    data.qpos[adr:adr + 3] = p
+    data.qpos[adr + 3:adr + 7] = _quat(Rotation.from_matrix(R))
+    mujoco.mj_kinematics(model, data)
+    stretch = 0.0
+    for i in range(3):
+        for j in range(2):
+            rod = model.body(f"rod{i + 1}{j + 1}")
+            target = data.site(f"plat{i + 1}{j + 1}").xpos
+            v = data.xmat[rod.id].reshape(3, 3).T @ (target - data.xpos[rod.id])
+            length = np.linalg.norm(v)
+            L = model.site_pos[model.site(f"rod{i + 1}{j + 1}_end").id][2]
+            data.qpos[model.joint(f"rod{i + 1}{j + 1}_bx").qposadr[0]] = np.arctan2(-v[1], v[2])
+            data.qpos[model.joint(f"rod{i + 1}{j + 1}_by").qposadr[0]] = np.arcsin(v[0] / length)
+            data.qpos[model.joint(f"rod{i + 1}{j + 1}_ax").qposadr[0]] = length - L
+            stretch = max(stretch, abs(length - L))
+    mujoco.mj_kinematics(model, data)
+    return stretch
+
+
+def loop_closure(model: mujoco.MjModel, data: mujoco.MjData) -> float:
+    """Largest distance (m) between a rod end and its platform hinge in ``data``."""
+    return max(float(np.linalg.norm(data.site(f"rod{i}{j}_end").xpos - data.site(f"plat{i}{j}").xpos))
+               for i in (1, 2, 3) for j in (1, 2))

@@ -1,0 +1,205 @@
+"""Exact kinematics of the Delta robot with general geometry (errors and thermal expansion).
+
+Each rod is a distance constraint between its elbow hinge and its platform hinge, so the six
+rods fix the platform's full 6-DOF pose: with ideal parallelograms the platform only translates,
+while unequal rods or misplaced hinges tilt it (the parasitic rotations that autocollimators see).
+
+* ``forward(geom, q)``: motor coordinates (N,3) -> ``Pose`` (position (N,3), rotation (N,3,3)).
+* ``inverse(geom, p)``: platform position (N,3) -> motor coordinates (N,3) (and the rotation).
+
+Both are batched Newton iterations on the six rod equations with analytic Jacobians, started
+from the ideal closed form; every pose is checked to close its loops to ``CLOSURE_TOL_M``.
+Units: m, rad.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from models.geometry import Geometry
+
+CLOSURE_TOL_M = 1e-12
+_MAX_ITER = 30
+
+
+class KinematicsError(ValueError):
+    """A pose that is unreachable or outside the actuator strokes."""
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Platform pose: position of the platform frame origin (m) and its rotation matrix."""
+    p: np.ndarray  # (N,3)
+    R: np.ndarray  # (N,3,3)
+
+    @property
+    def rotvec(self) -> np.ndarray:
+        """Rotation vector (rad), (N,3): the small parasitic rotations."""
+        return Rotation.from_matrix(self.R).as_rotvec()
+
+    def point(self, local: np.ndarray) -> np.ndarray:
+        """World position (N,3) of a point given in the platform frame (3,)."""
+        return self.p + self.R @ np.asarray(local, dtype=np.float64)
+
+
+def rotate_about_axis(axis: np.ndarray, angle: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotate vectors ``v`` (...,3) about unit ``axis`` (...,3) by ``angle`` (...)."""
+    c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
+    return v * c + np.cross(axis, v) * s + axis * np.sum(axis * v, axis=-1, keepdims=True) * (1.0 - c)
+
+
+def elbow_points(geom: Geometry, theta: np.ndarray) -> np.ndarray:
+    """Elbow hinge positions (N,3,2,3) for arm angles ``theta`` (N,3)."""
+    ax = np.broadcast_to(geom.axis[None, :, None, :], theta.shape[:1] + (3, 2, 3))
+    ang = np.broadcast_to(theta[:, :, None], theta.shape[:1] + (3, 2))
+    return geom.B[None, :, None, :] + rotate_about_axis(ax, ang, geom.arm_vec[None])
+
+
+def check_stroke(geom: Geometry, q: np.ndarray, what: str = "motor coordinates") -> None:
+    lo, hi = geom.stroke
+    bad = np.flatnonzero(np.any((q < lo - 1e-12) | (q > hi + 1e-12) | ~np.isfinite(q), axis=1))
+    if bad.size:
+        i = int(bad[0])
+        raise KinematicsError(f"{what} at pose {i} = {q[i].tolist()} rad are outside the actuator "
+                              f"stroke [{lo}, {hi}] rad ({bad.size} pose(s) out of stroke)")
+
+
+def _trilaterate_low(c: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Lower intersection point (N,3) of three spheres, centres c (N,3,3), radii r (N,3)."""
+    d21, d31 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+    d = np.linalg.norm(d21, axis=1)
+    ex = d21 / d[:, None]
+    i = np.sum(ex * d31, axis=1)
+    ey = d31 - i[:, None] * ex
+    j = np.linalg.norm(ey, axis=1)
+    ey /= j[:, None]
+    ez = np.cross(ex, ey)
+    x = (r[:, 0] ** 2 - r[:, 1] ** 2 + d ** 2) / (2 * d)
+    y = (r[:, 0] ** 2 - r[:, 2] ** 2 + i ** 2 + j ** 2) / (2 * j) - i * x / j
+    z2 = r[:, 0] ** 2 - x ** 2 - y ** 2
+    bad = np.flatnonzero(~(z2 >= 0))
+    if bad.size:
+        raise KinematicsError(f"pose {int(bad[0])}: the rods cannot reach the platform "
+                              f"(three-sphere intersection is empty; {bad.size} pose(s))")
+    base = c[:, 0] + x[:, None] * ex + y[:, None] * ey
+    zz = np.sqrt(z2)[:, None] * ez
+    lo = np.where((zz[:, 2] > 0)[:, None], base - zz, base + zz)
+    return lo
+
+
+def _residual_and_jacobian(geom, A, p, R):
+    """Rod equations f = |P - A|^2 - L^2 (N,6) and their derivatives.
+
+    Returns f, d = P - A (N,3,2,3), w = R P0 (N,3,2,3)."""
+    w = np.einsum("nab,ijb->nija", R, geom.P0)
+    d = p[:, None, None, :] + w - A
+    f = np.sum(d * d, axis=-1) - geom.L[None] ** 2
+    return f.reshape(-1, 6), d, w
+
+
+def _newton(update, n: int, what: str):
+    """Run ``update()`` (returns max step per pose) until every pose has converged."""
+    for _ in range(_MAX_ITER):
+        step = update()
+        if np.all(step < 1e-14):
+            return
+    bad = np.flatnonzero(~(step < 1e-14))
+    raise KinematicsError(f"{what} did not converge at pose {int(bad[0])} ({bad.size} pose(s))")
+
+
+def _check_closure(geom, A, p, R, what):
+    _, d, _ = _residual_and_jacobian(geom, A, p, R)
+    err = np.abs(np.linalg.norm(d, axis=-1) - geom.L[None]).reshape(-1, 6).max(axis=1)
+    bad = np.flatnonzero(~(err < CLOSURE_TOL_M))
+    if bad.size:
+        raise KinematicsError(f"{what}: loop closure {err[bad[0]]:.3e} m at pose {int(bad[0])} "
+                              f"exceeds {CLOSURE_TOL_M} m")
+    return err
+
+
+def forward(geom: Geometry, q, check: bool = True) -> Pose:
+    """Forward kinematics: motor coordinates q (N,3) rad -> platform Pose (exact, 6-DOF)."""
+    q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    if check:
+        check_stroke(geom, q)
+    n = q.shape[0]
+    A = elbow_points(geom, geom.theta(q))
+    # start: ideal closed form with each parallelogram replaced by its centre line
+    centres = A.mean(axis=2) - geom.P0.mean(axis=1)[None]
+    p = _trilaterate_low(centres, np.broadcast_to(geom.L.mean(axis=1), (n, 3)))
+    R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+
+    def update():
+        nonlocal p, R
+        f, d, w = _residual_and_jacobian(geom, A, p, R)
+        J = np.concatenate([2 * d, 2 * np.cross(w, d)], axis=-1).reshape(n, 6, 6)
+        step = np.linalg.solve(J, -f[..., None])[..., 0]
+        p = p + step[:, :3]
+        R = Rotation.from_rotvec(step[:, 3:]).as_matrix() @ R
+        return np.abs(step).max(axis=1)
+
+    _newton(update, n, "forward kinematics")
+    _check_closure(geom, A, p, R, "forward kinematics")
+    return Pose(p=p, R=R)
+
+
+def _ideal_chain_angles(geom: Geometry, p: np.ndarray) -> np.ndarray:
+    """Closed-form arm angles (N,3) for each chain's centre line, platform not rotated."""
+    a = geom.elbow_vec[None]                                     # (1,3,3)
+    u = geom.axis[None]
+    v = p[:, None, :] + geom.P0.mean(axis=1)[None] - geom.B[None]  # B -> platform hinge centre
+    L = geom.L.mean(axis=1)[None]
+    ua, uv = np.sum(u * a, -1), np.sum(u * v, -1)
+    E = np.sum(v * a, -1) - ua * uv
+    F = np.sum(v * np.cross(u, a), -1)
+    G = 0.5 * (np.sum(a * a, -1) + np.sum(v * v, -1) - L ** 2) - ua * uv
+    h = np.hypot(E, F)
+    cos_arg = G / h
+    bad = np.flatnonzero(np.any(~(np.abs(cos_arg) <= 1.0), axis=1))
+    if bad.size:
+        raise KinematicsError(f"position at pose {int(bad[0])} = {p[bad[0]].tolist()} m is "
+                              f"unreachable by the arms ({bad.size} pose(s))")
+    base = np.arctan2(F, E)
+    alpha = np.arccos(cos_arg)
+    cand = np.stack([base + alpha, base - alpha])
+    home = geom.theta_zero[None, None]
+    cand = (cand - home + np.pi) % (2 * np.pi) - np.pi + home   # nearest branch to home
+    pick = np.argmin(np.abs(cand - home), axis=0)
+    return np.take_along_axis(cand, pick[None], 0)[0]
+
+
+def inverse(geom: Geometry, p, check: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse kinematics: platform position p (N,3) m -> (q (N,3) rad, R (N,3,3)).
+
+    The platform rotation is whatever the rods impose at that position (identity if ideal)."""
+    p = np.atleast_2d(np.asarray(p, dtype=np.float64))
+    if not np.all(np.isfinite(p)):
+        i = int(np.flatnonzero(~np.all(np.isfinite(p), axis=1))[0])
+        raise KinematicsError(f"position at pose {i} is not finite: {p[i].tolist()}")
+    n = p.shape[0]
+    theta = _ideal_chain_angles(geom, p)
+    R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    rel = None
+
+    def update():
+        nonlocal theta, R, rel
+        A = elbow_points(geom, theta)
+        f, d, w = _residual_and_jacobian(geom, A, p, R)
+        dA = np.cross(geom.axis[None, :, None, :], A - geom.B[None, :, None, :])
+        J = np.zeros((n, 3, 2, 6))
+        for i in range(3):
+            J[:, i, :, i] = -2 * np.sum(d[:, i] * dA[:, i], axis=-1)
+        J[..., 3:] = 2 * np.cross(w, d)
+        step = np.linalg.solve(J.reshape(n, 6, 6), -f[..., None])[..., 0]
+        theta = theta + step[:, :3]
+        R = Rotation.from_rotvec(step[:, 3:]).as_matrix() @ R
+        return np.abs(step).max(axis=1) * np.array(1.0)
+
+    _newton(update, n, "inverse kinematics")
+    _check_closure(geom, elbow_points(geom, theta), p, R, "inverse kinematics")
+    q = theta - geom.theta_zero
+    if check:
+        check_stroke(geom, q, "motor coordinates for the requested position")
+    return q, R
