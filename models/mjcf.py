@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .geometry import Geometry, build_geometry
-from .meshes import notch_hinge, platform_plate
+from .meshes import platform_plate
 from .params import RobotParams
 from .stiffness import element_stiffness
 
@@ -71,10 +71,6 @@ def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSp
     spec.option.gravity = [0.0, 0.0, -9.80665]
     rho = {part: params.material(part).density_kg_m3 for part in ("base", "arms", "rods", "platform")}
 
-    hinge = notch_hinge(params.flexure_neck_diameter_m, params.flexure_notch_radius_m,
-                        params.rod_diameter_m)
-    spec.add_mesh(name="flexure_hinge", uservert=hinge.vertices.ravel().tolist(),
-                  userface=hinge.faces.ravel().tolist())
     plate = platform_plate(geom.P0, 0.006)
     spec.add_mesh(name="platform_plate", uservert=plate.vertices.ravel().tolist(),
                   userface=plate.faces.ravel().tolist())
@@ -120,12 +116,16 @@ def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSp
             rod.add_joint(name=f"rod{i + 1}{j + 1}_ax", type=mujoco.mjtJoint.mjJNT_SLIDE,
                           axis=[0, 0, 1], stiffness=k.rod_axial[i, j])
             rod.add_geom(name=f"rod{i + 1}{j + 1}_body", type=mujoco.mjtGeom.mjGEOM_CAPSULE,
-                         fromto=[0, 0, 0.004, 0, 0, L - 0.004], size=[params.rod_diameter_m / 2],
+                         fromto=[0, 0, 2 * params.flexure_leaf_length_m, 0, 0, L - 2 * params.flexure_leaf_length_m], size=[params.rod_diameter_m / 2],
                          density=rho["rods"], contype=0, conaffinity=0, rgba=[0.8, 0.8, 0.85, 1])
-            for end, z in (("top", 0.0), ("bottom", L)):
-                rod.add_geom(name=f"rod{i + 1}{j + 1}_hinge_{end}", type=mujoco.mjtGeom.mjGEOM_MESH,
-                             meshname="flexure_hinge", pos=[0, 0, z], contype=0, conaffinity=0,
-                             density=rho["rods"], rgba=[0.9, 0.6, 0.2, 1])
+            lf, lt, lw = (params.flexure_leaf_length_m, params.flexure_leaf_thickness_m,
+                          params.flexure_leaf_width_m)
+            for end, z0 in (("top", 0.0), ("bottom", L - 2 * lf)):
+                for leaf, half in ((0, [lt / 2, lw / 2, lf / 2]), (1, [lw / 2, lt / 2, lf / 2])):
+                    rod.add_geom(name=f"rod{i + 1}{j + 1}_flexure_{end}{leaf + 1}",
+                                 type=mujoco.mjtGeom.mjGEOM_BOX, size=half,
+                                 pos=[0, 0, z0 + lf * (leaf + 0.5)], density=rho["rods"],
+                                 contype=0, conaffinity=0, rgba=[0.9, 0.6, 0.2, 1])
             rod.add_site(name=f"rod{i + 1}{j + 1}_end", pos=[0, 0, L])
         act = spec.add_actuator(name=f"drive{i + 1}", target=f"q{i + 1}",
                                 trntype=mujoco.mjtTrn.mjTRN_JOINT)

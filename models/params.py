@@ -69,8 +69,9 @@ _SCHEMA: tuple[tuple[str, str, tuple, str], ...] = (
     ("parts.rods", "material_rods", (), "str"),
     ("parts.platform", "material_platform", (), "str"),
     ("parts.mirror_cube", "material_mirror_cube", (), "str"),
-    ("flexure.neck_diameter_m", "flexure_neck_diameter_m", (), "pos"),
-    ("flexure.notch_radius_m", "flexure_notch_radius_m", (), "pos"),
+    ("flexure.leaf_length_m", "flexure_leaf_length_m", (), "pos"),
+    ("flexure.leaf_thickness_m", "flexure_leaf_thickness_m", (), "pos"),
+    ("flexure.leaf_width_m", "flexure_leaf_width_m", (), "pos"),
     ("rod.diameter_m", "rod_diameter_m", (), "pos"),
     ("arm.width_m", "arm_width_m", (), "pos"),
     ("arm.thickness_m", "arm_thickness_m", (), "pos"),
@@ -117,8 +118,9 @@ class RobotParams:
     material_rods: str
     material_platform: str
     material_mirror_cube: str
-    flexure_neck_diameter_m: float
-    flexure_notch_radius_m: float
+    flexure_leaf_length_m: float
+    flexure_leaf_thickness_m: float
+    flexure_leaf_width_m: float
     rod_diameter_m: float
     arm_width_m: float
     arm_thickness_m: float
@@ -208,9 +210,12 @@ def _check_consistency(p: RobotParams) -> None:
     arms = p.arm_length_m + p.d_arm_length_m
     if np.any(arms <= 0):
         raise ParameterError(f"{src}: arm length with 'deviations.arm_length_m' must be > 0, got {arms.tolist()}")
-    if p.flexure_neck_diameter_m >= p.rod_diameter_m:
-        raise ParameterError(f"{src}: 'flexure.neck_diameter_m' ({p.flexure_neck_diameter_m}) must be "
-                             f"smaller than 'rod.diameter_m' ({p.rod_diameter_m})")
+    if p.flexure_leaf_thickness_m >= p.flexure_leaf_width_m:
+        raise ParameterError(f"{src}: 'flexure.leaf_thickness_m' ({p.flexure_leaf_thickness_m}) must be "
+                             f"smaller than 'flexure.leaf_width_m' ({p.flexure_leaf_width_m})")
+    if 2 * p.flexure_leaf_length_m >= 0.5 * p.rod_length_m:
+        raise ParameterError(f"{src}: two flexures of 'flexure.leaf_length_m' = {p.flexure_leaf_length_m} m "
+                             f"take more than half of the rod ({p.rod_length_m} m)")
     reach = p.base_radius_m + p.arm_length_m - p.platform_radius_m
     if p.rod_length_m <= abs(p.base_radius_m - p.platform_radius_m) - p.arm_length_m or \
             p.rod_length_m <= 0.2 * reach:

@@ -203,3 +203,30 @@ def inverse(geom: Geometry, p, check: bool = True) -> tuple[np.ndarray, np.ndarr
     if check:
         check_stroke(geom, q, "motor coordinates for the requested position")
     return q, R
+
+
+def rod_directions(geom: Geometry, q: np.ndarray, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """Unit rod directions elbow -> platform (N,3,2,3) and hinge-to-hinge distances (N,3,2)."""
+    A = elbow_points(geom, geom.theta(q))
+    d = pose.p[:, None, None, :] + np.einsum("nab,ijb->nija", pose.R, geom.P0) - A
+    L = np.linalg.norm(d, axis=-1)
+    return d / L[..., None], L
+
+
+def home_rod_directions(geom: Geometry) -> tuple[np.ndarray, np.ndarray]:
+    """Rod directions at the home pose (q = 0), where the flexures are straight:
+    in the world (= arm frame at q = 0) and in the platform frame, each (3,2,3)."""
+    home = forward(geom, np.zeros((1, 3)), check=False)
+    n0, _ = rod_directions(geom, np.zeros((1, 3)), home)
+    return n0[0], np.einsum("ba,ijb->ija", home.R[0], n0[0])
+
+
+def flexure_rest_directions(geom: Geometry, q: np.ndarray, pose: Pose, home_dirs) -> tuple:
+    """Directions (N,3,2,3) a rod would have if its elbow / platform flexure were unbent."""
+    n0, n0_plat = home_dirs
+    shape = q.shape[:1] + (3, 2, 3)
+    rest_e = rotate_about_axis(np.broadcast_to(geom.axis[None, :, None, :], shape),
+                               np.broadcast_to(q[:, :, None], shape[:-1]),
+                               np.broadcast_to(n0[None], shape))
+    rest_p = np.einsum("nab,ijb->nija", pose.R, n0_plat)
+    return rest_e, rest_p

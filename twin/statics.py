@@ -29,7 +29,8 @@ from models.geometry import Geometry
 from models.params import RobotParams
 from models.stiffness import Stiffness, element_stiffness
 
-from .kinematics import Pose, elbow_points, forward, rotate_about_axis
+from .kinematics import (Pose, elbow_points, flexure_rest_directions, forward,
+                         home_rod_directions, rotate_about_axis)
 
 GRAVITY_M_S2 = 9.80665
 N_COORD = 18  # dp(3) dr(3) dtheta(3) phi(3 chains x 3)
@@ -63,13 +64,7 @@ class Statics:
     def __init__(self, params: RobotParams, geom: Geometry):
         self.params, self.geom = params, geom
         self.k: Stiffness = element_stiffness(params, geom)
-        home = forward(geom, np.zeros((1, 3)), check=False)
-        A0 = elbow_points(geom, geom.theta(np.zeros((1, 3))))
-        P_home = home.p[:, None, None, :] + np.einsum("nab,ijb->nija", home.R, geom.P0)
-        n0 = (P_home - A0)[0]
-        n0 /= np.linalg.norm(n0, axis=-1, keepdims=True)
-        self.rod_dir_home = n0                                   # (3,2,3) world = arm frame at q=0
-        self.rod_dir_home_platform = np.einsum("ba,ijb->ija", home.R[0], n0)  # platform frame
+        self.home_dirs = home_rod_directions(geom)
 
     # -- assembly -----------------------------------------------------------------------------
     def _chain_system(self, q: np.ndarray, pose: Pose):
@@ -117,10 +112,7 @@ class Statics:
         tors[..., 3:6] += n                                              # relative twist about the rod
 
         # initial (preload) bending strains: rest direction x actual direction
-        rest_e = rotate_about_axis(np.broadcast_to(g.axis[None, :, None, :], n.shape),
-                                   np.broadcast_to(q[:, :, None], n.shape[:-1]),
-                                   np.broadcast_to(self.rod_dir_home[None], n.shape))
-        rest_p = np.einsum("nab,ijb->nija", pose.R, self.rod_dir_home_platform)
+        rest_e, rest_p = flexure_rest_directions(g, q, pose, self.home_dirs)
         e0_el, e0_pl = np.cross(rest_e, n), np.cross(rest_p, n)
 
         rows = np.concatenate([
