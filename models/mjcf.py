@@ -179,7 +179,8 @@ def build_model(params: RobotParams) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
 
 def update_model(model: mujoco.MjModel, params: RobotParams) -> None:
     """Write new geometry (errors, temperatures) into a compiled model without recompiling:
-    actuator axis points, elbow and platform hinge positions, rod lengths."""
+    actuator axis points and axes, elbow and platform hinge positions, rod lengths, the
+    platform's home pose.  The coils and the metrology frame stay where they are in the room."""
     geom = build_geometry(params)
     frames = rod_frames(geom)
     for i in range(3):
@@ -197,6 +198,12 @@ def update_model(model: mujoco.MjModel, params: RobotParams) -> None:
             model.site_pos[model.site(f"rod{i + 1}{j + 1}_end").id] = [0.0, 0.0, geom.L[i, j]]
             model.site_pos[model.site(f"plat{i + 1}{j + 1}").id] = geom.P0[i, j]
     model.site_pos[model.site("mirror_cube_centre").id] = geom.cube_offset
+    from twin.kinematics import forward
+    home = forward(geom, np.zeros((1, 3)), check=False)
+    plat = model.body("platform").id
+    model.body_pos[plat] = home.p[0]
+    adr = model.joint("platform_free").qposadr[0]
+    model.qpos0[adr:adr + 3] = home.p[0]
 
 
 def pose_model(model: mujoco.MjModel, data: mujoco.MjData, q: np.ndarray, p: np.ndarray,
