@@ -1,0 +1,791 @@
+"""Calibrated models: DGM per axis (first paper), IGM by Newton-Raphson on the DGM, direct IGM
+per motor (second paper), and their JSON export / load.
+
+Estimators follow scikit-learn's shape: parameters are given to the constructor and checked
+there, ``fit(df)`` learns from a dataset table (docs/data-format.md) and sets attributes
+ending in ``_``, ``predict(df)`` returns SI arrays.
+
+* :class:`DGM` — ``reading_axis = f(q1, q2, q3, temperatures, their derivatives)``, one
+  stepwise fit per measured axis, on the rows where that axis was measured (``x_nm``, ``y_nm``
+  in the ``xy`` session, ``z_nm`` in the ``z`` session), calibration split only.
+* :class:`IGM` — the controller's model: position + temperatures -> motor coordinates,
+  by vectorised Newton-Raphson on a fitted DGM; each point converges to ``tol_m`` or is
+  reported as not converged.
+* :class:`DirectIGM` — ``q_i = f(X, Y, Z, F)``, one stepwise fit per motor.
+
+A fitted model is a list of :class:`OutputModel` (one per axis or motor): the kept terms,
+their coefficients in SI, the intercept, and the standardisation used for the regression.
+Every prediction goes through one evaluator that factorises each term into a geometric
+monomial times an auxiliary monomial (temperatures, rates, force), so the IGM's Newton
+iterations only re-evaluate the <= 20 geometric monomials.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .errors import (CalibrationInputError, DroppedRowsWarning, MissingColumnsError,
+                     MissingMetadataWarning, ModelFileError, ModelMismatchError,
+                     TooFewPointsError)
+from .features import (CARTESIAN_INPUTS, DEFAULT_T_REF_K, DEFAULT_WINDOW_S, JOINT_INPUTS,
+                       FeatureSet, Term, force_preset, temperature_variables, thermal_preset,
+                       variable_unit)
+from .stepwise import _PENTER_DEFAULT, resolve_thresholds, stepwisefit
+
+__all__ = ["OutputModel", "DGM", "IGM", "IGMResult", "DirectIGM", "load_model",
+           "thermal_sensors", "MODEL_FORMAT", "MODEL_FORMAT_VERSION"]
+
+MODEL_FORMAT = "deltatwin-calibration-model"
+MODEL_FORMAT_VERSION = 1
+NM = 1e-9
+AXIS_COLUMNS = {"x": "x_nm", "y": "y_nm", "z": "z_nm"}
+MOTOR_COLUMNS = {"q1": "q1_rad", "q2": "q2_rad", "q3": "q3_rad"}
+_CARTESIAN_COLUMN = {"X": "x_nm", "Y": "y_nm", "Z": "z_nm"}
+
+
+def thermal_sensors(df: pd.DataFrame, meta: dict | None, sensors=None) -> list[str]:
+    """The temperature sensors of the thermal preset.
+
+    An explicit list wins (each must have a ``T_<name>_C`` column).  Otherwise the sensors of
+    ``meta['sensors']`` whose part is not ``air`` (the first paper's 9 of 11), in table order.
+    Without that metadata: every ``T_*_C`` column whose name does not start with ``air``,
+    with a :class:`MissingMetadataWarning` naming the choice.
+    """
+    present = [c[2:-2] for c in df.columns if c.startswith("T_") and c.endswith("_C")]
+    if sensors is not None:
+        sensors = list(sensors)
+        missing = [s for s in sensors if s not in present]
+        if missing:
+            raise MissingColumnsError(f"temperature sensor(s) {missing} asked for but their "
+                                      f"column(s) {[f'T_{s}_C' for s in missing]} are not in "
+                                      f"the data; sensors present: {present}")
+        if not sensors:
+            raise CalibrationInputError("the explicit temperature sensor list is empty")
+        return sensors
+    parts = (meta or {}).get("sensors")
+    if isinstance(parts, dict) and parts:
+        chosen = [s for s in present if s in parts and str(parts[s]).lower() != "air"]
+        unknown = [s for s in present if s not in parts]
+        if unknown:
+            warnings.warn(f"temperature column(s) {[f'T_{s}_C' for s in unknown]} have no entry "
+                          "in metadata 'sensors' and are not used", MissingMetadataWarning,
+                          stacklevel=3)
+    else:
+        chosen = [s for s in present if not s.lower().startswith("air")]
+        warnings.warn("no 'sensors' metadata: using every temperature column whose name does "
+                      f"not start with 'air' as a structure sensor: {chosen}",
+                      MissingMetadataWarning, stacklevel=3)
+    if not chosen:
+        raise MissingColumnsError(f"no structure temperature sensor in the data (temperature "
+                                  f"sensors present: {present}); the thermal features need "
+                                  "at least one")
+    return chosen
+
+
+# ----- one fitted output -------------------------------------------------------------
+
+@dataclass
+class OutputModel:
+    """One fitted output (an axis reading or a motor coordinate)."""
+    output: str                 # "x" / "q1"
+    unit: str                   # SI unit of the output
+    column: str                 # dataset column it is fitted to
+    column_to_si: float         # factor from the column's unit to SI
+    terms: list[Term]           # kept terms
+    coef: np.ndarray            # SI coefficients of the kept terms
+    intercept: float
+    term_mean: np.ndarray       # standardisation of the kept terms (for the record)
+    term_std: np.ndarray
+    y_mean: float
+    y_std: float
+    n_cal: int = 0
+    rmse: float = math.nan
+    n_candidates: int = 0
+    steps: list = field(default_factory=list)   # [(action, term name), ...]
+
+    @property
+    def terms_kept(self) -> int:
+        return len(self.terms)
+
+    @property
+    def coef_standardized(self) -> np.ndarray:
+        return self.coef * self.term_std / self.y_std
+
+    def to_dict(self) -> dict:
+        return {"output": self.output, "unit": self.unit, "column": self.column,
+                "column_to_si": self.column_to_si,
+                "terms": [{"name": t.name, "factors": t.to_list()} for t in self.terms],
+                "coef": [float(c) for c in self.coef], "intercept": float(self.intercept),
+                "scaling": {"term_mean": [float(v) for v in self.term_mean],
+                            "term_std": [float(v) for v in self.term_std],
+                            "y_mean": float(self.y_mean), "y_std": float(self.y_std),
+                            "coef_standardized": [float(v) for v in self.coef_standardized]},
+                "terms_kept": self.terms_kept, "n_cal": int(self.n_cal),
+                "rmse": float(self.rmse), "n_candidates": int(self.n_candidates),
+                "steps": [[a, n] for a, n in self.steps]}
+
+    @staticmethod
+    def from_dict(d: dict) -> "OutputModel":
+        try:
+            terms = [Term.from_list(t["factors"]) for t in d["terms"]]
+            for t, td in zip(terms, d["terms"]):
+                if td.get("name", t.name) != t.name:
+                    raise ModelFileError(f"output {d['output']!r}: term name {td['name']!r} "
+                                         f"does not match its factors ({t.name})")
+            sc = d["scaling"]
+            om = OutputModel(
+                output=str(d["output"]), unit=str(d["unit"]), column=str(d["column"]),
+                column_to_si=float(d["column_to_si"]), terms=terms,
+                coef=np.array(d["coef"], dtype=float), intercept=float(d["intercept"]),
+                term_mean=np.array(sc["term_mean"], dtype=float),
+                term_std=np.array(sc["term_std"], dtype=float),
+                y_mean=float(sc["y_mean"]), y_std=float(sc["y_std"]),
+                n_cal=int(d.get("n_cal", 0)), rmse=float(d.get("rmse", math.nan)),
+                n_candidates=int(d.get("n_candidates", 0)),
+                steps=[tuple(s) for s in d.get("steps", [])])
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, ModelFileError):
+                raise
+            raise ModelFileError(f"output entry is malformed ({type(exc).__name__}: {exc})") \
+                from exc
+        n = len(om.terms)
+        if not (om.coef.shape == om.term_mean.shape == om.term_std.shape == (n,)):
+            raise ModelFileError(f"output {om.output!r}: {n} terms but {om.coef.size} "
+                                 f"coefficients / {om.term_mean.size} scalings")
+        if not (np.all(np.isfinite(om.coef)) and math.isfinite(om.intercept)):
+            raise ModelFileError(f"output {om.output!r}: non-finite coefficient")
+        return om
+
+
+# ----- evaluator ---------------------------------------------------------------------
+
+class _Evaluator:
+    """sum_o = sum over (aux monomial a, geometric monomial g) W[o, a, g] * aux_a * geo_g."""
+
+    def __init__(self, outputs: list[OutputModel], geo_inputs: tuple[str, ...]):
+        self.geo_inputs = tuple(geo_inputs)
+        gi = {v: i for i, v in enumerate(self.geo_inputs)}
+        aux_vars: dict[str, None] = {}
+        for om in outputs:
+            for t in om.terms:
+                for v in t.variables:
+                    if v not in gi:
+                        aux_vars.setdefault(v, None)
+        self.aux_vars = tuple(aux_vars)
+        ai = {v: i for i, v in enumerate(self.aux_vars)}
+        geo_monos = {(0,) * len(gi): 0}
+        aux_monos = {(0,) * len(ai): 0}
+        entries = []
+        for o, om in enumerate(outputs):
+            entries.append((o, aux_monos[(0,) * len(ai)], 0, om.intercept))
+            for t, c in zip(om.terms, om.coef):
+                ge = [0] * len(gi)
+                ae = [0] * len(ai)
+                for v, p in t.factors:
+                    if v in gi:
+                        ge[gi[v]] += p
+                    else:
+                        ae[ai[v]] += p
+                g = geo_monos.setdefault(tuple(ge), len(geo_monos))
+                a = aux_monos.setdefault(tuple(ae), len(aux_monos))
+                entries.append((o, a, g, float(c)))
+        self.geo_exp = np.array(list(geo_monos), dtype=int).reshape(len(geo_monos), len(gi))
+        self.aux_exp = np.array(list(aux_monos), dtype=int).reshape(len(aux_monos), len(ai))
+        W = np.zeros((len(outputs), len(aux_monos), len(geo_monos)))
+        for o, a, g, c in entries:
+            W[o, a, g] += c
+        self.W = W
+        self.max_pow = int(self.geo_exp.max()) if self.geo_exp.size else 0
+
+    def aux_matrix(self, aux: dict[str, np.ndarray], n: int) -> np.ndarray:
+        H = np.ones((n, self.aux_exp.shape[0]))
+        for k, v in enumerate(self.aux_vars):
+            if v not in aux:
+                raise MissingColumnsError(f"the model needs variable {v!r} "
+                                          f"({variable_unit(v)}), not given")
+            x = np.asarray(aux[v], dtype=float).reshape(-1)
+            if x.size == 1 and n != 1:
+                x = np.full(n, x.item())
+            if x.size != n:
+                raise CalibrationInputError(f"variable {v!r} has {x.size} values for {n} points")
+            e = self.aux_exp[:, k]
+            for p in np.unique(e[e > 0]):
+                H[:, e == p] *= (x**p)[:, None]
+        return H
+
+    def coefficients(self, aux: dict[str, np.ndarray], n: int) -> np.ndarray:
+        """C (n, n_out, n_geo): per-point coefficients of the geometric monomials."""
+        H = self.aux_matrix(aux, n)
+        return np.einsum("na,oag->nog", H, self.W, optimize=True)
+
+    def _powers(self, g: np.ndarray):
+        n, d = g.shape
+        P = np.empty((n, d, self.max_pow + 1))
+        P[:, :, 0] = 1.0
+        for p in range(1, self.max_pow + 1):
+            P[:, :, p] = P[:, :, p - 1] * g
+        return P
+
+    def monomials(self, g: np.ndarray, grad: bool = False):
+        P = self._powers(g)
+        E = self.geo_exp
+        d = g.shape[1]
+        facs = [P[:, j, E[:, j]] for j in range(d)]            # each (n, n_geo)
+        M = facs[0].copy()
+        for f in facs[1:]:
+            M *= f
+        if not grad:
+            return M
+        dM = np.empty(M.shape + (d,))
+        for j in range(d):
+            e = E[:, j]
+            dj = P[:, j, np.maximum(e - 1, 0)] * e              # e * g^(e-1)
+            for k in range(d):
+                if k != j:
+                    dj = dj * facs[k]
+            dM[:, :, j] = dj
+        return M, dM
+
+    def value(self, C: np.ndarray, g: np.ndarray) -> np.ndarray:
+        return np.einsum("nog,ng->no", C, self.monomials(g), optimize=True)
+
+    def value_and_jacobian(self, C, g):
+        M, dM = self.monomials(g, grad=True)
+        return (np.einsum("nog,ng->no", C, M, optimize=True),
+                np.einsum("nog,ngj->noj", C, dM, optimize=True))
+
+
+# ----- shared estimator machinery ------------------------------------------------------
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+class _StepwiseModel:
+    """Shared by DGM and DirectIGM: features -> per-output stepwise fits."""
+    kind = "?"
+    geo_inputs: tuple[str, ...] = ()
+    preset_name = "?"
+
+    def __init__(self, features="preset", *, sensors=None, penter=_PENTER_DEFAULT,
+                 premove=None, maxiter=None, window_s: float = DEFAULT_WINDOW_S,
+                 T_ref_K: float = DEFAULT_T_REF_K, outputs=None, min_rows_margin: int = 2):
+        if isinstance(features, str):
+            if features not in ("preset", self.preset_name):
+                raise CalibrationInputError(f"{self.kind}: features {features!r} unknown; use "
+                                            f"{self.preset_name!r} or a FeatureSet")
+        elif not isinstance(features, FeatureSet):
+            raise CalibrationInputError(f"{self.kind}: features must be a preset name or a "
+                                        f"FeatureSet, got {type(features).__name__}")
+        self.features = features
+        self.sensors = None if sensors is None else list(sensors)
+        self.penter, self.premove = resolve_thresholds(penter, premove)
+        self.maxiter = maxiter
+        if not (window_s > 0):
+            raise CalibrationInputError(f"{self.kind}: window_s = {window_s} must be > 0")
+        if not (T_ref_K > 0):
+            raise CalibrationInputError(f"{self.kind}: T_ref_K = {T_ref_K} must be > 0 K")
+        self.window_s = float(window_s)
+        self.T_ref_K = float(T_ref_K)
+        self.outputs = None if outputs is None else list(outputs)
+        self.min_rows_margin = int(min_rows_margin)
+
+    # -- to override
+    def _output_specs(self, df) -> list[tuple[str, str, str, float]]:
+        raise NotImplementedError
+
+    def _default_features(self, sensors) -> FeatureSet:
+        raise NotImplementedError
+
+    # -- features and variables
+    def _resolve_features(self, df, meta):
+        if isinstance(self.features, FeatureSet):
+            fs = self.features
+            sens = []
+            for v in fs.variables:
+                for pre in ("d2T_", "dT_", "T_"):
+                    if v.startswith(pre):
+                        s = v[len(pre):]
+                        if s not in sens:
+                            sens.append(s)
+                        break
+            if self.sensors is not None and set(self.sensors) != set(sens):
+                raise CalibrationInputError(f"{self.kind}: sensors {self.sensors} differ from "
+                                            f"those of the feature set {sens}")
+            thermal_sensors(df, meta, sens) if sens else None   # checks the columns
+            return fs, sens
+        sens = self._sensors_for(df, meta)
+        return self._default_features(sens), sens
+
+    def _sensors_for(self, df, meta):
+        return []
+
+    def variables(self, df: pd.DataFrame) -> dict[str, np.ndarray]:
+        """Base variables (SI) of every row of ``df`` needed by the fitted model."""
+        self._check_fitted()
+        return base_variables(df, self.variables_needed_, self.sensors_, self.T_ref_K,
+                               self.window_s)
+
+    def _check_fitted(self):
+        if not hasattr(self, "outputs_"):
+            raise CalibrationInputError(f"{self.kind} is not fitted: call fit(df) or load_model()")
+
+    # -- fit
+    def fit(self, df: pd.DataFrame, meta: dict | None = None, split: str | None = "cal"):
+        """Fit one stepwise model per output on the rows of ``split`` (None: all rows).
+
+        Temperature derivatives are computed on the whole table (each session's full
+        stream), as a controller sees it, before the rows are selected.
+        """
+        if not isinstance(df, pd.DataFrame):
+            raise CalibrationInputError(f"{self.kind}.fit expects a pandas DataFrame")
+        from .validation import check_disjoint
+        if "split" in df.columns:
+            check_disjoint(df)
+        fs, sens = self._resolve_features(df, meta)
+        specs = self._output_specs(df)
+        needed = fs.variables
+        values = base_variables(df, needed, sens, self.T_ref_K, self.window_s)
+        Xall = fs.matrix(values)
+        if split is not None:
+            if "split" not in df.columns:
+                raise MissingColumnsError(f"{self.kind}.fit: split={split!r} asked but the "
+                                          "table has no 'split' column")
+            in_split = (df["split"].astype(str) == split).to_numpy()
+        else:
+            in_split = np.ones(len(df), bool)
+        outputs = []
+        for name, unit, column, to_si in specs:
+            y = df[column].to_numpy(dtype=float) * to_si
+            rows = in_split & np.isfinite(y)
+            okx = np.all(np.isfinite(Xall), axis=1)
+            dropped = rows & ~okx
+            if dropped.any():
+                bad = [v for v in needed if not np.all(np.isfinite(values[v][dropped]))]
+                warnings.warn(f"{self.kind} output {name!r}: {int(dropped.sum())} row(s) with "
+                              f"NaN inputs dropped (NaN in {bad[:8]})", DroppedRowsWarning,
+                              stacklevel=2)
+            rows &= okx
+            n = int(rows.sum())
+            need = len(fs) + self.min_rows_margin
+            if n < need:
+                raise TooFewPointsError(
+                    f"{self.kind} output {name!r}: {n} usable calibration row(s) for "
+                    f"{len(fs)} candidate terms; at least {need} are needed "
+                    f"(candidates + intercept + 1 residual degree of freedom)")
+            res = stepwisefit(Xall[rows], y[rows], penter=self.penter, premove=self.premove,
+                              maxiter=self.maxiter, names=fs.names)
+            sel = np.flatnonzero(res.inmodel & ~res.aliased)
+            outputs.append(OutputModel(
+                output=name, unit=unit, column=column, column_to_si=to_si,
+                terms=[fs.terms[j] for j in sel], coef=res.coef[sel].copy(),
+                intercept=res.intercept, term_mean=res.x_mean[sel].copy(),
+                term_std=res.x_std[sel].copy(), y_mean=res.y_mean, y_std=res.y_std,
+                n_cal=n, rmse=res.rmse, n_candidates=len(fs),
+                steps=[(h.action, h.name) for h in res.history]))
+            setattr(self, f"_stepwise_{name}", res)
+        self.features_ = fs
+        self.sensors_ = sens
+        self._set_outputs(outputs)
+        return self
+
+    def stepwise_result(self, output: str):
+        """The full :class:`StepwiseResult` of an output (after fit, not after load)."""
+        return getattr(self, f"_stepwise_{output}")
+
+    def _set_outputs(self, outputs):
+        self.outputs_ = list(outputs)
+        self.output_names_ = [o.output for o in self.outputs_]
+        vs: dict[str, None] = {}
+        for v in self.geo_inputs:
+            vs.setdefault(v, None)
+        for o in self.outputs_:
+            for t in o.terms:
+                for v in t.variables:
+                    vs.setdefault(v, None)
+        self.variables_needed_ = list(vs)
+        self._eval = _Evaluator(self.outputs_, self.geo_inputs)
+
+    @property
+    def terms_kept_(self) -> dict[str, int]:
+        self._check_fitted()
+        return {o.output: o.terms_kept for o in self.outputs_}
+
+    def output(self, name: str) -> OutputModel:
+        self._check_fitted()
+        for o in self.outputs_:
+            if o.output == name:
+                return o
+        raise CalibrationInputError(f"{self.kind} has no output {name!r}; it has "
+                                    f"{self.output_names_}")
+
+    # -- predict
+    def predict_values(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        """Predict from base variables (SI arrays): (n, n_outputs) in SI."""
+        self._check_fitted()
+        g = np.column_stack([np.asarray(values[v], dtype=float) for v in self.geo_inputs]) \
+            if all(v in values for v in self.geo_inputs) else None
+        if g is None:
+            missing = [v for v in self.geo_inputs if v not in values]
+            raise MissingColumnsError(f"{self.kind}: no values for input(s) {missing}")
+        n = g.shape[0]
+        C = self._eval.coefficients(values, n)
+        return self._eval.value(C, g)
+
+    def predict(self, df: pd.DataFrame) -> np.ndarray:
+        """Predictions for every row of ``df``: (n, n_outputs) in SI (m or rad); NaN rows
+        where an input is NaN."""
+        self._check_fitted()
+        return self.predict_values(self.variables(df))
+
+    def targets(self, df: pd.DataFrame) -> np.ndarray:
+        """Measured outputs of every row (SI), NaN where not measured."""
+        self._check_fitted()
+        cols = []
+        for o in self.outputs_:
+            if o.column not in df.columns:
+                raise MissingColumnsError(f"{self.kind}: column {o.column!r} of output "
+                                          f"{o.output!r} is not in the data")
+            cols.append(df[o.column].to_numpy(dtype=float) * o.column_to_si)
+        return np.column_stack(cols)
+
+    # -- export
+    def to_dict(self) -> dict:
+        self._check_fitted()
+        inputs = {}
+        for v in self.variables_needed_:
+            inputs[v] = {"unit": variable_unit(v), **_input_source(v)}
+        return {
+            "format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "kind": self.kind,
+            "features": self.features_.to_dict(),
+            "candidate_terms": self.features_.names,
+            "geometric_inputs": list(self.geo_inputs),
+            "sensors": list(self.sensors_),
+            "inputs": inputs,
+            "temperature": {"reference_K": self.T_ref_K,
+                            "meaning": "T_<s> = (T_<s>_C + 273.15) - reference_K, in K"},
+            "derivatives": {"method": "causal trailing-window least-squares polynomial",
+                            "degree": 2, "window_s": self.window_s,
+                            "per": "session, time order, rows with finite temperatures"},
+            "regression": {"method": "stepwisefit (MATLAB semantics)", "penter": self.penter,
+                           "premove": self.premove},
+            "evaluation": "output = intercept + sum_k coef_k * prod_(v,p) v**p over the "
+                          "term's factors, variables in SI (see inputs)",
+            "outputs": [o.to_dict() for o in self.outputs_],
+        }
+
+    def save(self, path) -> Path:
+        """Write the model as JSON, atomically (temporary file, then rename)."""
+        path = Path(path)
+        _atomic_write_text(path, json.dumps(self.to_dict(), indent=1, allow_nan=True))
+        return path
+
+    @classmethod
+    def _from_dict(cls, d: dict):
+        obj = cls(features=FeatureSet.from_dict(d["features"]), sensors=d.get("sensors"),
+                  penter=d["regression"]["penter"], premove=d["regression"]["premove"],
+                  window_s=d["derivatives"]["window_s"],
+                  T_ref_K=d["temperature"]["reference_K"])
+        obj.features_ = obj.features
+        if d.get("candidate_terms") is not None and list(d["candidate_terms"]) != obj.features_.names:
+            raise ModelFileError("the model's candidate term list does not match its feature "
+                                 "families")
+        obj.sensors_ = list(d.get("sensors") or [])
+        outs = [OutputModel.from_dict(o) for o in d["outputs"]]
+        cand = set(obj.features_.names)
+        for o in outs:
+            extra = [t.name for t in o.terms if t.name not in cand]
+            if extra:
+                raise ModelFileError(f"output {o.output!r} uses term(s) {extra[:5]} that are "
+                                     f"not in its feature set {obj.features_.name!r}")
+        obj._set_outputs(outs)
+        return obj
+
+
+def _input_source(v: str) -> dict:
+    if v in JOINT_INPUTS:
+        return {"column": f"{v}_rad", "column_to_si": 1.0}
+    if v in CARTESIAN_INPUTS:
+        return {"column": _CARTESIAN_COLUMN[v], "column_to_si": NM}
+    if v == "F":
+        return {"column": "F_N", "column_to_si": 1.0}
+    for pre, order in (("d2T_", 2), ("dT_", 1)):
+        if v.startswith(pre):
+            return {"derivative_of": f"T_{v[len(pre):]}", "order": order}
+    if v.startswith("T_"):
+        return {"column": f"{v}_C", "conversion": "degC + 273.15 - reference_K"}
+    return {}
+
+
+def base_variables(df, needed, sensors, T_ref_K, window_s) -> dict[str, np.ndarray]:
+    needed = list(needed)
+    out: dict[str, np.ndarray] = {}
+    missing = []
+    for v in needed:
+        src = _input_source(v)
+        col = src.get("column")
+        if v in JOINT_INPUTS or v in CARTESIAN_INPUTS or v == "F":
+            if col not in df.columns:
+                missing.append(col)
+            else:
+                out[v] = pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=float) \
+                    * src["column_to_si"]
+    if missing:
+        raise MissingColumnsError(f"column(s) {missing} needed by the features are not in the "
+                                  f"data; columns present: {list(df.columns)}")
+    tv = [v for v in needed if v.startswith(("T_", "dT_", "d2T_"))]
+    if tv:
+        if "t_s" not in df.columns:
+            raise MissingColumnsError("column 't_s' is needed for the temperature derivatives")
+        out.update(temperature_variables(df, sensors, set(tv), T_ref_K, window_s))
+    return out
+
+
+# ----- DGM -------------------------------------------------------------------------------
+
+class DGM(_StepwiseModel):
+    """Direct geometric model per axis: ``reading = f(q, T, dT/dt, d2T/dt2)`` (first paper).
+
+    ``features``: ``"thermal"`` (the preset: 19 geometric, temperatures, geometric x
+    temperature, first and second derivatives) or any :class:`FeatureSet` over q1..q3 and
+    temperature variables.  ``sensors``: temperature sensor names (default: the metadata's
+    non-air sensors).  ``outputs``: axes to fit (default: every one of x, y, z measured in the
+    calibration rows).  Outputs are in metres.
+    """
+    kind = "DGM"
+    geo_inputs = JOINT_INPUTS
+    preset_name = "thermal"
+
+    def __init__(self, features="thermal", **kw):
+        super().__init__(features, **kw)
+        if self.outputs is not None:
+            bad = [a for a in self.outputs if a not in AXIS_COLUMNS]
+            if bad:
+                raise CalibrationInputError(f"DGM: unknown axis(es) {bad}; use x, y, z")
+
+    def _sensors_for(self, df, meta):
+        return thermal_sensors(df, meta, self.sensors)
+
+    def _default_features(self, sensors):
+        return thermal_preset(sensors)
+
+    def _output_specs(self, df):
+        if self.outputs is not None:
+            axes = self.outputs
+            missing = [AXIS_COLUMNS[a] for a in axes if AXIS_COLUMNS[a] not in df.columns]
+            if missing:
+                raise MissingColumnsError(f"DGM: axis column(s) {missing} not in the data")
+        else:
+            axes = [a for a, c in AXIS_COLUMNS.items()
+                    if c in df.columns and np.isfinite(df[c].to_numpy(dtype=float)).any()]
+            if not axes:
+                raise MissingColumnsError("DGM: no interferometer reading (x_nm, y_nm, z_nm) "
+                                          "with a finite value in the data")
+        return [(a, "m", AXIS_COLUMNS[a], NM) for a in axes]
+
+
+@dataclass
+class IGMResult:
+    q: np.ndarray            # (n, 3) rad; last iterate where not converged
+    converged: np.ndarray    # (n,) bool: |DGM(q) - target| <= tol_m on every axis
+    iterations: np.ndarray   # (n,) Newton iterations used
+    residual_m: np.ndarray   # (n,) max |DGM(q) - target| over the axes, m
+
+    @property
+    def n_failed(self) -> int:
+        return int((~self.converged).sum())
+
+
+class IGM:
+    """Inverse geometric model by Newton-Raphson on a fitted DGM with x, y and z outputs.
+
+    ``solve(position_m, aux)`` finds q with ``DGM(q, aux) = position`` for a batch, in a
+    vectorised loop over the points not yet converged.  A point is converged when every
+    axis' residual is <= ``tol_m`` (default 1e-12 m = 0.001 nm); points whose Jacobian is
+    singular or whose iterates leave the finite range, or that are still above ``tol_m``
+    after ``max_iter`` iterations, are reported (``converged`` False), never silently kept.
+    """
+
+    def __init__(self, dgm: DGM, tol_m: float = 1e-12, max_iter: int = 30):
+        if not isinstance(dgm, DGM):
+            raise CalibrationInputError(f"IGM needs a DGM, got {type(dgm).__name__}")
+        dgm._check_fitted()
+        missing = [a for a in AXIS_COLUMNS if a not in dgm.output_names_]
+        if missing:
+            raise CalibrationInputError(f"IGM needs DGM outputs x, y and z; axis(es) {missing} "
+                                        "were not fitted")
+        if not (tol_m > 0) or not (max_iter >= 1):
+            raise CalibrationInputError(f"IGM: tol_m = {tol_m} must be > 0 and max_iter = "
+                                        f"{max_iter} >= 1")
+        self.dgm = dgm
+        self.tol_m = float(tol_m)
+        self.max_iter = int(max_iter)
+        order = [dgm.output_names_.index(a) for a in AXIS_COLUMNS]
+        self._order = np.array(order)
+
+    @property
+    def aux_variables(self) -> tuple[str, ...]:
+        """Non-geometric variables the IGM needs (temperatures, rates), SI."""
+        return self.dgm._eval.aux_vars
+
+    def solve(self, position_m, aux: dict | None = None, q0=None) -> IGMResult:
+        """``position_m``: (n, 3) target readings x, y, z in m; ``aux``: dict of the aux
+        variables (arrays (n,) or scalars, SI: K relative to the reference, K/s, K/s^2)."""
+        x = np.atleast_2d(np.asarray(position_m, dtype=float))
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise CalibrationInputError(f"IGM.solve: positions must be (n, 3), got {x.shape}")
+        n = x.shape[0]
+        ev = self.dgm._eval
+        C = ev.coefficients(aux or {}, n)[:, self._order, :]
+        q = np.zeros((n, 3)) if q0 is None else np.array(np.broadcast_to(q0, (n, 3)), float)
+        conv = np.zeros(n, bool)
+        iters = np.zeros(n, int)
+        resid = np.full(n, np.inf)
+        active = np.flatnonzero(np.all(np.isfinite(x), axis=1) & np.isfinite(C).all(axis=(1, 2)))
+        for it in range(self.max_iter + 1):
+            if active.size == 0:
+                break
+            f, J = ev.value_and_jacobian(C[active], q[active])
+            r = f - x[active]
+            rmax = np.max(np.abs(r), axis=1)
+            resid[active] = rmax
+            ok = rmax <= self.tol_m
+            conv[active[ok]] = True
+            bad = ~np.isfinite(rmax)
+            keep = ~ok & ~bad
+            if it == self.max_iter:
+                break
+            active, J, r = active[keep], J[keep], r[keep]
+            det = np.linalg.det(J)
+            sing = ~np.isfinite(det) | (np.abs(det) <= 1e-300)
+            if sing.any():
+                J[sing] = np.eye(3)
+                r[sing] = 0.0
+            dq = np.linalg.solve(J, r[:, :, None])[:, :, 0]
+            q[active] -= dq
+            iters[active] += 1
+            active = active[~sing]
+        return IGMResult(q=q, converged=conv, iterations=iters, residual_m=resid)
+
+    def solve_frame(self, df: pd.DataFrame, position_m) -> IGMResult:
+        """Solve with the temperatures (and causal derivatives) of the rows of ``df``."""
+        return self.solve(position_m, self.dgm.variables(df))
+
+
+# ----- direct IGM ------------------------------------------------------------------------
+
+class DirectIGM(_StepwiseModel):
+    """Direct IGM per motor: ``q_i = f(X, Y, Z, F)`` (second paper).  Outputs in rad.
+
+    ``features``: ``"force"`` (the preset: 19 geometric monomials of X, Y, Z; F, F^2, F^3;
+    geometric x those) or a :class:`FeatureSet` over X, Y, Z, F (and temperatures).
+    Rows need all of ``x_nm``, ``y_nm``, ``z_nm`` (rows with NaN are dropped with a warning).
+    """
+    kind = "DirectIGM"
+    geo_inputs = CARTESIAN_INPUTS
+    preset_name = "force"
+
+    def __init__(self, features="force", **kw):
+        super().__init__(features, **kw)
+        if self.outputs is not None:
+            bad = [m for m in self.outputs if m not in MOTOR_COLUMNS]
+            if bad:
+                raise CalibrationInputError(f"DirectIGM: unknown motor(s) {bad}; use q1, q2, q3")
+
+    def _default_features(self, sensors):
+        return force_preset()
+
+    def _output_specs(self, df):
+        motors = self.outputs or list(MOTOR_COLUMNS)
+        return [(m, "rad", MOTOR_COLUMNS[m], 1.0) for m in motors]
+
+    def jacobian(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        """dq/dX of the fitted model at each point: (n, n_outputs, 3) in rad/m."""
+        self._check_fitted()
+        g = np.column_stack([np.asarray(values[v], dtype=float) for v in self.geo_inputs])
+        C = self._eval.coefficients(values, g.shape[0])
+        return self._eval.value_and_jacobian(C, g)[1]
+
+    def position_error(self, df: pd.DataFrame) -> np.ndarray:
+        """End-effector error the model's motor-coordinate errors cause: ``J^-1 (q_pred -
+        q_meas)`` with J = dq/dX of the model, (n, 3) in m (needs the three motors)."""
+        self._check_fitted()
+        if self.output_names_ != list(MOTOR_COLUMNS):
+            raise CalibrationInputError("position_error needs the outputs q1, q2, q3")
+        vals = self.variables(df)
+        dq = self.predict_values(vals) - self.targets(df)
+        J = self.jacobian(vals)
+        out = np.full(dq.shape, np.nan)
+        ok = np.all(np.isfinite(dq), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
+        out[ok] = np.linalg.solve(J[ok], dq[ok][:, :, None])[:, :, 0]
+        return out
+
+    def motor_error_at_effector(self, df: pd.DataFrame) -> np.ndarray:
+        """Each motor model's error expressed at the end-effector: |dq_i| * ||(J^-1)[:, i]||,
+        (n, 3) in m; a per-motor figure in length units comparable with the paper's."""
+        self._check_fitted()
+        vals = self.variables(df)
+        dq = self.predict_values(vals) - self.targets(df)
+        J = self.jacobian(vals)
+        out = np.full(dq.shape, np.nan)
+        ok = np.all(np.isfinite(J), axis=(1, 2))
+        Jinv = np.linalg.inv(J[ok])
+        out[ok] = np.abs(dq[ok]) * np.linalg.norm(Jinv, axis=1)
+        return out
+
+
+# ----- load ------------------------------------------------------------------------------
+
+_KINDS = {"DGM": DGM, "DirectIGM": DirectIGM}
+
+
+def load_model(path, expect_kind: str | None = None, expect_features: str | None = None):
+    """Load a model written by ``save()``; check the format and, if given, its kind and
+    feature preset (``ModelMismatchError`` when they differ)."""
+    path = Path(path)
+    if not path.exists():
+        raise ModelFileError(f"{path}: no such model file")
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ModelFileError(f"{path}: not a JSON model file ({exc})") from exc
+    if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
+        raise ModelFileError(f"{path}: not a {MODEL_FORMAT} file")
+    if d.get("format_version") != MODEL_FORMAT_VERSION:
+        raise ModelFileError(f"{path}: model format version {d.get('format_version')} is not "
+                             f"supported (this code reads {MODEL_FORMAT_VERSION})")
+    kind = d.get("kind")
+    if kind not in _KINDS:
+        raise ModelFileError(f"{path}: unknown model kind {kind!r}")
+    if expect_kind is not None and kind != expect_kind:
+        raise ModelMismatchError(f"{path}: holds a {kind} model, a {expect_kind} was expected")
+    preset = (d.get("features") or {}).get("preset")
+    if expect_features is not None and preset != expect_features:
+        raise ModelMismatchError(f"{path}: was fitted with the {preset!r} feature set, but "
+                                 f"{expect_features!r} was asked for")
+    try:
+        return _KINDS[kind]._from_dict(d)
+    except (KeyError, TypeError) as exc:
+        raise ModelFileError(f"{path}: malformed model ({type(exc).__name__}: {exc})") from exc
+    except CalibrationInputError as exc:
+        if isinstance(exc, (ModelFileError, ModelMismatchError)):
+            raise type(exc)(f"{path}: {exc}") from exc
+        raise ModelFileError(f"{path}: {exc}") from exc
