@@ -204,9 +204,16 @@ class _Evaluator:
             W[o, a, g] += c
         self.W = W
         self.max_pow = int(self.geo_exp.max()) if self.geo_exp.size else 0
+        # (geometric monomial, input) pairs with a non-zero derivative: e * g^(e-1) * rest
+        self.grad_pairs = [(gidx, j) for gidx in range(self.geo_exp.shape[0])
+                           for j in range(len(gi)) if self.geo_exp[gidx, j] > 0]
+        self.W2 = np.ascontiguousarray(
+            W.transpose(0, 2, 1).reshape(len(outputs) * len(geo_monos), len(aux_monos)))
 
+    # Arrays are laid out (items, points): every operation is a contiguous vector op.
     def aux_matrix(self, aux: dict[str, np.ndarray], n: int) -> np.ndarray:
-        H = np.ones((n, self.aux_exp.shape[0]))
+        """H (n_aux_monomials, n)."""
+        H = np.ones((self.aux_exp.shape[0], n))
         for k, v in enumerate(self.aux_vars):
             if v not in aux:
                 raise MissingColumnsError(f"the model needs variable {v!r} "
@@ -218,49 +225,77 @@ class _Evaluator:
                 raise CalibrationInputError(f"variable {v!r} has {x.size} values for {n} points")
             e = self.aux_exp[:, k]
             for p in np.unique(e[e > 0]):
-                H[:, e == p] *= (x**p)[:, None]
+                H[e == p] *= x**p
         return H
 
     def coefficients(self, aux: dict[str, np.ndarray], n: int) -> np.ndarray:
-        """C (n, n_out, n_geo): per-point coefficients of the geometric monomials."""
+        """C (n_out, n_geo, n): per-point coefficients of the geometric monomials."""
         H = self.aux_matrix(aux, n)
-        return np.einsum("na,oag->nog", H, self.W, optimize=True)
+        return (self.W2 @ H).reshape(self.W.shape[0], self.W.shape[2], n)
 
     def _powers(self, g: np.ndarray):
-        n, d = g.shape
-        P = np.empty((n, d, self.max_pow + 1))
-        P[:, :, 0] = 1.0
-        for p in range(1, self.max_pow + 1):
-            P[:, :, p] = P[:, :, p - 1] * g
-        return P
+        """pw[j][e] = g[j]**e, for the inputs g (d, n)."""
+        pw = []
+        for j in range(g.shape[0]):
+            row = [None, g[j]]
+            for _ in range(2, self.max_pow + 1):
+                row.append(row[-1] * g[j])
+            pw.append(row)
+        return pw
 
-    def monomials(self, g: np.ndarray, grad: bool = False):
-        P = self._powers(g)
-        E = self.geo_exp
-        d = g.shape[1]
-        facs = [P[:, j, E[:, j]] for j in range(d)]            # each (n, n_geo)
-        M = facs[0].copy()
-        for f in facs[1:]:
-            M *= f
-        if not grad:
-            return M
-        dM = np.empty(M.shape + (d,))
-        for j in range(d):
-            e = E[:, j]
-            dj = P[:, j, np.maximum(e - 1, 0)] * e              # e * g^(e-1)
-            for k in range(d):
-                if k != j:
-                    dj = dj * facs[k]
-            dM[:, :, j] = dj
-        return M, dM
+    def _monomial(self, pw, exps, n, skip=-1):
+        out = None
+        for j, e in enumerate(exps):
+            if e == 0 or j == skip:
+                continue
+            out = pw[j][e] if out is None else out * pw[j][e]
+        return out
 
     def value(self, C: np.ndarray, g: np.ndarray) -> np.ndarray:
-        return np.einsum("nog,ng->no", C, self.monomials(g), optimize=True)
+        """Outputs (n_out, n) for per-point coefficients C and inputs g (d, n)."""
+        n = g.shape[1]
+        pw = self._powers(g)
+        f = C[:, 0, :].copy()                    # monomial 0 is the constant
+        for gidx in range(1, self.geo_exp.shape[0]):
+            f += C[:, gidx, :] * self._monomial(pw, self.geo_exp[gidx], n)
+        return f
 
     def value_and_jacobian(self, C, g):
-        M, dM = self.monomials(g, grad=True)
-        return (np.einsum("nog,ng->no", C, M, optimize=True),
-                np.einsum("nog,ngj->noj", C, dM, optimize=True))
+        """(f (n_out, n), J (n_out, d, n))."""
+        n = g.shape[1]
+        d = g.shape[0]
+        pw = self._powers(g)
+        f = C[:, 0, :].copy()
+        for gidx in range(1, self.geo_exp.shape[0]):
+            f += C[:, gidx, :] * self._monomial(pw, self.geo_exp[gidx], n)
+        J = np.zeros((C.shape[0], d, n))
+        for gidx, j in self.grad_pairs:
+            e = int(self.geo_exp[gidx, j])
+            rest = self._monomial(pw, self.geo_exp[gidx], n, skip=j)
+            dm = pw[j][e - 1] if e > 1 else None
+            if dm is None:
+                dm = rest if rest is not None else 1.0
+            elif rest is not None:
+                dm = dm * rest
+            J[:, j, :] += C[:, gidx, :] * (e * dm if e > 1 else dm)
+        return f, J
+
+
+def _solve3(J: np.ndarray, r: np.ndarray):
+    """Solve J x = r for stacks laid out J (3, 3, n), r (3, n) by cofactors; also det."""
+    a, b, c = J[0]
+    d, e, f = J[1]
+    g, h, i = J[2]
+    A = e * i - f * h
+    B = f * g - d * i
+    Cc = d * h - e * g
+    det = a * A + b * B + c * Cc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        x0 = (A * r[0] + (c * h - b * i) * r[1] + (b * f - c * e) * r[2]) * inv
+        x1 = (B * r[0] + (a * i - c * g) * r[1] + (c * d - a * f) * r[2]) * inv
+        x2 = (Cc * r[0] + (b * g - a * h) * r[1] + (a * e - b * d) * r[2]) * inv
+    return np.stack([x0, x1, x2]), det
 
 
 # ----- shared estimator machinery ------------------------------------------------------
@@ -438,17 +473,19 @@ class _StepwiseModel:
                                     f"{self.output_names_}")
 
     # -- predict
+    def _geo(self, values) -> np.ndarray:
+        missing = [v for v in self.geo_inputs if v not in values]
+        if missing:
+            raise MissingColumnsError(f"{self.kind}: no values for input(s) {missing}")
+        return np.vstack([np.asarray(values[v], dtype=float).reshape(-1)
+                          for v in self.geo_inputs])
+
     def predict_values(self, values: dict[str, np.ndarray]) -> np.ndarray:
         """Predict from base variables (SI arrays): (n, n_outputs) in SI."""
         self._check_fitted()
-        g = np.column_stack([np.asarray(values[v], dtype=float) for v in self.geo_inputs]) \
-            if all(v in values for v in self.geo_inputs) else None
-        if g is None:
-            missing = [v for v in self.geo_inputs if v not in values]
-            raise MissingColumnsError(f"{self.kind}: no values for input(s) {missing}")
-        n = g.shape[0]
-        C = self._eval.coefficients(values, n)
-        return self._eval.value(C, g)
+        g = self._geo(values)
+        C = self._eval.coefficients(values, g.shape[1])
+        return self._eval.value(C, g).T
 
     def predict(self, df: pd.DataFrame) -> np.ndarray:
         """Predictions for every row of ``df``: (n, n_outputs) in SI (m or rad); NaN rows
@@ -646,44 +683,60 @@ class IGM:
         """Non-geometric variables the IGM needs (temperatures, rates), SI."""
         return self.dgm._eval.aux_vars
 
-    def solve(self, position_m, aux: dict | None = None, q0=None) -> IGMResult:
+    def solve(self, position_m, aux: dict | None = None, q0=None,
+              chunk: int = 32768) -> IGMResult:
         """``position_m``: (n, 3) target readings x, y, z in m; ``aux``: dict of the aux
-        variables (arrays (n,) or scalars, SI: K relative to the reference, K/s, K/s^2)."""
+        variables (arrays (n,) or scalars, SI: K relative to the reference, K/s, K/s^2);
+        ``q0``: start (default 0 = the campaign's zero).  Points are solved in chunks."""
         x = np.atleast_2d(np.asarray(position_m, dtype=float))
         if x.ndim != 2 or x.shape[1] != 3:
             raise CalibrationInputError(f"IGM.solve: positions must be (n, 3), got {x.shape}")
         n = x.shape[0]
-        ev = self.dgm._eval
-        C = ev.coefficients(aux or {}, n)[:, self._order, :]
+        aux = dict(aux or {})
+        for k, v in aux.items():
+            v = np.asarray(v, dtype=float).reshape(-1)
+            aux[k] = np.full(n, v.item()) if v.size == 1 and n != 1 else v
+            if aux[k].size != n:
+                raise CalibrationInputError(f"IGM.solve: variable {k!r} has {v.size} values "
+                                            f"for {n} points")
         q = np.zeros((n, 3)) if q0 is None else np.array(np.broadcast_to(q0, (n, 3)), float)
         conv = np.zeros(n, bool)
         iters = np.zeros(n, int)
         resid = np.full(n, np.inf)
-        active = np.flatnonzero(np.all(np.isfinite(x), axis=1) & np.isfinite(C).all(axis=(1, 2)))
+        for s0 in range(0, n, chunk):
+            sl = slice(s0, min(n, s0 + chunk))
+            self._solve_chunk(x[sl], {k: v[sl] for k, v in aux.items()}, q[sl], conv[sl],
+                              iters[sl], resid[sl])
+        return IGMResult(q=q, converged=conv, iterations=iters, residual_m=resid)
+
+    def _solve_chunk(self, x, aux, q_out, conv, iters, resid):
+        ev = self.dgm._eval
+        m = x.shape[0]
+        C = ev.coefficients(aux, m)[self._order]                    # (3, n_geo, m)
+        X = np.ascontiguousarray(x.T)                               # (3, m)
+        q = np.ascontiguousarray(q_out.T)                           # (3, m)
+        idx = np.flatnonzero(np.all(np.isfinite(X), axis=0) & np.all(np.isfinite(C), axis=(0, 1)))
+        if idx.size < m:
+            C, X, q = C[:, :, idx], X[:, idx], q[:, idx]
         for it in range(self.max_iter + 1):
-            if active.size == 0:
+            if idx.size == 0:
                 break
-            f, J = ev.value_and_jacobian(C[active], q[active])
-            r = f - x[active]
-            rmax = np.max(np.abs(r), axis=1)
-            resid[active] = rmax
+            f, J = ev.value_and_jacobian(C, q)
+            r = f - X
+            rmax = np.max(np.abs(r), axis=0)
+            resid[idx] = rmax
+            q_out[idx] = q.T
             ok = rmax <= self.tol_m
-            conv[active[ok]] = True
-            bad = ~np.isfinite(rmax)
-            keep = ~ok & ~bad
+            conv[idx[ok]] = True
             if it == self.max_iter:
                 break
-            active, J, r = active[keep], J[keep], r[keep]
-            det = np.linalg.det(J)
-            sing = ~np.isfinite(det) | (np.abs(det) <= 1e-300)
-            if sing.any():
-                J[sing] = np.eye(3)
-                r[sing] = 0.0
-            dq = np.linalg.solve(J, r[:, :, None])[:, :, 0]
-            q[active] -= dq
-            iters[active] += 1
-            active = active[~sing]
-        return IGMResult(q=q, converged=conv, iterations=iters, residual_m=resid)
+            dq, det = _solve3(J, r)
+            step_ok = np.isfinite(det) & (det != 0.0) & np.all(np.isfinite(dq), axis=0)
+            keep = ~ok & np.isfinite(rmax) & step_ok
+            if not keep.all():
+                idx, C, X, q, dq = idx[keep], C[:, :, keep], X[:, keep], q[:, keep], dq[:, keep]
+            q = q - dq
+            iters[idx] += 1
 
     def solve_frame(self, df: pd.DataFrame, position_m) -> IGMResult:
         """Solve with the temperatures (and causal derivatives) of the rows of ``df``."""
@@ -720,35 +773,39 @@ class DirectIGM(_StepwiseModel):
     def jacobian(self, values: dict[str, np.ndarray]) -> np.ndarray:
         """dq/dX of the fitted model at each point: (n, n_outputs, 3) in rad/m."""
         self._check_fitted()
-        g = np.column_stack([np.asarray(values[v], dtype=float) for v in self.geo_inputs])
-        C = self._eval.coefficients(values, g.shape[0])
-        return self._eval.value_and_jacobian(C, g)[1]
+        g = self._geo(values)
+        C = self._eval.coefficients(values, g.shape[1])
+        return self._eval.value_and_jacobian(C, g)[1].transpose(2, 0, 1)
 
-    def position_error(self, df: pd.DataFrame) -> np.ndarray:
-        """End-effector error the model's motor-coordinate errors cause: ``J^-1 (q_pred -
-        q_meas)`` with J = dq/dX of the model, (n, 3) in m (needs the three motors)."""
-        self._check_fitted()
+    def _errors_and_jacobian(self, df):
         if self.output_names_ != list(MOTOR_COLUMNS):
-            raise CalibrationInputError("position_error needs the outputs q1, q2, q3")
+            raise CalibrationInputError(f"{self.kind}: end-effector errors need the outputs "
+                                        f"q1, q2, q3; this model has {self.output_names_}")
         vals = self.variables(df)
         dq = self.predict_values(vals) - self.targets(df)
         J = self.jacobian(vals)
-        out = np.full(dq.shape, np.nan)
         ok = np.all(np.isfinite(dq), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
+        ok[ok] &= np.abs(np.linalg.det(J[ok])) > 0
+        return dq, J, ok
+
+    def position_error(self, df: pd.DataFrame) -> np.ndarray:
+        """End-effector error the model's motor-coordinate errors cause: ``J^-1 (q_pred -
+        q_meas)`` with J = dq/dX of the model, (n, 3) in m; NaN where not available."""
+        self._check_fitted()
+        dq, J, ok = self._errors_and_jacobian(df)
+        out = np.full(dq.shape, np.nan)
         out[ok] = np.linalg.solve(J[ok], dq[ok][:, :, None])[:, :, 0]
         return out
 
     def motor_error_at_effector(self, df: pd.DataFrame) -> np.ndarray:
-        """Each motor model's error expressed at the end-effector: |dq_i| * ||(J^-1)[:, i]||,
-        (n, 3) in m; a per-motor figure in length units comparable with the paper's."""
+        """Each motor model's error expressed at the end-effector: dq_i * ||(J^-1)[:, i]||
+        (signed like dq_i), (n, 3) in m: the displacement that motor's error alone causes, a
+        per-motor figure in length units comparable with the paper's."""
         self._check_fitted()
-        vals = self.variables(df)
-        dq = self.predict_values(vals) - self.targets(df)
-        J = self.jacobian(vals)
+        dq, J, ok = self._errors_and_jacobian(df)
         out = np.full(dq.shape, np.nan)
-        ok = np.all(np.isfinite(J), axis=(1, 2))
         Jinv = np.linalg.inv(J[ok])
-        out[ok] = np.abs(dq[ok]) * np.linalg.norm(Jinv, axis=1)
+        out[ok] = dq[ok] * np.linalg.norm(Jinv, axis=1)
         return out
 
 
@@ -775,12 +832,12 @@ def load_model(path, expect_kind: str | None = None, expect_features: str | None
     kind = d.get("kind")
     if kind not in _KINDS:
         raise ModelFileError(f"{path}: unknown model kind {kind!r}")
-    if expect_kind is not None and kind != expect_kind:
-        raise ModelMismatchError(f"{path}: holds a {kind} model, a {expect_kind} was expected")
     preset = (d.get("features") or {}).get("preset")
     if expect_features is not None and preset != expect_features:
-        raise ModelMismatchError(f"{path}: was fitted with the {preset!r} feature set, but "
-                                 f"{expect_features!r} was asked for")
+        raise ModelMismatchError(f"{path}: is a {kind} fitted with the {preset!r} feature set, "
+                                 f"but the {expect_features!r} features were asked for")
+    if expect_kind is not None and kind != expect_kind:
+        raise ModelMismatchError(f"{path}: holds a {kind} model, a {expect_kind} was expected")
     try:
         return _KINDS[kind]._from_dict(d)
     except (KeyError, TypeError) as exc:

@@ -1,0 +1,78 @@
+"""Benchmark: IGM by Newton-Raphson on a fitted DGM, batch throughput and convergence.
+
+Fits a thermal DGM (217 candidates, 9 sensors) on a seeded synthetic campaign, then solves a
+batch of targets DGM(q_true, temperatures) for random q_true in the stroke and temperature
+states (with their causal derivatives) drawn from the campaign's rows.  Prints points/s
+(target >= 100,000), the share converged, the largest residual |DGM(q) - target| in nm
+(target <= 0.001 nm) and the largest |q - q_true|.
+
+    python benchmarks/bench_igm.py                 # 200,000 points
+    python benchmarks/bench_igm.py --points 1000000
+
+BLAS threads default to 1 as in bench_stepwise.py (set OPENBLAS_NUM_THREADS to override).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from calibration.models import DGM, IGM  # noqa: E402
+from calibration.synthetic import thermal_campaign  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=200_000)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+
+    df, meta, _ = thermal_campaign(rng, n_positions=1500, n_xy=3000, n_z=3000)
+    dgm = DGM().fit(df, meta)
+    igm = IGM(dgm, tol_m=1e-12)
+    print(f"DGM: terms kept {dgm.terms_kept_} of {len(dgm.features_)} candidates; IGM aux "
+          f"variables: {len(igm.aux_variables)}")
+
+    values = dgm.variables(df)
+    rows = rng.integers(0, len(df), args.points)
+    aux = {v: values[v][rows] for v in igm.aux_variables}
+    q_true = rng.uniform(-0.045, 0.045, (args.points, 3))
+    target = dgm.predict_values({**aux, "q1": q_true[:, 0], "q2": q_true[:, 1],
+                                 "q3": q_true[:, 2]})
+    target = target[:, [dgm.output_names_.index(a) for a in "xyz"]]
+
+    igm.solve(target[:1000], {k: v[:1000] for k, v in aux.items()})       # warm-up
+    times = []
+    for _ in range(args.repeat):
+        t0 = time.perf_counter()
+        res = igm.solve(target, aux)
+        times.append(time.perf_counter() - t0)
+    t = min(times)
+    rate = args.points / t
+    # independent check of the residual with the DGM's own predict path
+    back = dgm.predict_values({**aux, "q1": res.q[:, 0], "q2": res.q[:, 1], "q3": res.q[:, 2]})
+    back = back[:, [dgm.output_names_.index(a) for a in "xyz"]]
+    resid_nm = np.max(np.abs(back - target)) * 1e9
+    conv = res.converged.mean()
+    print(f"batch of {args.points} points: {t:.3f} s (best of {args.repeat}) -> "
+          f"{rate:,.0f} points/s (target >= 100,000: {'met' if rate >= 1e5 else 'NOT met'})")
+    print(f"converged: {conv * 100:.3f} % ({res.n_failed} reported not converged); Newton "
+          f"iterations: max {res.iterations.max()}, mean {res.iterations.mean():.2f}")
+    print(f"max residual |DGM(q) - target|: {res.residual_m[res.converged].max() * 1e9:.2e} nm "
+          f"(solver), {resid_nm:.2e} nm (re-evaluated); target <= 0.001 nm: "
+          f"{'met' if resid_nm <= 1e-3 else 'NOT met'}")
+    print(f"max |q - q_true|: {np.abs(res.q - q_true).max():.2e} rad")
+    return 0 if (rate >= 1e5 and resid_nm <= 1e-3 and conv == 1.0) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
