@@ -47,5 +47,6 @@ class NoValidationWarning(CalibrationWarning):
     """The data has no validation rows: validation figures are not available."""
 
 
-class ConstantColumnWarning(CalibrationWarning):
-    """Candidate columns that are constant (or fitted exactly by the intercept)."""
+class DegenerateColumnWarning(CalibrationWarning):
+    """Candidate columns that are constant (fitted exactly by the intercept) or exact
+    duplicates of an earlier column: never eligible to enter."""

@@ -29,13 +29,13 @@ from __future__ import annotations
 
 import hashlib
 import itertools
-import json
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 
-from .errors import CalibrationInputError, MissingColumnsError
+from .errors import CalibrationInputError, MissingColumnsError, MissingMetadataWarning
 
 __all__ = [
     "Term", "Family", "Monomials", "Variables", "Powers", "Product", "FeatureSet",
@@ -455,8 +455,12 @@ def temperature_variables(df: pd.DataFrame, sensors, needed: set[str], T_ref_K: 
     d1 = np.full(T.shape, np.nan)
     d2 = np.full(T.shape, np.nan)
     t = df["t_s"].to_numpy(dtype=float)
-    sessions = (df[session_col].astype(str).to_numpy() if session_col in df.columns
-                else np.full(len(df), "all"))
+    if session_col in df.columns:
+        sessions = df[session_col].astype(str).to_numpy()
+    else:
+        warnings.warn(f"no {session_col!r} column: the temperature derivatives treat the whole "
+                      "table as one stream in time order", MissingMetadataWarning, stacklevel=3)
+        sessions = np.full(len(df), "all")
     ok = np.all(np.isfinite(T), axis=1) & np.isfinite(t)
     for sess in pd.unique(sessions):
         rows = np.flatnonzero((sessions == sess) & ok)
@@ -472,7 +476,3 @@ def temperature_variables(df: pd.DataFrame, sensors, needed: set[str], T_ref_K: 
         if f"d2T_{s}" in needed:
             out[f"d2T_{s}"] = d2[:, j]
     return out
-
-
-def canonical_json(obj) -> str:
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"))

@@ -408,9 +408,18 @@ class _StepwiseModel:
         else:
             in_split = np.ones(len(df), bool)
         outputs = []
+        sessions = (df["session"].astype(str).to_numpy() if "session" in df.columns
+                    else np.full(len(df), "all"))
         for name, unit, column, to_si in specs:
             y = df[column].to_numpy(dtype=float) * to_si
             rows = in_split & np.isfinite(y)
+            # a NaN reading in a session that measures this output is a lost reading
+            measured = np.isin(sessions, np.unique(sessions[np.isfinite(y)]))
+            lost = in_split & measured & ~np.isfinite(y)
+            if lost.any():
+                warnings.warn(f"{self.kind} output {name!r}: {int(lost.sum())} row(s) of a "
+                              f"session that measures {column!r} have no value there and are "
+                              "dropped", DroppedRowsWarning, stacklevel=2)
             okx = np.all(np.isfinite(Xall), axis=1)
             dropped = rows & ~okx
             if dropped.any():
@@ -441,6 +450,23 @@ class _StepwiseModel:
         self.sensors_ = sens
         self._set_outputs(outputs)
         return self
+
+    @classmethod
+    def from_outputs(cls, features: FeatureSet, outputs: list[OutputModel], sensors=(),
+                     **kw):
+        """A fitted model from given outputs (terms and coefficients), e.g. for a
+        controller or a test; every term must belong to ``features``."""
+        obj = cls(features=features, sensors=list(sensors) or None, **kw)
+        obj.features_ = features
+        obj.sensors_ = list(sensors)
+        cand = set(features.names)
+        for o in outputs:
+            extra = [t.name for t in o.terms if t.name not in cand]
+            if extra:
+                raise CalibrationInputError(f"output {o.output!r}: term(s) {extra[:5]} not in "
+                                            f"the feature set {features.name!r}")
+        obj._set_outputs(outputs)
+        return obj
 
     def stepwise_result(self, output: str):
         """The full :class:`StepwiseResult` of an output (after fit, not after load)."""

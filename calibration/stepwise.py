@@ -36,7 +36,7 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
-from .errors import CalibrationInputError, ConstantColumnWarning, DroppedRowsWarning
+from .errors import CalibrationInputError, DegenerateColumnWarning, DroppedRowsWarning
 
 __all__ = ["stepwisefit", "StepwiseResult", "StepRecord", "stepwise_refit_loop",
            "resolve_thresholds"]
@@ -80,7 +80,11 @@ class StepwiseResult:
     history_in: np.ndarray     # bool (n_steps, P): model after each step
     names: list[str]
     constant: np.ndarray       # bool (P,): constant columns (never eligible)
+    duplicate: np.ndarray      # (P,) int: index of the earlier identical column, -1 if none
+                               #   (after standardisation; duplicates are never eligible)
     aliased: np.ndarray        # bool (P,): in-model columns dropped by the rank test at the end
+    collinear: np.ndarray      # bool (P,): out-of-model, non-constant columns that the final
+                               #   model fits exactly (in its span: they can never enter)
     penter: float
     premove: float
     stop_reason: str           # "no step qualifies" or "maxiter"
@@ -209,6 +213,18 @@ def _constant_columns(X: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray
     return mean, cnorm2, const
 
 
+def _duplicates(Z: np.ndarray, const: np.ndarray) -> np.ndarray:
+    """For each column, the index of the first earlier column identical to it, else -1."""
+    P = Z.shape[1]
+    dup = np.full(P, -1)
+    _, first, inverse = np.unique(Z.T, axis=0, return_index=True, return_inverse=True)
+    rep = first[inverse.ravel()]
+    for j in range(P):
+        if rep[j] != j and not const[j]:
+            dup[j] = rep[j]
+    return dup
+
+
 def _tpval(t: np.ndarray, df: int) -> np.ndarray:
     """Two-sided p-value of a t statistic (NaN for NaN t or df <= 0)."""
     if df <= 0:
@@ -226,7 +242,8 @@ def _stepcalc(Rc, ry, inm, N, tol, xsq, sstotal):
     """MATLAB's ``stepcalc`` on the reduced problem (rows of R instead of data rows).
 
     Rc: (m, P) reduced standardised columns; ry: (m,) reduced standardised response.
-    Returns b, se, t, p (all (P,), standardised units), rmse, dfe, df0, aliased mask.
+    Returns b, se, t, p (all (P,), standardised units), rmse, dfe, df0, aliased mask,
+    SSresid, and the mask of out-of-model columns perfectly fitted by the model.
     """
     P = Rc.shape[1]
     idx_in = np.flatnonzero(inm)
@@ -234,6 +251,7 @@ def _stepcalc(Rc, ry, inm, N, tol, xsq, sstotal):
     b = np.zeros(P)
     se = np.zeros(P)
     aliased = np.zeros(P, bool)
+    perfect = np.zeros(P, bool)
     if idx_in.size:
         A = Rc[:, idx_in]
         Q, R, perm = scipy.linalg.qr(A, mode="economic", pivoting=True, check_finite=False)
@@ -278,6 +296,7 @@ def _stepcalc(Rc, ry, inm, N, tol, xsq, sstotal):
         xr = Xo - Q @ (Q.T @ Xo) if rank else Xo.copy()
         xx = np.einsum("ij,ij->j", xr, xr)
         pf = xx <= tol * xsq[idx_out]
+        perfect[idx_out] = pf
         if pf.any():
             xr[:, pf] = 0.0
             xx[pf] = 1.0
@@ -289,7 +308,7 @@ def _stepcalc(Rc, ry, inm, N, tol, xsq, sstotal):
         se[idx_out] = s2
         t[idx_out] = _safediv(b2, s2)
         p[idx_out] = _tpval(t[idx_out], df2)
-    return b, se, t, p, rmse, dfe, df0, aliased, ssresid
+    return b, se, t, p, rmse, dfe, df0, aliased, ssresid, perfect
 
 
 def _next_step(inm, keep, eligible, p, penter, premove):
@@ -330,7 +349,10 @@ def stepwisefit(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=N
     names : column names for the history (default: DataFrame columns or x1..xP).
 
     Rows with NaN in X or y are dropped (``DroppedRowsWarning``), as MATLAB does.
-    Constant columns are reported in ``constant`` (``ConstantColumnWarning``) and never enter.
+    Constant columns and exact duplicates of an earlier column (after standardisation) are
+    reported in ``constant`` / ``duplicate`` (``DegenerateColumnWarning``) and never enter
+    (with compressed data an exact tie could otherwise be broken by rounding); columns in
+    the span of the final model are reported in ``collinear``.
     """
     penter, premove = resolve_thresholds(penter, premove)
     X, y, names, n_dropped = _prepare(X, y, names)
@@ -353,10 +375,16 @@ def stepwisefit(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=N
     if const.any():
         warnings.warn(f"stepwisefit: {int(const.sum())} constant column(s) never eligible: "
                       f"{[names[j] for j in np.flatnonzero(const)][:10]}",
-                      ConstantColumnWarning, stacklevel=2)
+                      DegenerateColumnWarning, stacklevel=2)
     std = np.where(const, 1.0, np.sqrt(cnorm2 / max(N - 1, 1)))
     Z = (X - mean) / std
     Z[:, const] = 0.0
+    dup = _duplicates(Z, const)
+    if (dup >= 0).any():
+        pairs = [f"{names[j]} = {names[dup[j]]}" for j in np.flatnonzero(dup >= 0)]
+        warnings.warn(f"stepwisefit: {len(pairs)} column(s) duplicate an earlier column and "
+                      f"are never eligible: {pairs[:10]}", DegenerateColumnWarning,
+                      stacklevel=2)
     xsq = np.einsum("ij,ij->j", X, X) / std**2       # MATLAB's sum(x.^2) in standardised units
     y_mean = float(y.mean())
     yc = y - y_mean
@@ -369,7 +397,7 @@ def stepwisefit(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=N
     # One Householder QR of [Z y]: the reduced problem has P+1 rows whatever N is.
     Rfull = np.linalg.qr(np.column_stack([Z, ys]), mode="r")
     Rc, ry = np.ascontiguousarray(Rfull[:, :P]), np.ascontiguousarray(Rfull[:, P])
-    eligible = ~const
+    eligible = ~const & ((dup < 0) | in_m)
 
     stats = _stepcalc(Rc, ry, in_m, N, tol, xsq, sstotal)
     history: list[StepRecord] = []
@@ -390,7 +418,7 @@ def stepwisefit(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=N
                                   float(stats[4] * y_std), int(stats[6]), int(in_m.sum())))
         hist_in.append(in_m.copy())
 
-    b, se, t, p, rmse, dfe, df0, aliased, ssresid = stats
+    b, se, t, p, rmse, dfe, df0, aliased, ssresid, perfect = stats
     # Final refit of the selected model on the full standardised data, stable least squares.
     sel = np.flatnonzero(in_m & ~aliased)
     beta = b.copy()
@@ -410,7 +438,7 @@ def stepwisefit(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=N
         inmodel=in_m, coef=coef, intercept=intercept, se=se_raw, tstat=t, pval=p,
         rmse=float(rmse * y_std), dfe=int(dfe), df0=int(df0), n_obs=N, history=history,
         history_in=np.array(hist_in, dtype=bool).reshape(len(hist_in), P), names=names,
-        constant=const, aliased=in_m & aliased, penter=penter, premove=premove,
+        constant=const, duplicate=dup, aliased=in_m & aliased, collinear=perfect & ~const, penter=penter, premove=premove,
         stop_reason=stop, n_dropped=n_dropped, refit_rel_diff=float(refit_rel_diff),
         x_mean=mean, x_std=std, y_mean=y_mean, y_std=y_std)
 
@@ -422,7 +450,8 @@ def stepwise_refit_loop(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, i
     For each step it fits the current model once (p-values of the terms in) and the current
     model plus each candidate (the candidate's p-value).  Slow by design; used to check
     :func:`stepwisefit` and as the benchmark baseline.  Returns ``(inmodel, steps)`` with
-    ``steps = [(action, column), ...]``.  Constant columns are skipped, as in stepwisefit.
+    ``steps = [(action, column), ...]``.  Constant and duplicate columns are skipped, as in
+    stepwisefit.
     """
     import statsmodels.api as sm
 
@@ -434,7 +463,12 @@ def stepwise_refit_loop(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, i
     maxiter = math.inf if maxiter is None else maxiter
     keep_m = _mask(keep, P, "keep")
     in_m = _mask(inmodel, P, "inmodel") | keep_m
-    _, _, const = _constant_columns(X, max(N, P + 1) * np.finfo(float).eps)
+    _, cnorm2, const = _constant_columns(X, max(N, P + 1) * np.finfo(float).eps)
+    Xm = X - X.mean(axis=0)
+    std = np.where(const, 1.0, np.sqrt(cnorm2 / max(N - 1, 1)))
+    Zs = Xm / std
+    Zs[:, const] = 0.0
+    skip = const | (_duplicates(Zs, const) >= 0)
     ones = np.ones((N, 1))
 
     def fit(cols):
@@ -444,7 +478,7 @@ def stepwise_refit_loop(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, i
     while len(steps) < maxiter:
         cols_in = list(np.flatnonzero(in_m))
         best_p, best_j = math.inf, -1
-        for j in np.flatnonzero(~in_m & ~keep_m & ~const):
+        for j in np.flatnonzero(~in_m & ~keep_m & ~skip):
             pj = float(fit(cols_in + [int(j)]).pvalues[-1])
             if pj < best_p:             # strict: the lowest index wins ties
                 best_p, best_j = pj, int(j)

@@ -48,12 +48,16 @@ def sensor_metadata(sensors=STRUCTURE_SENSORS, air=AIR_SENSORS) -> dict:
     return parts
 
 
-def _temperatures(rng, t_s, sensors, room0_C, amp_C):
-    """Part temperatures: first-order lags of a drifting room, + 1 mK noise. (n, k) degC."""
+def _temperatures(rng, t_s, sensors, room0_C, amp_C, ramp_C_per_h):
+    """Part temperatures: first-order lags of a drifting room, + 1 mK noise. (n, k) degC.
+
+    Room: ``room0_C`` + a ramp (the air conditioning switched off, as in the first paper's
+    campaign) limited to +3 K, + a daily and a 4 h oscillation."""
     dt = 10.0
     grid = np.arange(t_s.min() - 7200.0, t_s.max() + dt, dt)
     ph = rng.uniform(0, 2 * np.pi, 2)
-    room = (room0_C + amp_C * np.sin(2 * np.pi * grid / 86400.0 + ph[0])
+    ramp = np.minimum(ramp_C_per_h * np.maximum(grid, 0.0) / 3600.0, 3.0)
+    room = (room0_C + ramp + amp_C * np.sin(2 * np.pi * grid / 86400.0 + ph[0])
             + 0.4 * amp_C * np.sin(2 * np.pi * grid / 14400.0 + ph[1]))
     out = []
     for _ in sensors:
@@ -72,7 +76,8 @@ def _temperatures(rng, t_s, sensors, room0_C, amp_C):
 
 def thermal_campaign(rng: np.random.Generator, n_positions: int = 400, n_xy: int = 1200,
                      n_z: int = 1200, q_max_rad: float = 0.045, noise_m: float = 5e-9,
-                     room0_C: float = 22.0, amp_C: float = 1.5, val_fraction: float = 0.3,
+                     room0_C: float = 21.0, amp_C: float = 1.0, ramp_C_per_h: float = 0.4,
+                     val_fraction: float = 0.3,
                      sensors=STRUCTURE_SENSORS, air=AIR_SENSORS):
     """A thermal campaign: session ``xy`` (x_nm, y_nm) then session ``z`` (z_nm).
 
@@ -86,7 +91,9 @@ def thermal_campaign(rng: np.random.Generator, n_positions: int = 400, n_xy: int
     split_of[perm[:n_val]] = "val"
     alpha = 8.6e-6
     w_scale = rng.uniform(0.0, 0.25, (3, k))            # share of each part in the expansion
-    d_off = rng.normal(0.0, 4e-7, (3, k))               # m/K offsets
+    # m/K offsets: each part's expansion over a lever of 1-8 cm, mostly in one direction
+    d_off = (alpha * rng.uniform(0.01, 0.08, (3, k))
+             * np.where(rng.uniform(size=(3, k)) < 0.8, 1.0, -1.0))
     lag_s = rng.uniform(200.0, 900.0, (3, k))           # thermal lag seen through dT/dt
     truth = {"alpha_per_K": alpha, "w_scale": w_scale, "d_off_m_per_K": d_off, "lag_s": lag_s}
     frames = []
@@ -96,7 +103,7 @@ def thermal_campaign(rng: np.random.Generator, n_positions: int = 400, n_xy: int
         t0 = t[-1] + 3600.0
         pid = rng.integers(0, n_positions, n_read)
         q = q_pos[pid] + rng.normal(0.0, 1e-8, (n_read, 3))     # encoder noise
-        T = _temperatures(rng, t, tuple(sensors) + tuple(air), room0_C, amp_C)
+        T = _temperatures(rng, t, tuple(sensors) + tuple(air), room0_C, amp_C, ramp_C_per_h)
         Ts = T[:, :k]
         dT = (Ts + ZERO_CELSIUS_K) - DEFAULT_T_REF_K
         # true rates from a smoothed version (what the structure follows), no noise
