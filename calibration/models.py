@@ -431,8 +431,12 @@ class _StepwiseModel:
             n = int(rows.sum())
             need = len(fs) + self.min_rows_margin
             if n < need:
+                why = ""
+                if dropped.any():
+                    bad = [v for v in needed if not np.all(np.isfinite(values[v][dropped]))]
+                    why = f", {int(dropped.sum())} more dropped for NaN in {bad[:8]}"
                 raise TooFewPointsError(
-                    f"{self.kind} output {name!r}: {n} usable calibration row(s) for "
+                    f"{self.kind} output {name!r}: {n} usable calibration row(s){why}, for "
                     f"{len(fs)} candidate terms; at least {need} are needed "
                     f"(candidates + intercept + 1 residual degree of freedom)")
             res = stepwisefit(Xall[rows], y[rows], penter=self.penter, premove=self.premove,

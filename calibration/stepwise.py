@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 import scipy.stats
 
 from .errors import CalibrationInputError, DegenerateColumnWarning, DroppedRowsWarning
@@ -282,7 +283,9 @@ def _stepcalc(Rc, ry, inm, N, tol, xsq, sstotal):
     if idx_in.size:
         b[idx_in] = bin_
         if rank:
-            Rinv = scipy.linalg.solve_triangular(R, np.eye(rank), check_finite=False)
+            Rinv, info = scipy.linalg.lapack.dtrtri(R, lower=0)
+            if info != 0:                       # cannot happen after the rank test
+                Rinv = np.linalg.pinv(R)
             sein = np.zeros(idx_in.size)
             sein[perm] = rmse * np.sqrt(np.einsum("ij,ij->i", Rinv, Rinv))
             se[idx_in] = sein
