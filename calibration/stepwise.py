@@ -218,11 +218,18 @@ def _duplicates(Z: np.ndarray, const: np.ndarray) -> np.ndarray:
     """For each column, the index of the first earlier column identical to it, else -1."""
     P = Z.shape[1]
     dup = np.full(P, -1)
-    _, first, inverse = np.unique(Z.T, axis=0, return_index=True, return_inverse=True)
-    rep = first[inverse.ravel()]
+    Zt = np.ascontiguousarray(Z.T)
+    first: dict[int, list[int]] = {}
     for j in range(P):
-        if rep[j] != j and not const[j]:
-            dup[j] = rep[j]
+        if const[j]:
+            continue
+        h = hash(Zt[j].tobytes())
+        for i in first.get(h, ()):
+            if np.array_equal(Zt[i], Zt[j]):
+                dup[j] = i
+                break
+        else:
+            first.setdefault(h, []).append(j)
     return dup
 
 
