@@ -23,7 +23,9 @@ FEATURES = ("thermal", "force")
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "calibrate", help="fit the papers' calibration (DGM per axis or direct IGM per motor)",
-        description=__doc__.split("\n\n")[0])
+        description="Fit the papers' calibration on a dataset and report the error figures: "
+                    "thermal = DGM per measured axis (first paper), force = direct IGM per "
+                    "motor (second paper); see docs/calibration.md.")
     p.add_argument("data", metavar="DATA", help="dataset file (.parquet, or .csv + .meta.json)")
     p.add_argument("--features", choices=FEATURES, required=True,
                    help="thermal: first paper (217 terms with 9 sensors); force: second (79)")

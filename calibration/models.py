@@ -129,7 +129,8 @@ class OutputModel:
                             "y_mean": float(self.y_mean), "y_std": float(self.y_std),
                             "coef_standardized": [float(v) for v in self.coef_standardized]},
                 "terms_kept": self.terms_kept, "n_cal": int(self.n_cal),
-                "rmse": float(self.rmse), "n_candidates": int(self.n_candidates),
+                "rmse": float(self.rmse) if math.isfinite(self.rmse) else None,
+                "n_candidates": int(self.n_candidates),
                 "steps": [[a, n] for a, n in self.steps]}
 
     @staticmethod
@@ -148,7 +149,8 @@ class OutputModel:
                 term_mean=np.array(sc["term_mean"], dtype=float),
                 term_std=np.array(sc["term_std"], dtype=float),
                 y_mean=float(sc["y_mean"]), y_std=float(sc["y_std"]),
-                n_cal=int(d.get("n_cal", 0)), rmse=float(d.get("rmse", math.nan)),
+                n_cal=int(d.get("n_cal", 0)),
+                rmse=math.nan if d.get("rmse") is None else float(d["rmse"]),
                 n_candidates=int(d.get("n_candidates", 0)),
                 steps=[tuple(s) for s in d.get("steps", [])])
         except (KeyError, TypeError, ValueError) as exc:
@@ -365,7 +367,8 @@ class _StepwiseModel:
             if self.sensors is not None and set(self.sensors) != set(sens):
                 raise CalibrationInputError(f"{self.kind}: sensors {self.sensors} differ from "
                                             f"those of the feature set {sens}")
-            thermal_sensors(df, meta, sens) if sens else None   # checks the columns
+            if sens:
+                thermal_sensors(df, meta, sens)          # their columns must be present
             return fs, sens
         sens = self._sensors_for(df, meta)
         return self._default_features(sens), sens
@@ -562,7 +565,12 @@ class _StepwiseModel:
     def save(self, path) -> Path:
         """Write the model as JSON, atomically (temporary file, then rename)."""
         path = Path(path)
-        _atomic_write_text(path, json.dumps(self.to_dict(), indent=1, allow_nan=True))
+        try:
+            text = json.dumps(self.to_dict(), indent=1, allow_nan=False)   # strict JSON
+        except ValueError as exc:
+            raise CalibrationInputError(f"{self.kind}: the model holds a non-finite number "
+                                        f"and cannot be exported ({exc})") from exc
+        _atomic_write_text(path, text)
         return path
 
     @classmethod
