@@ -1,0 +1,1 @@
+"""Instruments: the common interface (``interface``) and the twin's simulated implementations."""
