@@ -4,6 +4,10 @@ Frames: the base frame is the world frame, origin at the base centre, z up; the 
 below the base (platform at negative z). Chain i has its actuator axis through ``B[i]`` along
 ``axis[i]``; the arm angle ``theta`` is the right-hand rotation about that axis, positive down.
 Rod j of chain i joins elbow point ``A[i, j]`` to platform point ``P0[i, j]`` (platform frame).
+
+A geometry is either one robot state (arrays shaped as documented in ``Geometry``) or a batch
+of states, one per measurement point, with a leading axis N on every joint array: that is how
+per-point part temperatures enter the exact kinematics (``build_geometry(params, temperatures)``).
 """
 from __future__ import annotations
 
@@ -30,6 +34,11 @@ class Geometry:
     stroke: np.ndarray     # (2,) motor coordinate limits
     cube_offset: np.ndarray  # (3,) mirror cube centre, platform frame
 
+    @property
+    def batched(self) -> bool:
+        """True when every joint array carries a leading per-point axis."""
+        return self.B.ndim == 3
+
     def theta(self, q: np.ndarray) -> np.ndarray:
         """Arm angles (rad) for motor coordinates ``q`` (..., 3)."""
         return np.asarray(q, dtype=np.float64) + self.theta_zero
@@ -41,8 +50,26 @@ def part_scale(params: RobotParams, part: str, T_C) -> np.ndarray:
     return 1.0 + cte * (np.asarray(T_C, dtype=np.float64) - params.reference_temperature_C)
 
 
-def build_geometry(params: RobotParams) -> Geometry:
+PART_TEMPERATURES = ("base", "arms", "rods", "platform")
+
+
+def build_geometry(params: RobotParams, temperatures: dict | None = None) -> Geometry:
+    """Joint geometry of ``params``; part temperatures (degC) from the parameters or, when
+    ``temperatures`` is given, per point: ``{"base": (N,), "arms": (N,3), "rods": (N,3,2),
+    "platform": (N,)}`` (missing parts keep the parameters' value) -> a batched Geometry."""
     p = params
+    T = {"base": p.T_base_C, "arms": p.T_arms_C, "rods": p.T_rods_C, "platform": p.T_platform_C}
+    if temperatures is not None:
+        unknown = sorted(set(temperatures) - set(PART_TEMPERATURES))
+        if unknown:
+            raise ValueError(f"unknown part temperature(s) {unknown}; parts: {PART_TEMPERATURES}")
+        n = {np.shape(v)[0] for v in temperatures.values()}
+        if len(n) != 1:
+            raise ValueError(f"per-point temperatures of different lengths {sorted(n)}")
+        n_pts = n.pop()
+        for part in PART_TEMPERATURES:
+            value = np.asarray(temperatures.get(part, T[part]), dtype=np.float64)
+            T[part] = np.broadcast_to(value, (n_pts,) + np.shape(T[part]))
     az = np.deg2rad(p.actuator_azimuth_deg)
     radial = np.stack([np.cos(az), np.sin(az), np.zeros(3)], axis=1)
     tangent = np.stack([-np.sin(az), np.cos(az), np.zeros(3)], axis=1)
@@ -51,23 +78,28 @@ def build_geometry(params: RobotParams) -> Geometry:
     axis = tangent + p.actuator_axis_tilt_rad[:, :1] * radial + p.actuator_axis_tilt_rad[:, 1:] * up
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
 
-    s_base = part_scale(p, "base", p.T_base_C)
-    s_arm = part_scale(p, "arms", p.T_arms_C)[:, None]
-    s_rod = part_scale(p, "rods", p.T_rods_C)
-    s_plat = part_scale(p, "platform", p.T_platform_C)
+    # scale factors with trailing axes matching each joint array ((N,) + shape when batched)
+    s_base = part_scale(p, "base", T["base"])[..., None, None]
+    s_arm = part_scale(p, "arms", T["arms"])[..., None]
+    s_rod = part_scale(p, "rods", T["rods"])
+    s_plat = part_scale(p, "platform", T["platform"])[..., None, None]
 
     B = s_base * (p.base_radius_m * radial + p.d_base_joint_m)
     arm_len = (p.arm_length_m + p.d_arm_length_m)[:, None]
     elbow_vec = s_arm * arm_len * radial
     side = ROD_SIDES[None, :, None]
-    arm_vec = s_arm[:, :, None] * ((arm_len * radial)[:, None, :]
-                                   + side * p.elbow_half_width_m * tangent[:, None, :]
-                                   + p.d_elbow_joint_m)
-    P0 = s_plat * ((p.platform_radius_m * radial)[:, None, :]
-                   + side * p.platform_half_width_m * tangent[:, None, :]
-                   + p.d_platform_joint_m)
+    arm_vec = s_arm[..., None] * ((arm_len * radial)[:, None, :]
+                                  + side * p.elbow_half_width_m * tangent[:, None, :]
+                                  + p.d_elbow_joint_m)
+    P0 = s_plat[..., None] * ((p.platform_radius_m * radial)[:, None, :]
+                              + side * p.platform_half_width_m * tangent[:, None, :]
+                              + p.d_platform_joint_m)
     L = s_rod * (p.rod_length_m + p.d_rod_length_m)
-    cube = s_plat * p.mirror_cube_offset_m
+    cube = part_scale(p, "platform", T["platform"])[..., None] * p.mirror_cube_offset_m
+    theta_zero = p.home_angle_rad + p.encoder_offset_rad
+    if temperatures is not None:
+        n_pts = L.shape[0]
+        axis = np.broadcast_to(axis, (n_pts, 3, 3))
+        theta_zero = np.broadcast_to(theta_zero, (n_pts, 3))
     return Geometry(B=B, axis=axis, radial=radial, arm_vec=arm_vec, elbow_vec=elbow_vec, P0=P0, L=L,
-                    theta_zero=p.home_angle_rad + p.encoder_offset_rad, stroke=p.stroke_rad.copy(),
-                    cube_offset=cube)
+                    theta_zero=theta_zero, stroke=p.stroke_rad.copy(), cube_offset=cube)

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from dataclasses import replace
+
 from models.geometry import Geometry
 
 CLOSURE_TOL_M = 1e-12
@@ -50,11 +52,27 @@ def rotate_about_axis(axis: np.ndarray, angle: np.ndarray, v: np.ndarray) -> np.
     return v * c + np.cross(axis, v) * s + axis * np.sum(axis * v, axis=-1, keepdims=True) * (1.0 - c)
 
 
+def _per_point(geom: Geometry) -> Geometry:
+    """The geometry with a leading per-point axis on every joint array (length 1 when the
+    geometry is one robot state), so that one code path serves both."""
+    if geom.batched:
+        return geom
+    return replace(geom, B=geom.B[None], axis=geom.axis[None], arm_vec=geom.arm_vec[None],
+                   elbow_vec=geom.elbow_vec[None], P0=geom.P0[None], L=geom.L[None],
+                   theta_zero=geom.theta_zero[None], cube_offset=geom.cube_offset[None])
+
+
+def _platform_vectors(P0: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Platform hinge vectors R P0 in the world (N,3,2,3); P0 is (1|N,3,2,3)."""
+    return (R[:, None, None] @ P0[..., None])[..., 0]
+
+
 def elbow_points(geom: Geometry, theta: np.ndarray) -> np.ndarray:
     """Elbow hinge positions (N,3,2,3) for arm angles ``theta`` (N,3)."""
-    ax = np.broadcast_to(geom.axis[None, :, None, :], theta.shape[:1] + (3, 2, 3))
+    g = _per_point(geom)
+    ax = np.broadcast_to(g.axis[:, :, None, :], theta.shape[:1] + (3, 2, 3))
     ang = np.broadcast_to(theta[:, :, None], theta.shape[:1] + (3, 2))
-    return geom.B[None, :, None, :] + rotate_about_axis(ax, ang, geom.arm_vec[None])
+    return g.B[:, :, None, :] + rotate_about_axis(ax, ang, g.arm_vec)
 
 
 def check_stroke(geom: Geometry, q: np.ndarray, what: str = "motor coordinates") -> None:
@@ -93,9 +111,10 @@ def _residual_and_jacobian(geom, A, p, R):
     """Rod equations f = |P - A|^2 - L^2 (N,6) and their derivatives.
 
     Returns f, d = P - A (N,3,2,3), w = R P0 (N,3,2,3)."""
-    w = np.einsum("nab,ijb->nija", R, geom.P0)
+    g = _per_point(geom)
+    w = _platform_vectors(g.P0, R)
     d = p[:, None, None, :] + w - A
-    f = np.sum(d * d, axis=-1) - geom.L[None] ** 2
+    f = np.sum(d * d, axis=-1) - g.L ** 2
     return f.reshape(-1, 6), d, w
 
 
@@ -111,7 +130,7 @@ def _newton(update, n: int, what: str):
 
 def _check_closure(geom, A, p, R, what):
     _, d, _ = _residual_and_jacobian(geom, A, p, R)
-    err = np.abs(np.linalg.norm(d, axis=-1) - geom.L[None]).reshape(-1, 6).max(axis=1)
+    err = np.abs(np.linalg.norm(d, axis=-1) - _per_point(geom).L).reshape(-1, 6).max(axis=1)
     bad = np.flatnonzero(~(err < CLOSURE_TOL_M))
     if bad.size:
         raise KinematicsError(f"{what}: loop closure {err[bad[0]]:.3e} m at pose {int(bad[0])} "
@@ -127,8 +146,9 @@ def forward(geom: Geometry, q, check: bool = True) -> Pose:
     n = q.shape[0]
     A = elbow_points(geom, geom.theta(q))
     # start: ideal closed form with each parallelogram replaced by its centre line
-    centres = A.mean(axis=2) - geom.P0.mean(axis=1)[None]
-    p = _trilaterate_low(centres, np.broadcast_to(geom.L.mean(axis=1), (n, 3)))
+    g = _per_point(geom)
+    centres = A.mean(axis=2) - g.P0.mean(axis=2)
+    p = _trilaterate_low(centres, np.broadcast_to(g.L.mean(axis=2), (n, 3)))
     R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
 
     def update():
@@ -147,10 +167,10 @@ def forward(geom: Geometry, q, check: bool = True) -> Pose:
 
 def _ideal_chain_angles(geom: Geometry, p: np.ndarray) -> np.ndarray:
     """Closed-form arm angles (N,3) for each chain's centre line, platform not rotated."""
-    a = geom.elbow_vec[None]                                     # (1,3,3)
-    u = geom.axis[None]
-    v = p[:, None, :] + geom.P0.mean(axis=1)[None] - geom.B[None]  # B -> platform hinge centre
-    L = geom.L.mean(axis=1)[None]
+    g = _per_point(geom)
+    a, u = g.elbow_vec, g.axis                                   # (1|N,3,3)
+    v = p[:, None, :] + g.P0.mean(axis=2) - g.B                  # B -> platform hinge centre
+    L = g.L.mean(axis=2)
     ua, uv = np.sum(u * a, -1), np.sum(u * v, -1)
     E = np.sum(v * a, -1) - ua * uv
     F = np.sum(v * np.cross(u, a), -1)
@@ -164,7 +184,7 @@ def _ideal_chain_angles(geom: Geometry, p: np.ndarray) -> np.ndarray:
     base = np.arctan2(F, E)
     alpha = np.arccos(cos_arg)
     cand = np.stack([base + alpha, base - alpha])
-    home = geom.theta_zero[None, None]
+    home = g.theta_zero[None]
     cand = (cand - home + np.pi) % (2 * np.pi) - np.pi + home   # nearest branch to home
     pick = np.argmin(np.abs(cand - home), axis=0)
     return np.take_along_axis(cand, pick[None], 0)[0]
@@ -187,7 +207,8 @@ def inverse(geom: Geometry, p, check: bool = True) -> tuple[np.ndarray, np.ndarr
         nonlocal theta, R, rel
         A = elbow_points(geom, theta)
         f, d, w = _residual_and_jacobian(geom, A, p, R)
-        dA = np.cross(geom.axis[None, :, None, :], A - geom.B[None, :, None, :])
+        g = _per_point(geom)
+        dA = np.cross(g.axis[:, :, None, :], A - g.B[:, :, None, :])
         J = np.zeros((n, 3, 2, 6))
         for i in range(3):
             J[:, i, :, i] = -2 * np.sum(d[:, i] * dA[:, i], axis=-1)
@@ -208,7 +229,7 @@ def inverse(geom: Geometry, p, check: bool = True) -> tuple[np.ndarray, np.ndarr
 def rod_directions(geom: Geometry, q: np.ndarray, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Unit rod directions elbow -> platform (N,3,2,3) and hinge-to-hinge distances (N,3,2)."""
     A = elbow_points(geom, geom.theta(q))
-    d = pose.p[:, None, None, :] + np.einsum("nab,ijb->nija", pose.R, geom.P0) - A
+    d = pose.p[:, None, None, :] + _platform_vectors(_per_point(geom).P0, pose.R) - A
     L = np.linalg.norm(d, axis=-1)
     return d / L[..., None], L
 
