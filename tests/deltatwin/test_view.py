@@ -1,0 +1,286 @@
+"""``deltatwin view``: real .rrd files written from a small synthetic campaign and a ladder of
+fitted DGMs, read back with rerun.chunk.RrdReader and compared with the data."""
+import os
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from rerun.chunk import RrdReader
+
+from calibration.features import thermal_ladder
+from calibration.models import DGM, thermal_sensors
+from calibration.synthetic import thermal_campaign
+from deltatwin import view
+from deltatwin.cli import main
+from deltatwin.view import LadderStep, calibration_step, write_recording
+from models.geometry import build_geometry
+from models.mjcf import INSTRUMENT_SITES, build_model
+from models.params import load_params
+from twin.dataset import write_dataset
+from twin.kinematics import forward
+from twin.workspace import hull
+
+REPO = Path(__file__).resolve().parents[2]
+MAX_POSES = 30
+F32_REL = 2.0 ** -23          # float32 spacing relative to the value
+
+
+def read_rrd(path):
+    """entity -> list of (time columns as numpy, component columns as python lists)."""
+    out = defaultdict(list)
+    for chunk in RrdReader(str(path)).stream().to_chunks():
+        b = chunk.to_record_batch()
+        times, comps = {}, {}
+        for name in b.schema.names:
+            col = b.column(name)
+            if name in (view.CAMPAIGN_TIMELINE, view.LADDER_TIMELINE):
+                v = col.to_numpy()
+                times[name] = (v.astype("timedelta64[ns]").astype(np.int64) / 1e9
+                               if v.dtype.kind == "m" else v)
+            elif ":" in name:
+                comps[name] = col.to_pylist()
+        out[chunk.entity_path].append((times, comps))
+    return out
+
+
+def rows_of(rrd, entity, component, timeline=None):
+    """(times on ``timeline`` or None, values) of every row holding ``component``."""
+    ts, vals = [], []
+    for times, comps in rrd[entity]:
+        if component not in comps:
+            continue
+        if timeline is not None and timeline not in times:
+            continue
+        if timeline is None and times:
+            continue
+        vals += comps[component]
+        if timeline is not None:
+            ts += list(times[timeline])
+    return np.array(ts), vals
+
+
+@pytest.fixture(scope="module")
+def campaign():
+    rng = np.random.default_rng(7)
+    df, meta, _ = thermal_campaign(rng, n_positions=50, n_xy=260, n_z=260,
+                                   sensors=("base", "arm1", "rod1"), air=("air_x",))
+    # acceptance std per reading and coil currents, as a laboratory file has them
+    for a in ("x", "y", "z"):
+        df[f"{a}_std_nm"] = np.where(np.isfinite(df[f"{a}_nm"]),
+                                     rng.uniform(0.5, 3.0, len(df)), np.nan)
+    for i in (1, 2, 3):
+        df[f"coil{i}_A"] = rng.uniform(-0.2, 0.2, len(df))
+    rungs = thermal_ladder(thermal_sensors(df, meta))
+    models = [(name, DGM(features=fs).fit(df, meta)) for name, fs in (rungs[0], rungs[3])]
+    return df, meta, models
+
+
+@pytest.fixture(scope="module")
+def written(campaign, tmp_path_factory):
+    df, meta, models = campaign
+    ladder = [calibration_step(name, m, df) for name, m in models]
+    path = tmp_path_factory.mktemp("view") / "run.rrd"
+    summary = write_recording(df, meta, ladder, path, max_poses=MAX_POSES)
+    return df, ladder, summary, read_rrd(path)
+
+
+def expected_field_nm(df, step):
+    """Mean residual (model - measurement) per position, nm, computed with pandas."""
+    res = pd.DataFrame({a: step.reading_m[:, k] * 1e9 - df[f"{a}_nm"].to_numpy()
+                        for k, a in enumerate("xyz")})
+    res["pos_id"] = df["pos_id"].to_numpy()
+    mean = res.groupby("pos_id")[["x", "y", "z"]].mean()
+    return mean.dropna()
+
+
+def test_entities_exist(written):
+    df, ladder, summary, rrd = written
+    _, model = build_model(load_params())
+    geoms = {model.geom(g).name for g in range(model.ngeom)} - {"table"}
+    assert {f"/world/robot/{g}" for g in geoms} <= set(rrd)
+    assert {f"/world/instruments/{s}" for s in INSTRUMENT_SITES} <= set(rrd)
+    for e in ("/world/workspace/hull", "/world/workspace/cal", "/world/workspace/val",
+              "/world/error/residual", "/world/error/added_effect", "/world/error/to_explain",
+              "/ladder/rms_nm", "/ladder/table", "/info"):
+        assert e in rrd, e
+    text = rows_of(rrd, "/info", "TextDocument:text")[1][0][0]
+    assert f"1 mm of arrow = {summary.arrow_scale_nm_per_mm:g} nm" in text
+
+
+def test_arrows_are_the_residuals_in_the_stated_unit(written):
+    """Arrow vector x scale = mean residual per position, to float32's relative precision:
+    no nm detail is lost, even for the few-nm residuals of the complete model."""
+    df, ladder, summary, rrd = written
+    scale = summary.arrow_scale_nm_per_mm
+    assert np.log10(scale) == round(np.log10(scale))            # a power of ten
+    steps, vecs = rows_of(rrd, "/world/error/residual", "Arrows3D:vectors", view.LADDER_TIMELINE)
+    assert steps.tolist() == list(range(len(ladder)))            # one ladder step per model
+    small = []
+    for k, step in enumerate(ladder):
+        exp = expected_field_nm(df, step)
+        got = np.array(vecs[k], dtype=np.float64) * scale
+        assert got.shape == exp.shape
+        norm = np.linalg.norm(exp.to_numpy(), axis=1, keepdims=True)
+        assert np.all(np.abs(got - exp.to_numpy()) <= F32_REL * norm)
+        small.append(np.median(norm))
+    assert small[-1] < 10.0 and small[-1] < small[0] / 2   # complete model: a few nm
+    # arrows sit at the positions in the stated frame: mm from the workspace centre, ~1 nm
+    geom = build_geometry(load_params())
+    origin = hull(geom).bounds.mean(axis=0)
+    np.testing.assert_allclose(summary.origin_m, origin, rtol=0, atol=0)
+    exp = expected_field_nm(df, ladder[0])
+    q = df.groupby("pos_id")[["q1_rad", "q2_rad", "q3_rad"]].mean().loc[exp.index].to_numpy()
+    p_m = forward(geom, q).p
+    _, origins = rows_of(rrd, "/world/error/residual", "Arrows3D:origins", view.LADDER_TIMELINE)
+    got_mm = np.array(origins[0], dtype=np.float64)
+    assert np.max(np.abs(got_mm - (p_m - origin) * 1e3)) < 1e-6           # < 1 nm
+    # what the local origin avoids: absolute metres in float32 lose more than 1 nm here
+    assert np.max(np.abs(p_m.astype(np.float32).astype(np.float64) - p_m)) > 1e-9
+
+
+def test_effect_field_beside_the_residual_it_explains(written):
+    df, ladder, summary, rrd = written
+    scale = summary.arrow_scale_nm_per_mm
+    f0, f1 = (expected_field_nm(df, s) for s in ladder)
+    both = f0.index.intersection(f1.index)
+    steps, eff = rows_of(rrd, "/world/error/added_effect", "Arrows3D:vectors",
+                         view.LADDER_TIMELINE)
+    assert steps.tolist() == [1]
+    _, target = rows_of(rrd, "/world/error/to_explain", "Arrows3D:vectors", view.LADDER_TIMELINE)
+    exp_eff = (f1.loc[both] - f0.loc[both]).to_numpy()
+    exp_tgt = -f0.loc[both].to_numpy()
+    for got, exp in ((eff[0], exp_eff), (target[0], exp_tgt)):
+        got = np.array(got, dtype=np.float64) * scale
+        assert np.all(np.abs(got - exp) <= F32_REL * np.linalg.norm(exp, axis=1, keepdims=True))
+
+
+def test_ladder_bar_chart_and_table(written):
+    df, ladder, summary, rrd = written
+    val = (df["split"] == "val").to_numpy()
+    bars = rows_of(rrd, "/ladder/rms_nm", "BarChart:values")[1][0][0]["buffer"]
+    assert len(bars) == len(ladder)
+    for k, step in enumerate(ladder):
+        r = (step.reading_m[val] * 1e9 - df.loc[val, ["x_nm", "y_nm", "z_nm"]].to_numpy())
+        r = r[np.isfinite(r)]
+        assert bars[k] == pytest.approx(np.sqrt(np.mean(r ** 2)), rel=1e-9)
+        assert summary.ladder[k]["rms_val_nm"] == pytest.approx(bars[k], rel=1e-12)
+    assert bars[1] < bars[0]
+    table = rows_of(rrd, "/ladder/table", "TextDocument:text")[1][0][0]
+    assert all(step.name in table for step in ladder)
+
+
+def test_time_series_match_the_dataset(written):
+    df, ladder, summary, rrd = written
+    t = df["t_s"].to_numpy()
+    cols = {f"/timeseries/temperature_C/{c[2:-2]}": c for c in df.columns if c.startswith("T_")}
+    cols.update({f"/timeseries/coil_A/coil{i}": f"coil{i}_A" for i in (1, 2, 3)})
+    cols["/timeseries/force_N"] = "F_N"
+    cols.update({f"/timeseries/acceptance_std/{a}_std_nm": f"{a}_std_nm" for a in "xyz"})
+    assert len(cols) == 4 + 3 + 1 + 3
+    for entity, c in cols.items():
+        ts, vals = rows_of(rrd, entity, "Scalars:scalars", view.CAMPAIGN_TIMELINE)
+        ok = np.isfinite(df[c].to_numpy())
+        np.testing.assert_array_equal(np.array(vals)[:, 0], df[c].to_numpy()[ok], err_msg=c)
+        np.testing.assert_allclose(ts, t[ok], rtol=0, atol=1e-9)
+    for k, step in enumerate(ladder):
+        for a, axis in enumerate("xyz"):
+            entity = f"/timeseries/residual_nm/{axis}/{summary.ladder[k]['entity']}"
+            ts, vals = rows_of(rrd, entity, "Scalars:scalars", view.CAMPAIGN_TIMELINE)
+            r = step.reading_m[:, a] * 1e9 - df[f"{axis}_nm"].to_numpy()
+            ok = np.isfinite(r)
+            # m <-> nm conversions of cm-sized readings round at ~1e-9 nm
+            np.testing.assert_allclose(np.array(vals)[:, 0], r[ok], rtol=0, atol=1e-6)
+            np.testing.assert_allclose(ts, t[ok], rtol=0, atol=1e-9)
+
+
+def test_robot_posed_along_the_campaign(written):
+    df, ladder, summary, rrd = written
+    geom = build_geometry(load_params())
+    rows = summary.pose_rows
+    assert rows.size == MAX_POSES and rows[0] == 0 and rows[-1] == len(df) - 1
+    ts, trans = rows_of(rrd, "/world/robot/mirror_cube", "Transform3D:translation",
+                        view.CAMPAIGN_TIMELINE)
+    np.testing.assert_allclose(ts, df["t_s"].to_numpy()[rows], rtol=0, atol=1e-9)
+    q = df[["q1_rad", "q2_rad", "q3_rad"]].to_numpy()[rows]
+    cube_mm = (forward(geom, q).point(geom.cube_offset) - summary.origin_m) * 1e3
+    got = np.array([v[0] for v in trans], dtype=np.float64)
+    np.testing.assert_allclose(got, cube_mm, rtol=0, atol=1e-4)
+    steps, _ = rows_of(rrd, "/world/robot/mirror_cube", "Transform3D:translation",
+                       view.LADDER_TIMELINE)
+    assert steps.tolist() == [0]                          # drawn on the ladder timeline too
+    # the X interferometer's beam ends on the cube's -x face
+    _, strips = rows_of(rrd, "/world/instruments/interferometer_x", "LineStrips3D:strips",
+                        view.CAMPAIGN_TIMELINE)
+    ends = np.array([s[0][-1] for s in strips], dtype=np.float64)
+    half_mm = load_params().mirror_cube_size_m / 2 * 1e3
+    np.testing.assert_allclose(ends[:, 0], cube_mm[:, 0] - half_mm, atol=1e-4)
+    # the workspace hull, and the points coloured by split
+    _, verts = rows_of(rrd, "/world/workspace/hull", "Mesh3D:vertex_positions")
+    ws = hull(geom)
+    np.testing.assert_allclose(np.array(verts[0]), (ws.vertices - summary.origin_m) * 1e3,
+                               atol=1e-5)
+    for s in ("cal", "val"):
+        _, pts = rows_of(rrd, f"/world/workspace/{s}", "Points3D:positions")
+        assert len(pts[0]) == df.loc[df["split"] == s, "pos_id"].nunique()
+
+
+def test_nothing_half_written(campaign, tmp_path, monkeypatch):
+    df, meta, models = campaign
+    path = tmp_path / "run.rrd"
+    path.write_bytes(b"previous recording")
+
+    def fail(*a, **k):
+        raise RuntimeError("disk full")
+    monkeypatch.setattr(view, "_log_time_series", fail)
+    with pytest.raises(RuntimeError, match="disk full"):
+        write_recording(df, meta, [], path, max_poses=2)
+    assert path.read_bytes() == b"previous recording"
+    assert sorted(os.listdir(tmp_path)) == ["run.rrd"]
+
+
+def test_bad_input_is_named(campaign, tmp_path):
+    df, meta, _ = campaign
+    bad = LadderStep("thermal", np.zeros((len(df) - 1, 3)))
+    with pytest.raises(ValueError, match=r"ladder step 'thermal'.*shape"):
+        write_recording(df, meta, [bad], tmp_path / "a.rrd")
+    far = df.copy()
+    far.loc[5, "q2_rad"] = 1.0
+    with pytest.raises(ValueError, match=r"row.* 5 .*outside the actuator stroke"):
+        write_recording(far, meta, [], tmp_path / "b.rrd")
+    assert not list(tmp_path.iterdir())
+
+
+def test_cli_writes_a_recording_without_a_viewer(campaign, tmp_path, capsys, monkeypatch):
+    df, meta, models = campaign
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    data = tmp_path / "campaign.parquet"
+    write_dataset(df, meta, data)
+    for name, m in models:
+        m.save(tmp_path / f"{name.split(':')[0].split()[0]}.json")
+    code = main(["view", str(data), "--model", str(tmp_path / "geometric.json"),
+                 "--model", str(tmp_path / "C.json"), "--max-poses", "5"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    rrd = read_rrd(tmp_path / "campaign.rrd")                   # default: next to the data
+    steps, _ = rows_of(rrd, "/world/error/residual", "Arrows3D:vectors", view.LADDER_TIMELINE)
+    assert steps.tolist() == [0, 1]
+    assert "/timeseries/residual_nm/x/0_geometric" in rrd and "/timeseries/residual_nm/x/1_C" in rrd
+    assert "1 mm =" in out
+    (tmp_path / "fitted.toml").write_text("")
+    code = main(["view", str(data), "--model", str(tmp_path / "fitted.toml"),
+                 "-o", str(tmp_path / "x.rrd")])
+    assert code == 2 and "fitted.toml" in capsys.readouterr().err
+    assert not (tmp_path / "x.rrd").exists()
+
+
+def test_spawn_is_used_nowhere_in_tests_or_ci():
+    """The tests and CI never open a viewer: no test or CI script passes --spawn."""
+    here = Path(__file__).resolve()
+    files = [p for p in (REPO / "tests").rglob("*.py") if p.resolve() != here]
+    files += [p for p in (REPO / ".ci").rglob("*") if p.is_file()]
+    assert files
+    users = [str(p) for p in files if "--spawn" in p.read_text(errors="replace")]
+    assert users == []
