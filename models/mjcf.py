@@ -23,13 +23,16 @@ from .params import RobotParams
 from .stiffness import element_stiffness
 
 INSTRUMENT_SITES = {
-    # name: (origin offset from the cube centre in the world frame at home, beam direction)
-    "interferometer_x": (np.array([-0.25, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])),
-    "interferometer_y": (np.array([0.0, -0.25, 0.0]), np.array([0.0, 1.0, 0.0])),
-    "interferometer_z": (np.array([0.0, 0.25, 0.06]), np.array([0.0, -1.0, 0.0])),  # via 45 deg mirror
-    "autocollimator_1": (np.array([-0.25, 0.0, 0.005]), np.array([1.0, 0.0, 0.0])),
-    "autocollimator_2": (np.array([0.0, -0.25, 0.005]), np.array([0.0, 1.0, 0.0])),
+    # name: (origin offset from the cube centre in the world frame at home, beam direction).
+    # X and Y look at the cube's -x and -y faces; Z runs horizontally to a 45 deg fold mirror
+    # under the cube (``FOLD_MIRROR_Z``) and up to the cube's bottom face (longer path).
+    "interferometer_x": (np.array([-0.10, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])),
+    "interferometer_y": (np.array([0.0, -0.10, 0.0]), np.array([0.0, 1.0, 0.0])),
+    "interferometer_z": (np.array([0.0, 0.10, -0.06]), np.array([0.0, -1.0, 0.0])),
+    "autocollimator_1": (np.array([-0.12, 0.0, 0.006]), np.array([1.0, 0.0, 0.0])),
+    "autocollimator_2": (np.array([0.0, -0.12, 0.006]), np.array([0.0, 1.0, 0.0])),
 }
+FOLD_MIRROR_Z = np.array([0.0, 0.0, -0.06])   # fold mirror centre, offset from the cube centre
 
 
 def _quat_z_to(direction: np.ndarray) -> np.ndarray:
@@ -162,6 +165,8 @@ def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSp
     for name, (offset, direction) in INSTRUMENT_SITES.items():
         frame.add_site(name=name, pos=cube_home + offset, quat=_quat_z_to(direction),
                        size=[0.004, 0.004, 0.004])
+    frame.add_site(name="fold_mirror_z", pos=cube_home + FOLD_MIRROR_Z,
+                   quat=_quat_z_to(np.array([0.0, 1.0, 1.0])), size=[0.008, 0.008, 0.001])
     return spec
 
 

@@ -1,0 +1,287 @@
+"""The papers' measurement campaigns: plans, the executor over the instrument interface, and
+the twin's vectorised fast path that produces the same data.
+
+A plan is the ordered list of points (session, position, split, motor coordinates, coil
+currents, nominal force, readings per point). ``run_campaign`` executes it through any
+``InstrumentSet`` (simulated, or serial drivers in hw/): per session it zeroes the
+interferometers at home; per point it sets the coil currents, moves, waits, takes the readings
+(re-reading a window whose sample std fails the acceptance rule), reads the autocollimators
+and the last temperature scan.  ``simulate_campaign`` computes the same timeline with array
+operations and evaluates the twin once for all readings.  Both assemble rows with ``_rows``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from .instruments.interface import InstrumentError, InstrumentSet
+from .instruments.optics import AC_CHANNELS, AXES, cosine_correction
+from .instruments.simulated import (InstrumentSettings, SimulatedLab, autocollimator_values,
+                                    interferometer_values, scan_temperatures)
+from .world import Schedule, Twin
+
+# autocollimator channels giving the tilts of each interferometer's mirror face
+COSINE_ANGLES = {"x": ("ac1_ry", "ac1_rz"), "y": ("ac2_rx", "ac2_rz"), "z": ("ac2_rx", "ac1_ry")}
+
+
+@dataclass(frozen=True)
+class Plan:
+    sessions: tuple[tuple[str, tuple[str, ...]], ...]   # (name, interferometer axes)
+    session: np.ndarray      # (N,) index into sessions, non-decreasing
+    pos_id: np.ndarray       # (N,)
+    split: np.ndarray        # (N,) "cal" / "val"
+    q: np.ndarray            # (N,3) rad
+    currents_A: np.ndarray   # (N,3)
+    F_N: np.ndarray          # (N,) nominal force
+    readings: int            # readings per point
+
+    def __len__(self):
+        return self.q.shape[0]
+
+
+def _stroke_grid(stroke, levels: int, margin: float) -> np.ndarray:
+    lo, hi = stroke
+    g = np.linspace(lo + margin, hi - margin, levels)
+    return np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def thermal_plan(rng, stroke, n_positions: int, cal_fraction: float, sessions) -> Plan:
+    """First paper: random positions in the stroke cube, 70/30 cal/val by position, visited in
+    random order; ``sessions`` = [(name, axes, n_cal_points, n_val_points), ...]."""
+    lo, hi = stroke
+    q_pos = rng.uniform(lo, hi, (n_positions, 3))
+    is_cal = rng.permutation(n_positions) < int(round(cal_fraction * n_positions))
+    cal_ids, val_ids = np.flatnonzero(is_cal), np.flatnonzero(~is_cal)
+    parts = []
+    for k, (_, _, n_cal, n_val) in enumerate(sessions):
+        ids = np.concatenate([rng.choice(cal_ids, n_cal), rng.choice(val_ids, n_val)])
+        ids = ids[rng.permutation(ids.size)]
+        parts.append((np.full(ids.size, k), ids))
+    sess = np.concatenate([p[0] for p in parts])
+    ids = np.concatenate([p[1] for p in parts])
+    n = ids.size
+    return Plan(sessions=tuple((s[0], tuple(s[1])) for s in sessions), session=sess, pos_id=ids,
+                split=np.where(is_cal[ids], "cal", "val"), q=q_pos[ids], currents_A=np.zeros((n, 3)),
+                F_N=np.zeros(n), readings=1)
+
+
+def force_plan(stroke, cal_levels: int, val_levels: int, forces_N, force_per_A: float,
+               readings: int, axes=AXES) -> Plan:
+    """Second paper: a cal grid and a non-coincident val grid of motor coordinates, each
+    position at every force (same current in the three coils)."""
+    lo, hi = stroke
+    margin = 0.05 * (hi - lo)
+    cal = _stroke_grid(stroke, cal_levels, margin)
+    step = (hi - lo - 2 * margin) / (val_levels)
+    val = _stroke_grid(stroke, val_levels, margin + 0.5 * step)
+    q_pos = np.concatenate([cal, val])
+    split = np.array(["cal"] * len(cal) + ["val"] * len(val))
+    forces = np.asarray(forces_N, dtype=np.float64)
+    ids = np.repeat(np.arange(len(q_pos)), forces.size)
+    F = np.tile(forces, len(q_pos))
+    I = np.repeat((F / force_per_A)[:, None], 3, axis=1)
+    return Plan(sessions=(("xyz", tuple(axes)),), session=np.zeros(ids.size, int), pos_id=ids,
+                split=split[ids], q=q_pos[ids], currents_A=I, F_N=F, readings=readings)
+
+
+def _rows(plan: Plan, t_s, ifm, ifm_std, ac, T, sensors, zero_ac, cosine: bool,
+          dead_path: dict) -> pd.DataFrame:
+    """Dataset rows from per-point arrays: ifm (N, readings, 3 axes; NaN where not measured),
+    ac (N, readings, 4), T (N, n_sensors); zero_ac (N,4) the session zero's angles."""
+    df = pd.DataFrame({"t_s": t_s, "pos_id": plan.pos_id.astype(np.int64), "split": plan.split,
+                       "session": np.array([plan.sessions[k][0] for k in plan.session]),
+                       "q1_rad": plan.q[:, 0], "q2_rad": plan.q[:, 1], "q3_rad": plan.q[:, 2]})
+    ac_mean = np.mean(ac, axis=1)                                   # NaN if any out of range
+    for i, c in enumerate(AC_CHANNELS):
+        df[f"{c}_arcsec"] = np.degrees(ac_mean[:, i]) * 3600.0
+    for k, a in enumerate(AXES):
+        x = ifm[:, :, k]
+        if np.all(np.isnan(x)):
+            continue
+        if cosine:
+            ia, ib = (AC_CHANNELS.index(c) for c in COSINE_ANGLES[a])
+            x = cosine_correction(x, dead_path[a], ac[:, :, ia], ac[:, :, ib],
+                                  zero_ac[:, None, ia], zero_ac[:, None, ib])
+        df[f"{a}_nm"] = np.mean(x, axis=1) * 1e9
+        df[f"{a}_std_nm"] = np.max(ifm_std[:, :, k], axis=1) * 1e9
+        if plan.readings > 1:
+            df[f"{a}_repeat_std_nm"] = np.std(x, axis=1, ddof=1) * 1e9
+    for j, name in enumerate(sensors):
+        df[f"T_{name}_C"] = T[:, j]
+    for i in range(3):
+        df[f"coil{i + 1}_A"] = plan.currents_A[:, i]
+    df["F_N"] = plan.F_N
+    df["cosine_corrected"] = cosine
+    return df
+
+
+def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, cosine: bool,
+                 dead_path: dict, progress: bool = True, journal=None) -> pd.DataFrame:
+    """Execute ``plan`` through the instrument interface, point by point."""
+    n, R = len(plan), plan.readings
+    ifm = np.full((n, R, 3), np.nan)
+    ifm_std = np.full((n, R, 3), np.nan)
+    ac = np.full((n, R, 4), np.nan)
+    sensors = inst.thermometers.sensors
+    T = np.full((n, len(sensors)), np.nan)
+    t_s = np.zeros(n)
+    zero_ac = np.zeros((n, 4))
+    currents = np.zeros(3)
+    session = -1
+    ac0 = None
+    for k in tqdm(range(n), desc="campaign", unit="pt", disable=not progress):
+        if plan.session[k] != session:
+            session = plan.session[k]
+            if k > 0:
+                inst.clock.sleep(settings.session_gap_s)
+            if np.any(currents != 0):
+                inst.coils.set_currents(np.zeros(3))
+                currents = np.zeros(3)
+            inst.robot.move_to(np.zeros(3))
+            inst.clock.sleep(settings.wait_s)
+            inst.interferometers.zero()
+            ac0 = inst.autocollimators.read()
+        zero_ac[k] = [ac0.angles_rad[c] for c in AC_CHANNELS]
+        if np.any(plan.currents_A[k] != currents):
+            inst.coils.set_currents(plan.currents_A[k])
+            currents = plan.currents_A[k].copy()
+        inst.robot.move_to(plan.q[k])
+        inst.clock.sleep(settings.wait_s)
+        axes = plan.sessions[session][1]
+        for r in range(R):
+            for attempt in range(settings.max_rereads + 1):
+                reading = inst.interferometers.read()
+                if all(reading.std_m[a] < settings.std_limit_m for a in axes):
+                    break
+            else:
+                raise InstrumentError(inst.interferometers.name,
+                                      f"point {k}: sample std above {settings.std_limit_m * 1e9:.0f}"
+                                      f" nm in {settings.max_rereads + 1} windows in a row")
+            for a in axes:
+                ifm[k, r, AXES.index(a)] = reading.displacement_m[a]
+                ifm_std[k, r, AXES.index(a)] = reading.std_m[a]
+            ang = inst.autocollimators.read()
+            ac[k, r] = [ang.angles_rad[c] for c in AC_CHANNELS]
+        t_s[k] = inst.clock.now()
+        scan = inst.thermometers.scan()
+        T[k] = [scan.temperatures_C[s] for s in sensors]
+        inst.clock.sleep(settings.overhead_s)
+    return _rows(plan, t_s, ifm, ifm_std, ac, T, sensors, zero_ac, cosine, dead_path)
+
+
+def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosine: bool,
+                      dead_path: dict) -> pd.DataFrame:
+    """The same campaign as ``run_campaign`` over the simulated instruments, vectorised."""
+    s = settings
+    lab = SimulatedLab(twin, s)                 # for its noise banks (same streams, same layout)
+    n, R = len(plan), plan.readings
+    schedule = Schedule()
+    t, q_prev, I_prev, windows, ac_reads = 0.0, np.zeros(3), np.zeros(3), 0, 0
+    t_mid = np.zeros((n, R))
+    t_ac = np.zeros((n, R))
+    t_s = np.zeros(n)
+    win_rows = np.zeros((n, R), int)
+    ac_rows = np.zeros((n, R), int)
+    zero_events = []                            # (t, session index, ac row, point slice)
+    for k_sess in range(len(plan.sessions)):
+        idx = np.flatnonzero(plan.session == k_sess)
+        if idx.size == 0:
+            continue
+        if k_sess > 0:
+            t += s.session_gap_s
+        if np.any(I_prev != 0):
+            schedule.set_currents(t, np.zeros(3))
+            I_prev = np.zeros(3)
+            t += s.coil_settle_s
+        d = s.move_time(-q_prev)
+        schedule.add_move(t, t + d, -q_prev)
+        t += d + s.wait_s
+        q_prev = np.zeros(3)
+        zero_events.append((t, k_sess, ac_reads, idx))
+        ac_reads += 1
+        t += s.ac_read_s
+        # this session's points
+        q = plan.q[idx]
+        I = plan.currents_A[idx]
+        changed = np.any(I != np.vstack([I_prev, I[:-1]]), axis=1)
+        dq = q - np.vstack([q_prev, q[:-1]])
+        move = s.move_base_s + np.max(np.abs(dq), axis=1) / s.speed_rad_s
+        # accepted windows: this session's axes decide
+        axes = [AXES.index(a) for a in plan.sessions[k_sess][1]]
+        need = idx.size * R
+        stop = windows + need
+        while True:
+            rows = lab.ifm_bank.take(windows, stop)
+            ok = np.all(rows[:, 1, axes] < s.std_limit_m, axis=1)
+            acc = np.flatnonzero(ok)
+            if acc.size >= need:
+                break
+            stop += need // 10 + 16
+        acc = acc[:need] + windows
+        attempts = np.diff(np.concatenate([[windows - 1], acc]))
+        if attempts.max() > s.max_rereads + 1:
+            bad = int(np.argmax(attempts > s.max_rereads + 1)) // R
+            raise InstrumentError("interferometers", f"point {int(idx[bad])}: sample std above "
+                                  f"{s.std_limit_m * 1e9:.0f} nm in {s.max_rereads + 1} windows in a row")
+        windows = int(acc[-1]) + 1
+        reading_dur = (attempts * s.window_s + s.ac_read_s).reshape(-1, R)
+        lead = changed * s.coil_settle_s + move + s.wait_s           # before the first reading
+        dur = lead + reading_dur.sum(axis=1) + s.overhead_s
+        start = t + np.concatenate([[0.0], np.cumsum(dur)[:-1]])
+        first = start + lead
+        before = np.concatenate([np.zeros((idx.size, 1)), np.cumsum(reading_dur, axis=1)[:, :-1]],
+                                axis=1)
+        att = attempts.reshape(-1, R)
+        t_ac[idx] = first[:, None] + before + att * s.window_s
+        t_mid[idx] = t_ac[idx] - 0.5 * s.window_s
+        t_s[idx] = first + reading_dur.sum(axis=1)
+        win_rows[idx] = acc.reshape(-1, R)
+        ac_rows[idx] = ac_reads + np.arange(idx.size * R).reshape(-1, R)
+        ac_reads += idx.size * R
+        for j in np.flatnonzero(changed):
+            schedule.set_currents(start[j], I[j])
+        move_start = start + changed * s.coil_settle_s
+        schedule.moves.extend((float(a), float(a + m), np.abs(v) / np.abs(v).max()
+                               if np.abs(v).max() > 0 else np.abs(v))
+                              for a, m, v in zip(move_start, move, dq))
+        t = float(start[-1] + dur[-1])
+        q_prev, I_prev = q[-1].copy(), I[-1].copy()
+    twin.advance(t, schedule)
+    # zeros: truth at home with the currents then in force (zero)
+    ifm = np.full((n, R, 3), np.nan)
+    ifm_std = np.full((n, R, 3), np.nan)
+    zero_ac = np.zeros((n, 4))
+    zero_path = {}
+    for tz, k_sess, ac_row, idx in zero_events:
+        truth = twin.truth(twin.points([tz], np.zeros((1, 3)), np.zeros((1, 3))))
+        zero_path[k_sess] = {a: float(truth.optical_path_m[a][0]) for a in AXES}
+        ang, _ = autocollimator_values(truth, lab.ac_bank.take(ac_row, ac_row + 1), s)
+        zero_ac[idx] = ang[0]
+    qr = np.repeat(plan.q, R, axis=0)
+    Ir = np.repeat(plan.currents_A, R, axis=0)
+    truth_mid = twin.truth(twin.points(t_mid.reshape(-1), qr, Ir))
+    truth_ac = twin.truth(twin.points(t_ac.reshape(-1), qr, Ir))
+    sess_r = np.repeat(plan.session, R)
+    noise = lab.ifm_bank.take(0, windows)[win_rows.reshape(-1)]
+    for k_sess, (_, axes) in enumerate(plan.sessions):
+        m = sess_r == k_sess
+        if not m.any():
+            continue
+        sub = type(truth_mid)(pose=None, kinematic_pose=None, wrench=None,
+                              optical_path_m={a: v[m] for a, v in truth_mid.optical_path_m.items()},
+                              n_comp={a: v[m] for a, v in truth_mid.n_comp.items()}, angles_rad={})
+        vals, stds = interferometer_values(sub, zero_path[k_sess], axes, noise[m], s)
+        cols = [AXES.index(a) for a in axes]
+        flat = ifm.reshape(-1, 3)
+        flat_std = ifm_std.reshape(-1, 3)
+        sel = np.flatnonzero(m)
+        flat[np.ix_(sel, cols)] = vals
+        flat_std[np.ix_(sel, cols)] = stds
+    ang, _ = autocollimator_values(truth_ac, lab.ac_bank.take(0, ac_reads)[ac_rows.reshape(-1)], s)
+    ac = ang.reshape(n, R, 4)
+    scan_k = np.floor(t_s / s.scan_period_s).astype(int)
+    T = scan_temperatures(twin, s, lab.T_bank, lab.sensors, scan_k)
+    return _rows(plan, t_s, ifm, ifm_std, ac, T, lab.sensors, zero_ac, cosine, dead_path)

@@ -1,0 +1,35 @@
+"""The library of physical effects: each a plug-in with a name, documented parameters (units,
+defaults) and the stages of the twin it changes (see base.py). A scenario switches them on by
+name; ``deltatwin effects`` lists them."""
+from __future__ import annotations
+
+import difflib
+
+from .air_refraction import AirRefraction
+from .base import Effect, EffectError, Parameter
+from .beam_misalignment import BeamMisalignment
+from .coil_heating import CoilHeating
+from .geometric_errors import GeometricErrors
+from .gravity_sag import GravitySag
+from .loop_drift import LoopDrift
+from .magnetic_force import MagneticForce
+from .motor_heating import MotorHeating
+from .peltier_supports import PeltierSupports
+from .room_climate import RoomClimate
+from .thermal_expansion import ThermalExpansion
+
+LIBRARY: dict[str, type[Effect]] = {cls.name: cls for cls in (
+    GeometricErrors, ThermalExpansion, GravitySag, MagneticForce, LoopDrift, AirRefraction,
+    BeamMisalignment, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
+
+
+def make_effect(name: str, values: dict | None = None, where: str = "effects") -> Effect:
+    """The effect ``name`` with parameter ``values`` (validated); errors name ``where``."""
+    if name not in LIBRARY:
+        close = difflib.get_close_matches(name, LIBRARY, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise EffectError(f"{where}: unknown effect {name!r}{hint}; known: {sorted(LIBRARY)}")
+    return LIBRARY[name](where=f"{where}.{name}", **(values or {}))
+
+
+__all__ = ["LIBRARY", "Effect", "EffectError", "Parameter", "make_effect"]

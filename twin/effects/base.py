@@ -1,0 +1,99 @@
+"""What a physical effect is: a name, documented parameters with units and defaults, and the
+stages of the twin it changes.
+
+The twin evaluates a campaign in stages (twin/world.py): the robot's parameters, the thermal
+network's inputs, the part temperatures that scale the geometry, the wrench on the platform,
+the instruments' optics. An effect overrides the hooks of the stages it changes and nothing
+else; an effect that is off is simply absent, and every stage then keeps its ideal value
+(parts at the reference temperature, no load, beams on their nominal lines, vacuum-like air
+index constant). Adding an effect = one module in twin/effects/ + one line in LIBRARY.
+"""
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+
+class EffectError(ValueError):
+    """An unknown effect or a bad effect parameter."""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    name: str
+    unit: str
+    default: float | tuple
+    doc: str
+    minimum: float | None = None   # inclusive bound checked on every element
+
+    @property
+    def shape(self) -> tuple:
+        return np.shape(self.default)
+
+
+class Effect:
+    """Base class of the physical effects. Subclasses declare ``name``, ``summary`` and
+    ``parameters`` and override the hooks they need (see twin/world.py for the stages)."""
+    name: ClassVar[str]
+    summary: ClassVar[str]
+    parameters: ClassVar[tuple[Parameter, ...]] = ()
+
+    def __init__(self, where: str = "effect", **values):
+        known = {p.name: p for p in self.parameters}
+        for key in values:
+            if key not in known:
+                close = difflib.get_close_matches(key, known, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise EffectError(f"{where}: unknown parameter {key!r} of effect {self.name!r}"
+                                  f"{hint}; parameters: {sorted(known)}")
+        self.values = {}
+        for p in self.parameters:
+            raw = values.get(p.name, p.default)
+            try:
+                v = np.asarray(raw, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise EffectError(f"{where}.{p.name}: expected a number ({p.unit}), got {raw!r}")
+            if v.shape != p.shape:
+                raise EffectError(f"{where}.{p.name}: expected shape {p.shape} ({p.unit}), "
+                                  f"got {v.shape}")
+            if not np.all(np.isfinite(v)):
+                raise EffectError(f"{where}.{p.name}: not a finite number: {raw!r}")
+            if p.minimum is not None and np.any(v < p.minimum):
+                raise EffectError(f"{where}.{p.name} = {raw!r} {p.unit}: must be >= {p.minimum}")
+            self.values[p.name] = float(v) if v.ndim == 0 else v
+        for k, v in self.values.items():
+            setattr(self, k, v)
+
+    # -- stage hooks (twin/world.py calls them in this order) ---------------------------------
+    def robot(self, params, rng):
+        """Robot parameters (RobotParams) -> changed parameters (geometric errors)."""
+        return params
+
+    def environment(self, env, rng) -> None:
+        """Change the laboratory's environment on the thermal grid in place (twin.thermal.Inputs:
+        room air, support temperatures, pressure); campaign-independent."""
+
+    def heat_sources(self, t_grid, schedule, params) -> dict:
+        """Heat powers (W) by network node on the grid times, from what the campaign did
+        (``schedule``: moves and coil currents, twin/world.py)."""
+        return {}
+
+    def part_temperatures(self, points) -> dict | None:
+        """Per-point part temperatures (degC) that scale the geometry, or None."""
+        return None
+
+    def wrench(self, points) -> np.ndarray | None:
+        """Wrench (N,6) on the platform (N at the platform origin, N*m), world frame."""
+        return None
+
+    def optics(self, points, optics) -> None:
+        """Change the instruments' optics in place (beam origins/directions, air index)."""
+
+    def describe(self) -> dict:
+        return {"name": self.name, "summary": self.summary,
+                "parameters": {p.name: {"unit": p.unit, "default": p.default, "doc": p.doc,
+                                        "value": np.asarray(self.values[p.name]).tolist()}
+                               for p in self.parameters}}

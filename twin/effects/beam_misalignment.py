@@ -1,0 +1,36 @@
+"""Interferometer beams not parallel to the axes and not through the cube centre."""
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Effect, Parameter
+
+
+def _tilt(direction, angles):
+    """Tilt unit vectors (N,3) by two small angles about the two axes normal to them."""
+    helper = np.where(np.abs(direction[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(direction, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(direction, e1)
+    d = direction + angles[0] * e1 + angles[1] * e2
+    return d / np.linalg.norm(d, axis=1, keepdims=True), e1, e2
+
+
+class BeamMisalignment(Effect):
+    name = "beam_misalignment"
+    summary = ("Each beam tilted by two angles (cosine error of the axis itself) and offset "
+               "sideways from the cube centre (Abbe offsets: parasitic rotations then read as "
+               "displacement).")
+    parameters = (
+        Parameter("angle_rad", "rad", ((2e-4, -1e-4), (-1.5e-4, 2e-4), (1e-4, 1.5e-4)),
+                  "per axis x, y, z: two tilt angles of the beam"),
+        Parameter("abbe_offset_m", "m", ((0.8e-3, -0.5e-3), (-0.6e-3, 0.7e-3), (0.5e-3, 0.9e-3)),
+                  "per axis x, y, z: two sideways offsets of the beam from the cube centre"),
+    )
+
+    def optics(self, points, optics):
+        for k, axis in enumerate(("x", "y", "z")):
+            d, e1, e2 = _tilt(optics.direction[axis], self.angle_rad[k])
+            optics.direction[axis] = d
+            optics.head[axis] = (optics.head[axis] + self.abbe_offset_m[k, 0] * e1
+                                 + self.abbe_offset_m[k, 1] * e2)

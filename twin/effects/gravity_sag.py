@@ -1,0 +1,19 @@
+"""The platform's weight through the robot's compliance."""
+from __future__ import annotations
+
+import numpy as np
+
+from twin.statics import GRAVITY_M_S2
+
+from .base import Effect
+
+
+class GravitySag(Effect):
+    name = "gravity_sag"
+    summary = ("The weight of the platform (with cube and magnets) acts at its centre of mass; the "
+               "statics turn it into a pose-dependent sag (tens of nm).")
+
+    def wrench(self, points):
+        w = np.zeros((points.t_s.shape[0], 6))
+        w[:, 2] = -points.params.platform_mass_kg * GRAVITY_M_S2
+        return w

@@ -1,0 +1,39 @@
+"""Measurement-loop drift: the table, the metrology frame and the instrument supports expand,
+moving the interferometer heads and the fold mirror relative to the robot's base."""
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Effect, Parameter
+
+
+class LoopDrift(Effect):
+    name = "loop_drift"
+    summary = ("The table expands in its plane about the robot's axis, the frame lifts the robot's "
+               "base, each support lifts its head; heads and the Z fold mirror move relative to "
+               "the base by CTE * dT * length of every leg of the loop.")
+    parameters = (
+        Parameter("frame_height_m", "m", 0.35, "table top to the robot's base plane", 0.0),
+        Parameter("table_cte_per_K", "1/K", 11.7e-6, "table (steel)", 0.0),
+        Parameter("frame_cte_per_K", "1/K", 11.7e-6, "metrology frame (steel)", 0.0),
+        Parameter("support_cte_per_K", "1/K", 23e-6, "instrument supports (aluminium)", 0.0),
+        Parameter("reference_C", "degC", 20.0, "temperature at which the loop is as drawn"),
+    )
+
+    def _drift(self, points, position, support_C):
+        """Displacement (N,3) of an element at ``position`` (N,3, base frame) on a support."""
+        dT_table = points.node_T["table"] - self.reference_C
+        dT_frame = points.node_T["frame"] - self.reference_C
+        height = self.frame_height_m + position[:, 2]            # support height above the table
+        d = np.zeros_like(position)
+        d[:, :2] = self.table_cte_per_K * dT_table[:, None] * position[:, :2]
+        d[:, 2] = (self.support_cte_per_K * (support_C - self.reference_C) * height
+                   - self.frame_cte_per_K * dT_frame * self.frame_height_m)
+        return d
+
+    def optics(self, points, optics):
+        for axis in optics.head:
+            optics.head[axis] = optics.head[axis] + self._drift(points, optics.head[axis],
+                                                                points.support_C[axis])
+        # the fold mirror stands on a post at table temperature
+        optics.fold = optics.fold + self._drift(points, optics.fold, points.node_T["table"])

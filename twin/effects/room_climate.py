@@ -1,0 +1,50 @@
+"""The laboratory's air: air conditioning, then the room's free day/night oscillation; the
+barometric pressure."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import lfilter
+
+from .base import Effect, Parameter
+
+
+def ornstein_uhlenbeck(rng, t, std, time_s, step_s=60.0):
+    """A stationary Ornstein-Uhlenbeck process (std, correlation time) sampled at times ``t``:
+    generated on a coarse step and interpolated linearly."""
+    coarse = np.arange(t[0], t[-1] + 2 * step_s, step_s)
+    a = np.exp(-step_s / time_s)
+    x = lfilter([std * np.sqrt(1 - a * a)], [1.0, -a], rng.standard_normal(coarse.size),
+                zi=[a * std * rng.standard_normal()])[0]
+    return np.interp(t, coarse, x)
+
+
+class RoomClimate(Effect):
+    name = "room_climate"
+    summary = ("Air conditioning holds the room at its set point until it is switched off; the "
+               "room then drifts to its free level with a day/night swing and a random slow "
+               "wander (first-order room air); the pressure wanders around its mean.")
+    parameters = (
+        Parameter("ac_setpoint_C", "degC", 20.0, "air-conditioning set point"),
+        Parameter("ac_off_s", "s", -3600.0, "time the air conditioning is switched off "
+                  "(campaign time; negative = during the warm-up)"),
+        Parameter("free_mean_C", "degC", 23.0, "mean room temperature without air conditioning"),
+        Parameter("daily_amplitude_C", "K", 1.3, "day/night half swing", 0.0),
+        Parameter("daily_peak_h", "h", 16.0, "hour of the daily maximum (campaign starts at 0 h)"),
+        Parameter("wander_std_C", "K", 0.4, "std of the slow random wander", 0.0),
+        Parameter("wander_time_s", "s", 6 * 3600.0, "correlation time of the wander", 1.0),
+        Parameter("room_time_constant_s", "s", 2.5 * 3600.0, "room air response time", 1.0),
+        Parameter("pressure_mean_Pa", "Pa", 101325.0, "mean barometric pressure", 0.0),
+        Parameter("pressure_std_Pa", "Pa", 80.0, "std of the barometric wander", 0.0),
+        Parameter("pressure_time_s", "s", 86400.0, "correlation time of the pressure", 1.0),
+    )
+
+    def environment(self, env, rng):
+        t = env.t_grid
+        free = (self.free_mean_C
+                + self.daily_amplitude_C * np.cos(2 * np.pi * (t / 3600.0 - self.daily_peak_h) / 24.0)
+                + ornstein_uhlenbeck(rng, t, self.wander_std_C, self.wander_time_s))
+        target = np.where(t < self.ac_off_s, self.ac_setpoint_C, free)
+        a = np.exp(-(t[1] - t[0]) / self.room_time_constant_s)
+        env.room_C = lfilter([1 - a], [1.0, -a], target, zi=[a * target[0]])[0]
+        env.pressure_Pa = self.pressure_mean_Pa + ornstein_uhlenbeck(
+            rng, t, self.pressure_std_Pa, self.pressure_time_s)

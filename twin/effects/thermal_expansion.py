@@ -1,0 +1,22 @@
+"""Each robot part expands with its own temperature (its material's CTE)."""
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Effect
+
+
+class ThermalExpansion(Effect):
+    name = "thermal_expansion"
+    summary = ("Base, each arm, each rod pair and the platform take their node temperature from "
+               "the thermal network and scale their joint geometry by 1 + CTE (T - T_ref); the "
+               "kinematics are solved exactly with the per-point geometry.")
+
+    def part_temperatures(self, points):
+        T = points.node_T
+        n = points.t_s.shape[0]
+        rods = np.stack([T["rod1"], T["rod2"], T["rod3"]], axis=1)
+        return {"base": T["base"],
+                "arms": np.stack([T["arm1"], T["arm2"], T["arm3"]], axis=1),
+                "rods": np.broadcast_to(rods[:, :, None], (n, 3, 2)),
+                "platform": T["platform"]}

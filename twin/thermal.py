@@ -1,0 +1,173 @@
+"""Lumped thermal network of the robot, its measurement loop and the room.
+
+Nodes are parts with a heat capacity (J/K) joined by conductances (W/K); the room air, the
+Peltier-stabilised interferometer supports and the heat sources (motors, coils) are inputs.
+Temperature sensors are nodes too: a small capacity glued to its part and leaking a little to
+the air, so a sensor lags its part and misses part of its gradient to the room (the reason the
+seeds' temperature derivatives help).  The network is linear, C dT/dt = -K T + F u, and is
+integrated exactly (zero-order hold on a fixed grid) in its modal coordinates: with
+K V = C V diag(lam) and V^T C V = I every mode is a first-order filter (scipy.signal.lfilter),
+so three days at 1 s steps take milliseconds, and integrating in pieces (``ThermalState``,
+used by the simulated instruments as the campaign clock advances) gives the same temperatures.
+Units: degC, s, J/K, W/K, W.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import eigh
+from scipy.signal import lfilter
+
+GRID_S = 1.0  # integration step; inputs are held constant over a step
+
+# (node, heat capacity J/K, conductance to the room air W/K); time constants alone = C/G
+PART_NODES = (
+    ("table", 6.0e5, 25.0),        # granite/steel table, ~6.7 h
+    ("frame", 1.2e5, 8.0),         # metrology frame, ~4.2 h
+    ("base", 4.0e4, 3.5),          # titanium base with the motors, ~3.2 h
+    ("arm1", 2.5e3, 0.8), ("arm2", 2.5e3, 0.8), ("arm3", 2.5e3, 0.8),   # ~52 min
+    ("rod1", 300.0, 0.12), ("rod2", 300.0, 0.12), ("rod3", 300.0, 0.12),  # rod pairs, ~42 min
+    ("platform", 350.0, 0.15),     # platform + mirror cube + magnets, ~39 min
+    ("motor1", 900.0, 0.6), ("motor2", 900.0, 0.6), ("motor3", 900.0, 0.6),
+    ("coil1", 400.0, 0.05), ("coil2", 400.0, 0.05), ("coil3", 400.0, 0.05),  # insulated box
+    ("coil_box", 3.0e3, 1.2),
+    ("air_x", 60.0, 1.0), ("air_y", 60.0, 1.0), ("air_z", 60.0, 1.0),   # beam air, ~1 min
+)
+# conductances between nodes (W/K): the mechanical joints and the air around the beams
+LINKS = (
+    ("table", "frame", 6.0), ("frame", "base", 1.5),
+    ("base", "arm1", 0.35), ("base", "arm2", 0.35), ("base", "arm3", 0.35),
+    ("motor1", "base", 0.8), ("motor2", "base", 0.8), ("motor3", "base", 0.8),
+    ("motor1", "arm1", 0.5), ("motor2", "arm2", 0.5), ("motor3", "arm3", 0.5),
+    ("arm1", "rod1", 0.02), ("arm2", "rod2", 0.02), ("arm3", "rod3", 0.02),
+    ("rod1", "platform", 0.02), ("rod2", "platform", 0.02), ("rod3", "platform", 0.02),
+    ("coil1", "coil_box", 0.6), ("coil2", "coil_box", 0.6), ("coil3", "coil_box", 0.6),
+    ("coil_box", "table", 0.8), ("coil_box", "platform", 0.01),
+    ("air_x", "table", 0.05), ("air_y", "table", 0.05), ("air_z", "table", 0.05),
+)
+# inputs: room air, the three Peltier supports (fixed temperatures), heat powers
+SUPPORTS = ("support_x", "support_y", "support_z")
+SUPPORT_LINKS = (("support_x", "table", 3.5), ("support_y", "table", 3.5), ("support_z", "table", 3.5),
+                 ("support_x", "air_x", 0.3), ("support_y", "air_y", 0.3), ("support_z", "air_z", 0.3))
+HEATED = ("motor1", "motor2", "motor3", "coil1", "coil2", "coil3")
+SENSOR_C_J_PER_K = 2.0  # PT100 in its clip: with the glue conductance, tens of seconds of lag
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """A temperature sensor glued on ``part`` (or hanging in air), ``glue_W_per_K`` to it and
+    ``leak_W_per_K`` to the room air (what makes it miss part of the part's gradient)."""
+    name: str
+    part: str
+    glue_W_per_K: float = 0.04
+    leak_W_per_K: float = 0.002
+
+
+def sensor_set(names_parts: dict[str, str]) -> tuple[Sensor, ...]:
+    """Sensors from ``{sensor name: part}``; air sensors follow their air node quickly."""
+    out = []
+    for name, part in names_parts.items():
+        if part.startswith("air"):
+            out.append(Sensor(name, part, glue_W_per_K=0.2, leak_W_per_K=0.0))
+        else:
+            out.append(Sensor(name, part))
+    return tuple(out)
+
+
+@dataclass
+class Inputs:
+    """Network inputs on the integration grid (each (n_grid,)): room air and supports in degC,
+    heat powers in W by heated node."""
+    room_C: np.ndarray
+    supports_C: dict[str, np.ndarray] = field(default_factory=dict)
+    power_W: dict[str, np.ndarray] = field(default_factory=dict)
+    pressure_Pa: np.ndarray | None = None     # barometric pressure (not a network input)
+
+
+class ThermalNetwork:
+    """The linear network and its modal decomposition (built once per scenario)."""
+
+    def __init__(self, sensors: tuple[Sensor, ...] = (), supports_on: bool = True):
+        names = [n for n, _, _ in PART_NODES] + [f"sensor:{s.name}" for s in sensors]
+        self.nodes = tuple(names)
+        self.index = {n: i for i, n in enumerate(names)}
+        self.sensors = sensors
+        n = len(names)
+        C = np.array([c for _, c, _ in PART_NODES] + [SENSOR_C_J_PER_K] * len(sensors))
+        K = np.zeros((n, n))
+        self.inputs = ("room",) + SUPPORTS + HEATED
+        F = np.zeros((n, len(self.inputs)))
+
+        def link(a, b, g):
+            i, j = self.index[a], self.index[b]
+            K[i, i] += g
+            K[j, j] += g
+            K[i, j] -= g
+            K[j, i] -= g
+
+        for name, _, g_room in PART_NODES:
+            K[self.index[name], self.index[name]] += g_room
+            F[self.index[name], 0] += g_room
+        for a, b, g in LINKS:
+            link(a, b, g)
+        for sup, node, g in SUPPORT_LINKS:
+            if supports_on:
+                K[self.index[node], self.index[node]] += g
+                F[self.index[node], self.inputs.index(sup)] += g
+        for s in sensors:
+            if s.part not in self.index:
+                raise ValueError(f"sensor {s.name!r}: unknown part {s.part!r}; parts: "
+                                 f"{[p for p, _, _ in PART_NODES]}")
+            link(f"sensor:{s.name}", s.part, s.glue_W_per_K)
+            i = self.index[f"sensor:{s.name}"]
+            K[i, i] += s.leak_W_per_K
+            F[i, 0] += s.leak_W_per_K
+        for h in HEATED:
+            F[self.index[h], self.inputs.index(h)] = 1.0
+        self.C, self.K, self.F = C, K, F
+        lam, V = eigh(K, np.diag(C))          # K V = C V diag(lam), V^T C V = I
+        self.lam, self.V = lam, V
+        self.decay = np.exp(-lam * GRID_S)
+        self.gain = (1.0 - self.decay) / lam  # exact ZOH for a constant input over a step
+        self.VtF = V.T @ F
+
+    def input_matrix(self, inputs: Inputs) -> np.ndarray:
+        """Inputs as an (n_grid, n_inputs) array, in ``self.inputs`` order."""
+        n = inputs.room_C.shape[0]
+        U = np.zeros((n, len(self.inputs)))
+        U[:, 0] = inputs.room_C
+        for j, name in enumerate(self.inputs[1:], start=1):
+            src = inputs.supports_C if name in SUPPORTS else inputs.power_W
+            if name in src:
+                U[:, j] = src[name]
+            elif name in SUPPORTS:
+                U[:, j] = inputs.room_C   # an unpowered support sits at room temperature
+        return U
+
+    def steady_state(self, u: np.ndarray) -> np.ndarray:
+        return np.linalg.solve(self.K, self.F @ u)
+
+    def start(self, u0: np.ndarray) -> "ThermalState":
+        """State in equilibrium with constant inputs ``u0`` (n_inputs,)."""
+        z = self.V.T @ (self.C * self.steady_state(u0))   # modal coordinates: z = V^T C T
+        return ThermalState(self, z)
+
+
+class ThermalState:
+    """Modal state of a network; ``advance`` integrates grid steps of inputs."""
+
+    def __init__(self, net: ThermalNetwork, z: np.ndarray):
+        self.net, self.z = net, z.copy()
+
+    def advance(self, U: np.ndarray) -> np.ndarray:
+        """Integrate len(U) grid steps with inputs U (n, n_inputs) held per step; return the
+        node temperatures (n, n_nodes) at the END of each step and keep the final state."""
+        net = self.net
+        drive = (U @ net.VtF.T) * net.gain                   # (n, n_modes)
+        Z = np.empty_like(drive)
+        for m in range(drive.shape[1]):                       # one first-order filter per mode
+            Z[:, m], _ = lfilter([1.0], [1.0, -net.decay[m]], drive[:, m],
+                                  zi=[net.decay[m] * self.z[m]])
+            self.z[m] = Z[-1, m]
+        return Z @ net.V.T

@@ -1,0 +1,219 @@
+"""The twin's world: one robot with its effects in its laboratory, evaluated at any instants.
+
+Stages, in the order data flows (each effect joins the stages it overrides, twin/effects/):
+1. robot: the robot parameters (nominal + the file's deviations) -> ``robot`` hooks (geometric
+   errors drawn from the seeded stream);
+2. environment: room air, pressure, support temperatures on the thermal grid (``environment``);
+3. heat: motor and coil powers from what the campaign did (``heat_sources`` over the Schedule);
+4. thermal network (twin/thermal.py): node and sensor temperatures, integrated up to any time;
+5. geometry: per-point part temperatures (``part_temperatures``) -> exact kinematics;
+6. load: the wrench (``wrench``: gravity, coils) through the statics -> the platform's pose;
+7. optics: beams, fold mirror and air index (``optics``) -> optical paths and the index the
+   instruments divide by; autocollimator tilts.
+The simulated instruments (twin/instruments/simulated.py) add zeroing, noise, resolution and
+timing; the fast path (twin/campaign.py) evaluates whole campaigns at once through the same
+functions.  Units: m, rad, s, N, degC.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from models.geometry import build_geometry
+from models.params import RobotParams
+
+from .effects import Effect
+from .instruments.optics import AXES, Optics, autocollimator_angles, optical_path
+from .kinematics import Pose, forward
+from .statics import Statics
+from .thermal import GRID_S, HEATED, SUPPORTS, Inputs, ThermalNetwork, sensor_set
+
+STREAMS = ("robot", "environment", "interferometers", "autocollimators", "thermometers",
+           "campaign")
+COMPENSATION_SENSORS = {f"comp_{a}": f"air_{a}" for a in AXES}
+
+
+def random_streams(seed: int) -> dict[str, np.random.Generator]:
+    """One independent generator per purpose, all from ``seed`` (same seed, same data)."""
+    children = np.random.SeedSequence(seed).spawn(len(STREAMS))
+    return {name: np.random.default_rng(s) for name, s in zip(STREAMS, children)}
+
+
+class Schedule:
+    """What the campaign did, as it happened: moves and coil current settings (campaign time)."""
+
+    def __init__(self):
+        self.moves: list[tuple[float, float, np.ndarray]] = []   # (start, end, |dq| share (3,))
+        self.current_t: list[float] = [-np.inf]
+        self.current_I: list[np.ndarray] = [np.zeros(3)]
+
+    def add_move(self, t_start: float, t_end: float, dq: np.ndarray) -> None:
+        dq = np.abs(np.asarray(dq, dtype=np.float64))
+        share = dq / dq.max() if dq.max() > 0 else dq
+        self.moves.append((float(t_start), float(t_end), share))
+
+    def set_currents(self, t: float, currents_A) -> None:
+        self.current_t.append(float(t))
+        self.current_I.append(np.asarray(currents_A, dtype=np.float64).copy())
+
+    def speed_fraction(self, t: np.ndarray) -> np.ndarray:
+        """(n,3): each motor's share of full speed at times t (0 at rest)."""
+        out = np.zeros((t.size, 3))
+        if not self.moves:
+            return out
+        start = np.array([m[0] for m in self.moves])
+        end = np.array([m[1] for m in self.moves])
+        share = np.array([m[2] for m in self.moves])
+        k = np.searchsorted(start, t, side="right") - 1
+        inside = (k >= 0) & (t < end[np.maximum(k, 0)])
+        out[inside] = share[k[inside]]
+        return out
+
+    def currents(self, t: np.ndarray) -> np.ndarray:
+        """(n,3) coil currents (A) in force at times t."""
+        k = np.searchsorted(np.array(self.current_t), t, side="right") - 1
+        return np.array(self.current_I)[k]
+
+
+@dataclass
+class Points:
+    """Conditions at N instants (arrays with a leading axis N)."""
+    t_s: np.ndarray
+    q: np.ndarray
+    currents_A: np.ndarray
+    node_T: dict
+    room_C: np.ndarray
+    pressure_Pa: np.ndarray
+    support_C: dict
+    params: RobotParams
+    home_p: np.ndarray
+    pose: Pose | None = None     # kinematic pose, set by the twin before the load stage
+
+
+@dataclass
+class Truth:
+    """What the instruments look at, at N instants."""
+    pose: Pose                     # the platform's true (deflected) pose
+    kinematic_pose: Pose
+    wrench: np.ndarray             # (N,6)
+    optical_path_m: dict           # axis -> (N,) n * s
+    n_comp: dict                   # axis -> (N,)
+    angles_rad: dict               # autocollimator channel -> (N,)
+    optics: Optics = field(repr=False, default=None)
+
+
+class Twin:
+    """One robot, its effects and its laboratory, for one scenario and seed."""
+
+    def __init__(self, params: RobotParams, effects: list[Effect], sensors: dict[str, str],
+                 seed: int, horizon_s: float, warmup_s: float = 7200.0):
+        self.effects = list(effects)
+        self.names = {e.name for e in self.effects}
+        self.rng = random_streams(seed)
+        for e in self.effects:
+            params = e.robot(params, self.rng["robot"])
+        self.params = params
+        self.geom = build_geometry(params)
+        self.statics = Statics(params, self.geom)
+        self.home_p = forward(self.geom, np.zeros((1, 3))).p[0]
+        self.cube_home = self.home_p + self.geom.cube_offset
+        self.sensors = dict(sensors)
+        all_sensors = {**self.sensors, **COMPENSATION_SENSORS}
+        self.network = ThermalNetwork(sensor_set(all_sensors),
+                                      supports_on="peltier_supports" in self.names)
+        # campaign-independent environment on the whole grid
+        t_grid = -warmup_s + GRID_S * np.arange(int(np.ceil((horizon_s + warmup_s) / GRID_S)) + 2)
+        T_ref = params.reference_temperature_C
+        self.env = Inputs(room_C=np.full(t_grid.size, T_ref),
+                          supports_C={s: np.full(t_grid.size, T_ref) for s in SUPPORTS},
+                          pressure_Pa=np.full(t_grid.size, 101325.0))
+        self.env.t_grid = t_grid
+        for e in self.effects:
+            e.environment(self.env, self.rng["environment"])
+        self.t_grid = t_grid
+        self._U_env = self.network.input_matrix(self.env)
+        self._state = self.network.start(self._U_env[0])
+        self._T = np.empty((t_grid.size, len(self.network.nodes)))
+        self._T[0] = self.network.steady_state(self._U_env[0])
+        self._done = 0                                   # grid index integrated up to
+
+    # -- thermal ------------------------------------------------------------------------------
+    def advance(self, t_s: float, schedule: Schedule) -> None:
+        """Integrate the thermal network far enough to know temperatures at time ``t_s``.
+        Inputs at a grid time depend only on events before it, so integrating in pieces as a
+        campaign goes gives the same temperatures as integrating its whole schedule at once."""
+        k = int(np.ceil((t_s - self.t_grid[0]) / GRID_S))
+        if k >= self.t_grid.size:
+            raise ValueError(f"time {t_s:.0f} s is beyond the scenario's horizon "
+                             f"({self.t_grid[-1]:.0f} s): raise campaign.horizon_s")
+        if k <= self._done:
+            return
+        steps = slice(self._done, k)
+        U = self._U_env[steps].copy()
+        t = self.t_grid[steps]
+        for e in self.effects:
+            for node, P in e.heat_sources(t, schedule, self.params).items():
+                U[:, self.network.inputs.index(node)] += P
+        self._T[self._done + 1:k + 1] = self._state.advance(U)
+        self._done = k
+
+    def node_temperatures(self, t_s: np.ndarray) -> dict[str, np.ndarray]:
+        """Temperatures (degC) of every node at times ``t_s`` (linear between grid points)."""
+        t_s = np.asarray(t_s, dtype=np.float64)
+        if t_s.size and t_s.max() > self.t_grid[self._done]:
+            raise ValueError("temperatures asked beyond the integrated time; call advance()")
+        x = (t_s - self.t_grid[0]) / GRID_S
+        i = np.clip(np.floor(x).astype(int), 0, self.t_grid.size - 2)
+        f = (x - i)[:, None]
+        T = self._T[i] * (1 - f) + self._T[i + 1] * f
+        return {name: T[:, j] for j, name in enumerate(self.network.nodes)}
+
+    def points(self, t_s, q, currents_A) -> Points:
+        t_s = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        node_T = self.node_temperatures(t_s)
+        env = lambda arr: np.interp(t_s, self.t_grid, arr)
+        peltier = "peltier_supports" in self.names
+        support_C = {a: env(self.env.supports_C[f"support_{a}"]) if peltier else node_T["table"]
+                     for a in AXES}
+        return Points(t_s=t_s, q=np.atleast_2d(q).astype(np.float64),
+                      currents_A=np.atleast_2d(currents_A).astype(np.float64), node_T=node_T,
+                      room_C=env(self.env.room_C), pressure_Pa=env(self.env.pressure_Pa),
+                      support_C=support_C, params=self.params, home_p=self.home_p)
+
+    # -- geometry, load, optics ---------------------------------------------------------------
+    def truth(self, pts: Points) -> Truth:
+        n = pts.t_s.shape[0]
+        temps = {}
+        for e in self.effects:
+            temps.update(e.part_temperatures(pts) or {})
+        qu, inv = np.unique(pts.q, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        if temps:
+            kin = forward(build_geometry(self.params, temps), pts.q)
+        else:
+            ku = forward(self.geom, qu)
+            kin = Pose(ku.p[inv], ku.R[inv])
+        pts.pose = kin
+        wrench = np.zeros((n, 6))
+        for e in self.effects:
+            w = e.wrench(pts)
+            if w is not None:
+                wrench += w
+        # statics are linear in the load: preload deflection + compliance * wrench, per position
+        base = self.statics.solve(qu, gravity=False)
+        C = self.statics.compliance(qu)
+        y = base.deflection[inv] + (C[inv] @ wrench[..., None])[..., 0]
+        R = Rotation.from_rotvec(y[:, 3:6]).as_matrix() @ kin.R
+        pose = Pose(kin.p + y[:, :3], R)
+        geom_cube = (build_geometry(self.params, {"platform": temps["platform"]}).cube_offset
+                     if "platform" in temps else self.geom.cube_offset)
+        optics = Optics.nominal(self.cube_home, n, n_nominal=1.0)
+        for e in self.effects:
+            e.optics(pts, optics)
+        size = self.params.mirror_cube_size_m
+        paths = {a: optical_path(pose, geom_cube, size, optics, a) for a in AXES}
+        return Truth(pose=pose, kinematic_pose=kin, wrench=wrench, optical_path_m=paths,
+                     n_comp=dict(optics.n_comp), angles_rad=autocollimator_angles(pose.R),
+                     optics=optics)
