@@ -287,7 +287,7 @@ def _check_ladder(df: pd.DataFrame, ladder) -> list[LadderStep]:
 
 
 def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, params=None,
-                    max_poses: int = 200, arrow_scale: float | None = None,
+                    max_poses: int = 500, arrow_scale: float | None = None,
                     progress: bool = False) -> RecordingSummary:
     """Write the Rerun recording of a dataset (and optional ladder of models) to ``path``.
 

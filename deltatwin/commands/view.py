@@ -28,8 +28,8 @@ def register(sub) -> None:
                    help="recording to write (default: DATA with the suffix .rrd)")
     p.add_argument("--spawn", action="store_true",
                    help="open the Rerun viewer on the recording once it is written")
-    p.add_argument("--max-poses", type=int, default=200,
-                   help="pose the robot at most at this many readings, evenly spaced (200)")
+    p.add_argument("--max-poses", type=int, default=500,
+                   help="pose the robot at most at this many readings, evenly spaced (500)")
     p.add_argument("--arrow-scale", type=float, metavar="NM_PER_MM",
                    help="nm of residual per mm of arrow (default: a power of ten that keeps "
                         "the largest arrow within a fifth of the workspace)")

@@ -10,8 +10,8 @@ import pytest
 from rerun.chunk import RrdReader
 
 from calibration.features import thermal_ladder
-from calibration.models import DGM, thermal_sensors
-from calibration.synthetic import thermal_campaign
+from calibration.models import DGM, DirectIGM, thermal_sensors
+from calibration.synthetic import force_campaign, thermal_campaign
 from deltatwin import view
 from deltatwin.cli import main
 from deltatwin.view import LadderStep, calibration_step, write_recording
@@ -224,6 +224,24 @@ def test_robot_posed_along_the_campaign(written):
     for s in ("cal", "val"):
         _, pts = rows_of(rrd, f"/world/workspace/{s}", "Points3D:positions")
         assert len(pts[0]) == df.loc[df["split"] == s, "pos_id"].nunique()
+
+
+def test_direct_igm_step_is_its_end_effector_error(tmp_path):
+    """A direct IGM (q = f(X, Y, Z, F)) enters the ladder through its end-effector error."""
+    df, meta = force_campaign(np.random.default_rng(3), n_cal_grid=4, n_val_grid=3)
+    igm = DirectIGM().fit(df, meta)
+    step = calibration_step("force IGM", igm, df)
+    res = view.residuals_m(df, step)
+    np.testing.assert_allclose(res, igm.position_error(df), rtol=1e-9, atol=1e-15)
+    summary = write_recording(df, meta, [step], tmp_path / "force.rrd", max_poses=3)
+    rrd = read_rrd(tmp_path / "force.rrd")
+    _, vecs = rows_of(rrd, "/world/error/residual", "Arrows3D:vectors", view.LADDER_TIMELINE)
+    ids, field = view.position_field(df["pos_id"].to_numpy(), igm.position_error(df))
+    got = np.array(vecs[0], dtype=np.float64) * summary.arrow_scale_nm_per_mm
+    exp = field * 1e9
+    assert np.all(np.abs(got - exp) <= F32_REL * np.linalg.norm(exp, axis=1, keepdims=True))
+    with pytest.raises(TypeError, match="not a calibration model"):
+        calibration_step("x", object(), df)
 
 
 def test_nothing_half_written(campaign, tmp_path, monkeypatch):
