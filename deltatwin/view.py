@@ -199,18 +199,7 @@ def _magnitude_colours(mag: np.ndarray, vmax: float) -> np.ndarray:
     return (c[:, :3] * 255).round().astype(np.uint8)
 
 
-@dataclass
-class _Poses:
-    rows: np.ndarray          # dataset rows posed
-    t_s: np.ndarray
-    geom_names: list[str]
-    geom_pos: np.ndarray      # (F, G, 3) m
-    geom_mat: np.ndarray      # (F, G, 3, 3)
-    cube_centre: np.ndarray   # (F, 3) m
-    beams: dict[str, np.ndarray]   # site -> (F, k, 3) polyline points, m
-
-
-def _pose_robot(params, geom, model, q: np.ndarray, names: list[str], progress: bool):
+def _pose_robot(geom, model, q: np.ndarray, names: list[str], progress: bool):
     """Pose the MuJoCo model at motor coordinates ``q`` (F, 3); geom poses and cube centres."""
     import mujoco
     from tqdm import tqdm
@@ -342,7 +331,7 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     meshes = robot_meshes(model)
     names = [n for n, _, _ in meshes]
     rows = np.unique(np.linspace(0, len(df) - 1, min(max_poses, len(df))).round().astype(int))
-    gpos, gmat, cube, data = _pose_robot(params, geom, model, q[rows], names, progress)
+    gpos, gmat, cube, data = _pose_robot(geom, model, q[rows], names, progress)
     cube_home = forward(geom, np.zeros((1, 3))).point(geom.cube_offset)[0]
     beams = _beams(model, data, params, cube, cube_home)
 
@@ -424,8 +413,8 @@ def _log_scene(rec, meshes, ws, origin, ids, pos_mm, split) -> None:
                       albedo_factor=[120, 170, 255, 50]), static=True)
     sharp = ws.face_adjacency_edges[ws.face_adjacency_angles > 0.1]
     rec.log("world/workspace/hull_edges",
-            rr.LineStrips3D((ws.vertices[sharp] - origin) * MM_PER_M, radii=rr.Radius.ui_points(1.0),
-                            colors=[90, 130, 220]), static=True)
+            rr.LineStrips3D((ws.vertices[sharp] - origin) * MM_PER_M,
+                            radii=rr.Radius.ui_points(1.0), colors=[90, 130, 220]), static=True)
     for s, colour in SPLIT_COLOURS.items():
         sel = split == s
         rec.log(f"world/workspace/{s}",
