@@ -1,0 +1,230 @@
+"""Scenarios: one TOML file says everything a synthetic campaign needs (scenarios/*.toml).
+
+Tables: [scenario] name, description, seed; [robot] file (robot parameter TOML, default the
+nominal robot); [effects] on = [names] and one sub-table of parameters per effect;
+[sensors] sensor name = part; [instruments] InstrumentSettings fields + cosine_correction;
+[campaign] kind = "thermal" | "force" and its plan; [reduced] scale for tests.
+Every key is checked: an unknown or misspelled key, a value of the wrong type or unit, an
+impossible value, all raise ScenarioError naming the file, the key and the reason.
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from models.mjcf import FOLD_MIRROR_Z, INSTRUMENT_SITES
+from models.params import ParameterError, load_params
+
+from .campaign import Plan, force_plan, run_campaign, simulate_campaign, thermal_plan
+from .effects import LIBRARY, EffectError, make_effect
+from .instruments.simulated import InstrumentSettings, SimulatedLab
+from .thermal import PART_NODES
+from .world import Twin, random_streams
+
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+TABLES = {"scenario": {"name", "description", "seed"}, "robot": {"file"},
+          "effects": None, "sensors": None, "instruments": None, "campaign": None,
+          "reduced": {"scale"}}
+CAMPAIGN_KEYS = {"thermal": {"kind", "warmup_s", "n_positions", "cal_fraction", "sessions"},
+                 "force": {"kind", "warmup_s", "cal_levels", "val_levels", "forces_N",
+                           "force_per_A", "readings"}}
+SESSION_KEYS = {"name", "axes", "cal", "val"}
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be used; the message names file, key and reason."""
+
+
+def _check_keys(where, table: dict, allowed) -> None:
+    for key in table:
+        if key not in allowed:
+            close = difflib.get_close_matches(key, allowed, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ScenarioError(f"{where}: unknown key {key!r}{hint}; allowed: {sorted(allowed)}")
+
+
+def _number(where, value, minimum=None, integer=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ScenarioError(f"{where} = {value!r}: expected a number in the unit its name states"
+                            " (SI: m, s, rad, A, N; degC where the name ends in _C)")
+    if integer and int(value) != value:
+        raise ScenarioError(f"{where} = {value!r}: expected an integer")
+    if not np.isfinite(value) or (minimum is not None and value < minimum):
+        raise ScenarioError(f"{where} = {value!r}: must be >= {minimum}")
+    return int(value) if integer else float(value)
+
+
+@dataclass
+class Scenario:
+    path: Path
+    text: str
+    name: str
+    seed: int
+    params: object
+    effects: list
+    sensors: dict
+    settings: InstrumentSettings
+    cosine: bool
+    campaign: dict
+    reduced_scale: float
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def load(cls, path, seed: int | None = None, scale: float | None = None) -> "Scenario":
+        """Read and validate a scenario (a path, or a name in scenarios/)."""
+        path = Path(path)
+        if not path.exists() and (SCENARIO_DIR / f"{path}.toml").exists():
+            path = SCENARIO_DIR / f"{path}.toml"
+        if not path.exists():
+            raise ScenarioError(f"{path}: no such scenario file (shipped: "
+                                f"{sorted(p.stem for p in SCENARIO_DIR.glob('*.toml'))})")
+        text = path.read_text()
+        try:
+            doc = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ScenarioError(f"{path}: not valid TOML ({exc})") from exc
+        f = str(path)
+        _check_keys(f, doc, TABLES)
+        for t, keys in TABLES.items():
+            if keys is not None and t in doc:
+                _check_keys(f"{f} [{t}]", doc[t], keys)
+        sc = doc.get("scenario", {})
+        name = sc.get("name", path.stem)
+        seed = seed if seed is not None else _number(f"{f} [scenario] seed", sc.get("seed", 0), 0, True)
+        robot_file = doc.get("robot", {}).get("file")
+        try:
+            params = load_params(path.parent / robot_file if robot_file else None)
+        except (ParameterError, FileNotFoundError) as exc:
+            raise ScenarioError(f"{f} [robot] file: {exc}") from exc
+        eff_doc = dict(doc.get("effects", {}))
+        on = eff_doc.pop("on", [])
+        if not isinstance(on, list):
+            raise ScenarioError(f"{f} [effects] on: expected a list of effect names")
+        for extra in eff_doc:
+            if extra not in on:
+                raise ScenarioError(f"{f} [effects.{extra}]: parameters for an effect that is not "
+                                    f"in [effects] on = {on}" + ("" if extra in LIBRARY else
+                                    f" (and not a known effect: {sorted(LIBRARY)})"))
+        try:
+            effects = [make_effect(n, eff_doc.get(n), where=f"{f} [effects]") for n in on]
+        except EffectError as exc:
+            raise ScenarioError(str(exc)) from exc
+        sensors = doc.get("sensors", {})
+        parts = {p for p, _, _ in PART_NODES}
+        for sname, part in sensors.items():
+            if part not in parts:
+                close = difflib.get_close_matches(str(part), parts, n=1)
+                raise ScenarioError(f"{f} [sensors] {sname} = {part!r}: unknown part"
+                                    + (f" (did you mean {close[0]!r}?)" if close else "")
+                                    + f"; parts: {sorted(parts)}")
+        inst = dict(doc.get("instruments", {}))
+        cosine = inst.pop("cosine_correction", True)
+        if not isinstance(cosine, bool):
+            raise ScenarioError(f"{f} [instruments] cosine_correction: expected true or false")
+        fields = {fl.name: fl for fl in dataclasses.fields(InstrumentSettings)}
+        _check_keys(f"{f} [instruments]", inst, fields)
+        settings = InstrumentSettings(**{
+            k: _number(f"{f} [instruments] {k}", v, 0.0, fields[k].type == "int")
+            for k, v in inst.items()})
+        camp = doc.get("campaign", {})
+        kind = camp.get("kind")
+        if kind not in CAMPAIGN_KEYS:
+            raise ScenarioError(f"{f} [campaign] kind = {kind!r}: expected one of "
+                                f"{sorted(CAMPAIGN_KEYS)}")
+        _check_keys(f"{f} [campaign]", camp, CAMPAIGN_KEYS[kind])
+        red = _number(f"{f} [reduced] scale", doc.get("reduced", {}).get("scale", 0.05), 0.0)
+        sc = cls(path=path, text=text, name=name, seed=seed, params=params, effects=effects,
+                 sensors=sensors, settings=settings, cosine=cosine, campaign=camp,
+                 reduced_scale=red)
+        sc.plan(random_streams(0)["campaign"], scale)      # validate the plan's keys now
+        return sc
+
+    # -- the campaign -------------------------------------------------------------------------
+    def plan(self, rng, scale: float | None = None) -> Plan:
+        """The campaign plan, at full scale or scaled (number of points times ``scale``)."""
+        c, f = self.campaign, f"{self.path} [campaign]"
+        scale = 1.0 if scale is None else scale
+        stroke = self.params.stroke_rad
+        if c["kind"] == "thermal":
+            sessions = []
+            for i, s in enumerate(c.get("sessions", [])):
+                w = f"{f} sessions[{i}]"
+                _check_keys(w, s, SESSION_KEYS)
+                axes = tuple(s.get("axes", ()))
+                if not axes or any(a not in ("x", "y", "z") for a in axes):
+                    raise ScenarioError(f"{w} axes = {list(axes)}: expected some of x, y, z")
+                n_cal = max(1, int(round(_number(f"{w} cal", s.get("cal"), 1, True) * scale)))
+                n_val = max(1, int(round(_number(f"{w} val", s.get("val"), 1, True) * scale)))
+                sessions.append((s.get("name", f"s{i}"), axes, n_cal, n_val))
+            if not sessions:
+                raise ScenarioError(f"{f} sessions: at least one session is needed")
+            n_pos = _number(f"{f} n_positions", c.get("n_positions", 1000), 2, True)
+            n_pos = max(10, int(round(n_pos * min(1.0, 4 * scale))))
+            frac = _number(f"{f} cal_fraction", c.get("cal_fraction", 0.7), 0.0)
+            if not 0 < frac < 1:
+                raise ScenarioError(f"{f} cal_fraction = {frac}: must be between 0 and 1")
+            return thermal_plan(rng, stroke, n_pos, frac, sessions)
+        levels = lambda k, d: _number(f"{f} {k}", c.get(k, d), 2, True)
+        cal, val = levels("cal_levels", 6), levels("val_levels", 5)
+        if scale < 1.0:
+            cal, val = max(2, int(round(cal * scale ** (1 / 3)))), max(2, int(round(val * scale ** (1 / 3))))
+        forces = c.get("forces_N", [0.0, 0.5, 1.0, 1.5, 2.0])
+        forces = [_number(f"{f} forces_N", x, 0.0) for x in forces]
+        per_A = _number(f"{f} force_per_A", c.get("force_per_A", 1.0), 1e-9)
+        if max(forces) / per_A > 2.0 + 1e-12:
+            raise ScenarioError(f"{f} forces_N: {max(forces)} N needs {max(forces) / per_A:.2f} A, "
+                                "above the coils' 2 A")
+        return force_plan(stroke, cal, val, forces, per_A, levels("readings", 4) if "readings" in c
+                          else 4)
+
+    def dead_path(self) -> dict:
+        """Nominal beam path head -> cube face (m) per axis, for the cosine correction."""
+        h = 0.5 * self.params.mirror_cube_size_m
+        out = {a: float(np.linalg.norm(INSTRUMENT_SITES[f"interferometer_{a}"][0])) - h for a in "xy"}
+        head_z = INSTRUMENT_SITES["interferometer_z"][0]
+        out["z"] = float(np.linalg.norm(head_z - FOLD_MIRROR_Z) + np.linalg.norm(FOLD_MIRROR_Z)) - h
+        return out
+
+    def horizon_s(self, plan: Plan) -> float:
+        """Upper bound of the campaign's duration (the twin's environment is made this long)."""
+        s = self.settings
+        lo, hi = self.params.stroke_rad
+        per_point = (s.coil_settle_s + s.move_time(hi - lo) + s.wait_s
+                     + plan.readings * (4 * s.window_s + s.ac_read_s) + s.overhead_s)
+        return len(plan) * per_point + len(plan.sessions) * (s.session_gap_s + 600.0) + 3600.0
+
+    def build(self, scale: float | None = None):
+        """(twin, plan) for this scenario and seed."""
+        plan = self.plan(random_streams(self.seed)["campaign"], scale)
+        warmup = _number(f"{self.path} [campaign] warmup_s", self.campaign.get("warmup_s", 7200.0), 0.0)
+        twin = Twin(self.params, self.effects, self.sensors, self.seed, self.horizon_s(plan), warmup)
+        return twin, plan
+
+    def metadata(self, twin: Twin, scale) -> dict:
+        from deltatwin import __version__
+        return {"source": "twin", "scenario": self.name, "scenario_toml": self.text,
+                "seed": self.seed, "scale": 1.0 if scale is None else scale,
+                "deltatwin_version": __version__, "sensors": dict(self.sensors),
+                "truth": {"effects": [e.describe() for e in self.effects],
+                          "noise_floor_nm": self.settings.noise_floor_m * 1e9,
+                          "cosine_correction": self.cosine}}
+
+    def simulate(self, scale: float | None = None) -> tuple[pd.DataFrame, dict]:
+        """The campaign's dataset through the vectorised fast path."""
+        twin, plan = self.build(scale)
+        df = simulate_campaign(plan, twin, self.settings, self.cosine, self.dead_path())
+        return df, self.metadata(twin, scale)
+
+    def run(self, scale: float | None = None, progress: bool = True, instruments=None):
+        """The same campaign point by point through the instrument interface (simulated
+        instruments unless an InstrumentSet is given)."""
+        twin, plan = self.build(scale)
+        inst = instruments or SimulatedLab(twin, self.settings).instrument_set()
+        df = run_campaign(plan, inst, self.settings, self.cosine, self.dead_path(), progress)
+        return df, self.metadata(twin, scale)
