@@ -54,6 +54,7 @@ TO_EXPLAIN_COLOUR = (150, 150, 150)
 BEAM_COLOURS = {"interferometer": (255, 40, 40), "autocollimator": (40, 200, 60)}
 _COIL_COLUMNS = ("coil1_A", "coil2_A", "coil3_A")
 _STD_COLUMN = re.compile(r"^(.+)_std_([A-Za-z]+)$")
+_AUTOCOLLIMATOR_COLUMN = re.compile(r"^ac\d+_r[xyz]_arcsec$")
 
 
 @dataclass(frozen=True)
@@ -393,6 +394,9 @@ def _blueprint(df: pd.DataFrame, scale: float, has_effect: bool, has_ladder: boo
     if any(_STD_COLUMN.match(c) for c in df.columns):
         series.append(rrb.TimeSeriesView(origin="timeseries/acceptance_std",
                                          name="std of each reading (acceptance)"))
+    if any(_AUTOCOLLIMATOR_COLUMN.match(c) for c in df.columns):
+        series.append(rrb.TimeSeriesView(origin="timeseries/autocollimator_arcsec",
+                                         name="autocollimator angles (arcsec)"))
     left = rrb.Vertical(rrb.Tabs(*spatial) if len(spatial) > 1 else main,
                         rrb.Horizontal(*lower), row_shares=[3, 1])
     return rrb.Blueprint(rrb.Horizontal(left, rrb.Vertical(*series), column_shares=[3, 2]),
@@ -524,6 +528,9 @@ def _log_time_series(rec, df: pd.DataFrame, t_s: np.ndarray) -> None:
         if _STD_COLUMN.match(c):
             _send_series(rec, f"timeseries/acceptance_std/{c}", t_s,
                          df[c].to_numpy(dtype=float), c)
+        elif _AUTOCOLLIMATOR_COLUMN.match(c):
+            _send_series(rec, f"timeseries/autocollimator_arcsec/{c[:-7]}", t_s,
+                         df[c].to_numpy(dtype=float), c)
 
 
 def _log_info(rec, df, meta, summary: RecordingSummary, extent_mm, peak, n_rows) -> None:
@@ -536,9 +543,10 @@ def _log_info(rec, df, meta, summary: RecordingSummary, extent_mm, peak, n_rows)
         f"* 3D scene: mm, z up, relative to the workspace centre at "
         f"({o[0]:.3f}, {o[1]:.3f}, {o[2]:.3f}) mm in the base frame; workspace extent "
         f"{extent_mm:.2f} mm.",
-        f"* Residual arrows (model - measurement, mean per position): "
-        f"**1 mm of arrow = {summary.arrow_scale_nm_per_mm:g} nm**; colour = magnitude, "
-        f"viridis from 0 to {peak:.3g} nm.",
+        (f"* Residual arrows (model - measurement, mean per position): "
+         f"**1 mm of arrow = {summary.arrow_scale_nm_per_mm:g} nm**; colour = magnitude, "
+         f"viridis from 0 to {peak:.3g} nm." if summary.ladder else
+         "* No model given: no residual arrows."),
         f"* Robot posed at {summary.pose_rows.size} of {n_rows} readings, evenly spaced "
         f"(timeline `{CAMPAIGN_TIMELINE}`); the `{LADDER_TIMELINE}` timeline steps through "
         "the models and shows the robot at its first pose.",

@@ -52,8 +52,8 @@ def run(args) -> int:
                         arrow_scale=args.arrow_scale, progress=True)
     print(f"deltatwin view: wrote {s.path} ({len(df)} readings, {s.position_ids.size} "
           f"positions, robot posed at {s.pose_rows.size} readings)")
-    print(f"  3D scene in mm relative to the workspace centre; residual arrows: 1 mm = "
-          f"{s.arrow_scale_nm_per_mm:g} nm")
+    print("  3D scene in mm relative to the workspace centre"
+          + (f"; residual arrows: 1 mm = {s.arrow_scale_nm_per_mm:g} nm" if s.ladder else ""))
     for r in s.ladder:
         print(f"  ladder {r['step']}: {r['name']}: RMS residual cal {r['rms_cal_nm']:.3g} nm, "
               f"val {r['rms_val_nm']:.3g} nm")

@@ -72,6 +72,8 @@ def campaign():
                                      rng.uniform(0.5, 3.0, len(df)), np.nan)
     for i in (1, 2, 3):
         df[f"coil{i}_A"] = rng.uniform(-0.2, 0.2, len(df))
+    for c in ("ac1_ry_arcsec", "ac2_rx_arcsec"):            # NaN where out of range
+        df[c] = np.where(rng.uniform(size=len(df)) < 0.1, np.nan, rng.normal(0, 2, len(df)))
     rungs = thermal_ladder(thermal_sensors(df, meta))
     models = [(name, DGM(features=fs).fit(df, meta)) for name, fs in (rungs[0], rungs[3])]
     return df, meta, models
@@ -178,7 +180,9 @@ def test_time_series_match_the_dataset(written):
     cols.update({f"/timeseries/coil_A/coil{i}": f"coil{i}_A" for i in (1, 2, 3)})
     cols["/timeseries/force_N"] = "F_N"
     cols.update({f"/timeseries/acceptance_std/{a}_std_nm": f"{a}_std_nm" for a in "xyz"})
-    assert len(cols) == 4 + 3 + 1 + 3
+    cols.update({f"/timeseries/autocollimator_arcsec/{c[:-7]}": c
+                 for c in ("ac1_ry_arcsec", "ac2_rx_arcsec")})
+    assert len(cols) == 4 + 3 + 1 + 3 + 2
     for entity, c in cols.items():
         ts, vals = rows_of(rrd, entity, "Scalars:scalars", view.CAMPAIGN_TIMELINE)
         ok = np.isfinite(df[c].to_numpy())
