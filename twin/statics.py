@@ -17,9 +17,27 @@ coordinates y = [dp (3), dr (3), dtheta (3), phi (3x3)], strains e = e0 + B y, e
 coordinates gives the platform's 6x6 compliance.  Second-order geometric terms are of order
 (deflection / rod length) ~ 1e-5 of the deflection, i.e. picometres (checked in the tests
 against finite differences of the exact potential energy).  Units: m, rad, N, N*m.
+
+Strains of rod j of chain i, whose unit direction is n and hinge distance L; chain coordinates
+x = [dp, dr, eta], eta = [dtheta_i, phi_i] rotating the arm about the axes a_k = (u, u, e_n, a)
+(actuator axis, out-of-plane normal, arm direction) through the centres (B, V, V, V):
+  delta = dp + dr x w - sum_k eta_k c_k,   c_k = a_k x (A - centre_k)   rod end displacement
+  omega = sum_k eta_k a_k                                                 elbow rotation
+  axial stretch n.delta; rod rotation psi = n x delta / L; elbow bending psi - P omega, platform
+  bending psi - P dr (P = I - n n^T); torsion n.(dr - omega).
+With m = (omega + dr)/2, r = omega - dr and v = delta/L + n x m the same rod energy reads
+  1/2 [(k_ax - 2 k_b/L^2) (n.delta)^2 + 2 k_b |v|^2 + k_b/2 |r|^2 + (k_t - k_b)/2 (n.r)^2],
+whose Hessian has closed-form blocks; the code assembles those blocks directly.
+
+Implementation: structure of arrays.  Every per-pose quantity is an array whose last axis runs
+over the poses of a chunk, with vector component / matrix entry, chain and rod as leading axes,
+so each numpy call works on thousands of poses at once; the condensation (4x4 per chain) and the
+platform solve (6x6) are Cholesky factorisations written entry by entry over those arrays.
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,12 +47,16 @@ from models.geometry import Geometry
 from models.params import RobotParams
 from models.stiffness import Stiffness, element_stiffness
 
-from .kinematics import (Pose, elbow_points, flexure_rest_directions, forward,
-                         home_rod_directions, rotate_about_axis)
+from .kinematics import Pose, forward, home_rod_directions
 
 GRAVITY_M_S2 = 9.80665
 N_COORD = 18  # dp(3) dr(3) dtheta(3) phi(3 chains x 3)
-_CHUNK = 8192
+CHUNK_POSES = 1024  # poses per assembly chunk (working set stays in the CPU caches)
+THREADS = len(os.sched_getaffinity(0))  # chunks solved in parallel (numpy releases the GIL)
+_PLAT, _ROT, _INT = slice(0, 3), slice(3, 6), slice(6, 10)   # chain coordinates dp, dr, eta
+# [h]x entries: (row, column, component of h, sign)
+_SKEW_ENTRIES = ((0, 1, 2, -1.0), (0, 2, 1, 1.0), (1, 0, 2, 1.0), (1, 2, 0, -1.0),
+                 (2, 0, 1, -1.0), (2, 1, 0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -50,93 +72,188 @@ class StaticResult:
         return self.y[:, :6]
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    S = np.zeros(v.shape + (3,))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
+# -- structure-of-arrays helpers: vectors are (3, ...) with the component first ----------------
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a, b):
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        np.multiply(a[j], b[k], out=out[i])
+        out[i] -= a[k] * b[j]
+    return out
+
+
+def _both_rods(x):
+    """Sum over the rod axis (second to last) of a chain's two rods."""
+    return x[..., 0, :] + x[..., 1, :]
+
+
+def _rotation_terms(axis: np.ndarray, v: np.ndarray):
+    """Rodrigues about fixed unit axes (...,3): rot(v, angle) = fixed + cos(angle) radial +
+    sin(angle) tangential; the three terms component-first with a trailing pose axis."""
+    fixed = axis * np.sum(axis * v, axis=-1, keepdims=True)
+    return tuple(np.moveaxis(t, -1, 0)[..., None] for t in (fixed, v - fixed, np.cross(axis, v)))
+
+
+def _map_chunks(fun, n_poses: int) -> list:
+    """``fun(slice)`` over chunks of CHUNK_POSES poses, on THREADS threads; results in order."""
+    chunks = [slice(s, s + CHUNK_POSES) for s in range(0, n_poses, CHUNK_POSES)]
+    if THREADS < 2 or len(chunks) < 2:
+        return [fun(sl) for sl in chunks]
+    with ThreadPoolExecutor(min(THREADS, len(chunks))) as pool:
+        return list(pool.map(fun, chunks))
+
+
+def _cholesky(K):
+    """Lower Cholesky factors (n,n,...) of symmetric positive-definite matrices K (n,n,...);
+    the diagonal holds the reciprocal of the factor's diagonal (for the substitutions)."""
+    n = K.shape[0]
+    L = np.zeros_like(K)
+    for j in range(n):
+        pivot = K[j, j] - np.sum(L[j, :j] ** 2, axis=0)
+        inv_diag = 1.0 / np.sqrt(np.where(pivot > 0.0, pivot, np.nan))   # NaN: not positive definite
+        L[j, j] = inv_diag
+        if j + 1 < n:
+            L[j + 1:, j] = (K[j + 1:, j] - np.sum(L[j + 1:, :j] * L[j, :j], axis=1)) * inv_diag
+    return L
+
+
+def _forward_substitute(L, b):
+    """Solve L x = b for factors from ``_cholesky``; b (n, ...) broadcasting against L[i, k]."""
+    x = np.empty_like(b)
+    for i in range(L.shape[0]):
+        acc = b[i] - sum(L[i, k] * x[k] for k in range(i)) if i else b[i]
+        x[i] = acc * L[i, i]
+    return x
+
+
+def _backward_substitute(L, b):
+    """Solve L^T x = b for factors from ``_cholesky``."""
+    n = L.shape[0]
+    x = np.empty_like(b)
+    for i in reversed(range(n)):
+        acc = b[i] - sum(L[k, i] * x[k] for k in range(i + 1, n)) if i < n - 1 else b[i]
+        x[i] = acc * L[i, i]
+    return x
 
 
 class Statics:
     """Static model of one robot (parameters -> geometry, stiffness, home rod directions)."""
 
     def __init__(self, params: RobotParams, geom: Geometry):
+        if getattr(geom, "batched", False):
+            raise ValueError("Statics needs the geometry of one robot state; a batched (per-point) "
+                             "geometry is not supported")
         self.params, self.geom = params, geom
         self.k: Stiffness = element_stiffness(params, geom)
         self.home_dirs = home_rod_directions(geom)
+        # pose-independent terms, component-first with a trailing pose axis (see _chain_system)
+        g, axis = geom, geom.axis
+        self._u = np.moveaxis(axis, -1, 0)[:, :, None, None]                        # (3,3,1,1)
+        self._base = np.moveaxis(g.B, -1, 0)[:, :, None, None]
+        self._elbow_arm = _rotation_terms(axis[:, None], g.arm_vec)                  # (3,3,2,1)
+        elbow_len = np.linalg.norm(g.elbow_vec, axis=-1)
+        self._arm_dir = _rotation_terms(axis, g.elbow_vec / elbow_len[:, None])     # (3,3,1)
+        normal = np.cross(g.elbow_vec, axis)
+        self._arm_normal = _rotation_terms(axis, normal / np.linalg.norm(normal, axis=-1)[:, None])
+        self._arm_dir = tuple(t[:, :, None] for t in self._arm_dir)                   # (3,3,1,1)
+        self._arm_normal = tuple(t[:, :, None] for t in self._arm_normal)
+        self._pivot_lever = ((1.0 - params.prbm_gamma) * elbow_len)[:, None, None]  # |V - B|
+        n0, n0_plat = self.home_dirs
+        self._rest_elbow = _rotation_terms(axis[:, None], n0)                       # (3,3,2,1)
+        self._platform_vecs = np.concatenate([g.P0.reshape(6, 3), n0_plat.reshape(6, 3)])
+        k = self.k
+        self._k_axial = k.rod_axial[:, :, None]
+        self._k_internal = np.concatenate([[k.drive], k.arm])
 
     # -- assembly -----------------------------------------------------------------------------
     def _chain_system(self, q: np.ndarray, pose: Pose):
-        """Per-chain stiffness (N,3,10,10) and preload force (N,3,10) at kinematic poses.
+        """Chain stiffness (10,10,3,m) and preload force (10,3,m) at m kinematic poses
+        (entries first, then chain, then pose).
 
         Local coordinates of chain i: [dp (3), dr (3), dtheta_i, phi_i (3)]."""
         g, k = self.geom, self.k
-        n_pose = q.shape[0]
-        theta = g.theta(q)
-        A = elbow_points(g, theta)                                       # (N,3,2,3)
-        w = np.einsum("nab,ijb->nija", pose.R, g.P0)
-        dvec = pose.p[:, None, None, :] + w - A
-        L = np.linalg.norm(dvec, axis=-1)
-        n = dvec / L[..., None]
-        u = np.broadcast_to(g.axis[None], (n_pose, 3, 3))
-        E = g.B[None] + rotate_about_axis(u, theta, np.broadcast_to(g.elbow_vec, (n_pose, 3, 3)))
-        a_dir = E - g.B[None]
-        a_dir /= np.linalg.norm(a_dir, axis=-1, keepdims=True)
-        e_n = np.cross(a_dir, u)
-        e_n /= np.linalg.norm(e_n, axis=-1, keepdims=True)
-        # rotation axes of the chain's internal coordinates: drive, PRBM in-plane, out-of-plane, torsion
-        axes = np.stack([u, u, e_n, a_dir], axis=2)                      # (N,3,4,3)
-        V = g.B[None] + (1.0 - self.params.prbm_gamma) * (E - g.B[None])
-        centres = np.stack([g.B[None].repeat(n_pose, 0), V, V, V], axis=2)  # (N,3,4,3)
+        m = q.shape[0]
+        qT = q.T[:, None, :]                                                     # (3,1,m)
+        cos_t, sin_t = np.cos(qT + g.theta_zero[:, None, None]), np.sin(qT + g.theta_zero[:, None, None])
+        fixed, radial, tangential = self._elbow_arm
+        A = fixed + radial * cos_t + tangential * sin_t + self._base              # (3,3,2,m)
+        fixed, radial, tangential = self._arm_dir
+        a_dir = fixed + radial * cos_t + tangential * sin_t                       # (3,3,1,m)
+        fixed, radial, tangential = self._arm_normal
+        e_n = fixed + radial * cos_t + tangential * sin_t
+        pivot = self._base + self._pivot_lever * a_dir                            # V
+        # platform hinge vectors w = R P0 and platform-side rest directions R n0_plat: one GEMM
+        rotated = (pose.R.reshape(m * 3, 3) @ self._platform_vecs.T).reshape(m, 3, 2, 3, 2)
+        w, rest_plat = np.ascontiguousarray(rotated.transpose(2, 1, 3, 4, 0))      # (3,3,2,m)
+        d = pose.p.T[:, None, None, :] + w - A
+        inv_len = 1.0 / np.sqrt(_dot(d, d))                                       # (3,2,m)
+        n = d * inv_len
 
-        # displacement maps of platform hinge (MP), elbow hinge (MA), elbow rotation (Me): (N,3,2,3,10)
-        shape = (n_pose, 3, 2, 3, 10)
-        MP = np.zeros(shape)
-        MP[..., :3] = np.eye(3)
-        MP[..., 3:6] = -_skew(w)
-        MA = np.zeros(shape)
-        MA[..., 6:] = np.swapaxes(np.cross(axes[:, :, None, :, :],
-                                           A[:, :, :, None, :] - centres[:, :, None, :, :]), -1, -2)
-        Me = np.zeros(shape)
-        Me[..., 6:] = np.swapaxes(axes, -1, -2)[:, :, None]
-        D = MP - MA
-        nn = n[..., None]
-        axial = np.sum(nn * D, axis=-2)                                  # (N,3,2,10)
-        w_rod = np.swapaxes(np.cross(n[..., None, :], np.swapaxes(D, -1, -2)), -1, -2) / L[..., None, None]
-        Me_n = np.sum(nn * Me, axis=-2)                                  # n . M_e
-        B_elbow = w_rod - (Me - nn * Me_n[..., None, :])                 # bending at the elbow hinge
-        B_plat = w_rod.copy()                                            # bending at the platform hinge
-        B_plat[..., 3:6] -= np.eye(3) - nn * n[..., None, :]
-        tors = -Me_n
-        tors[..., 3:6] += n                                              # relative twist about the rod
+        axes = np.stack([np.broadcast_to(self._u, a_dir.shape), np.broadcast_to(self._u, a_dir.shape),
+                         e_n, a_dir], axis=1)                                     # (3,4,3,1,m)
+        arm_A, pivot_A = A - self._base, A - pivot
+        c = _cross(axes, np.stack([arm_A, pivot_A, pivot_A, pivot_A], axis=1))    # (3,4,3,2,m)
+        n_c = _dot(n[:, None], c)                                                 # (4,3,2,m)
+        n_a = _dot(n[:, None], axes)
+        G = 0.5 * _cross(n[:, None], axes) - c * inv_len                          # v's eta columns
+        wn = _cross(w, n)                                                         # s1's dr columns
+        h = w * inv_len - 0.5 * n                                                 # v's dr columns: -[h]x
+        kb = k.hinge_bending
+        kv = 2.0 * kb                                                             # weight of |v|^2
+        s_ax = self._k_axial - kv * inv_len ** 2                                  # weight of (n.delta)^2
+        s_tw = 0.5 * (k.hinge_torsion - kb)                                       # weight of (n.r)^2
+        kv_len = kv * inv_len
 
-        # initial (preload) bending strains: rest direction x actual direction
-        rest_e, rest_p = flexure_rest_directions(g, q, pose, self.home_dirs)
-        e0_el, e0_pl = np.cross(rest_e, n), np.cross(rest_p, n)
+        # rank-one terms: rows of n.delta (all coordinates) and of n.r (dr, eta)
+        axial_row = np.concatenate([n, wn, -n_c])                                 # (10,3,2,m)
+        twist_row = np.concatenate([-n, n_a])                                     # (7,3,2,m)
+        K = np.einsum("aijm,bijm->abim", s_ax * axial_row, axial_row)
+        K[3:, 3:] += s_tw * np.einsum("aijm,bijm->abim", twist_row, twist_row)
+        # |v|^2 with v = [I/L, -[h]x, G] x, and |r|^2 with r = [0, -I, axes] x (chain level)
+        K[_PLAT, _PLAT] += np.eye(3)[:, :, None, None] * _both_rods(kv_len * inv_len)
+        kh = _both_rods(kv_len * h)
+        for a, b, comp, sign in _SKEW_ENTRIES:                                    # -kv/L [h]x
+            K[a, 3 + b] -= sign * kh[comp]
+        K[_PLAT, _INT] += _both_rods(kv_len * G)
+        K[_ROT, _ROT] += (np.eye(3)[:, :, None, None] * (kv * _both_rods(_dot(h, h)) + kb)
+                          - kv * np.einsum("aijm,bijm->abim", h, h))
+        axes_c = axes[..., 0, :]                                                  # (3,4,3,m)
+        K[_ROT, _INT] += kv * _both_rods(_cross(h[:, None], G)) - kb * axes_c
+        K[_INT, _INT] += (kv * np.einsum("ckijm,clijm->klim", G, G)
+                          + kb * np.einsum("ckim,clim->klim", axes_c, axes_c)
+                          + np.diag(self._k_internal)[:, :, None, None])
+        for lower, upper in ((_ROT, _PLAT), (_INT, _PLAT), (_INT, _ROT)):
+            K[lower, upper] = K[upper, lower].swapaxes(0, 1)
 
-        rows = np.concatenate([
-            np.sqrt(k.rod_axial)[None, :, :, None, None] * axial[..., None, :],
-            np.sqrt(k.hinge_bending) * B_elbow,
-            np.sqrt(k.hinge_bending) * B_plat,
-            np.sqrt(0.5 * k.hinge_torsion) * tors[..., None, :],
-        ], axis=-2).reshape(n_pose, 3, -1, 10)
-        K = np.swapaxes(rows, -1, -2) @ rows
-        K[..., np.arange(6, 10), np.arange(6, 10)] += np.concatenate([[k.drive], k.arm])
-        f0 = -k.hinge_bending * (np.einsum("nijab,nija->nib", B_elbow, e0_el)
-                                 + np.einsum("nijab,nija->nib", B_plat, e0_pl))
+        # preload: initial bending strains (rest direction x actual direction) of both hinges
+        fixed, radial, tangential = self._rest_elbow
+        rest_elbow = fixed + radial * np.cos(qT) + tangential * np.sin(qT)
+        e_elbow, e_plat = _cross(rest_elbow, n), _cross(rest_plat, n)
+        sigma = _cross(e_elbow + e_plat, n) * inv_len
+        f0 = np.empty((10, 3, m))
+        f0[_PLAT] = -kb * _both_rods(sigma)
+        f0[_ROT] = kb * _both_rods(e_plat - _cross(w, sigma))
+        f0[_INT] = kb * (np.einsum("cijm,ckijm->kim", sigma, c)
+                         + np.einsum("cim,ckim->kim", _both_rods(e_elbow), axes_c))
         return K, f0
 
     @staticmethod
     def _condense(K, f0):
-        """Condense the chains' internal coordinates: platform stiffness (N,6,6), force (N,6),
-        and the map back to internal coordinates."""
-        Kpp, Kpi, Kii = K[..., :6, :6], K[..., :6, 6:], K[..., 6:, 6:]
-        Kii_inv = np.linalg.inv(Kii)
-        T = Kpi @ Kii_inv                                                # (N,3,6,4)
-        K_plat = np.sum(Kpp - T @ np.swapaxes(Kpi, -1, -2), axis=1)
-        f_plat = np.sum(f0[..., :6] - (T @ f0[..., 6:, None])[..., 0], axis=1)
-        return K_plat, f_plat, Kii_inv
+        """Condense the chains' internal coordinates: platform stiffness (6,6,m), force (6,m),
+        and the map back to internal coordinates (Cholesky factors of K_ii (4,4,3,m) and
+        L^-1 [K_ip, f_i] (4,7,3,m))."""
+        L = _cholesky(K[_INT, _INT])
+        X = _forward_substitute(L, np.concatenate([K[_INT, :6], f0[_INT, None]], axis=1))
+        S = np.einsum("kaim,kbim->abm", X, X)                                      # (7,7,m)
+        K_plat = np.sum(K[:6, :6], axis=2) - S[:6, :6]
+        f_plat = np.sum(f0[:6], axis=1) - S[:6, 6]
+        return K_plat, f_plat, (L, X)
+
+    def _platform_system(self, q, pose: Pose):
+        return self._condense(*self._chain_system(q, pose))
 
     # -- public API ---------------------------------------------------------------------------
     def solve(self, q, wrench=None, gravity: bool = True, pose: Pose | None = None) -> StaticResult:
@@ -150,21 +267,30 @@ class Statics:
         if gravity:
             f[:, 2] -= self.params.platform_mass_kg * GRAVITY_M_S2
         y = np.empty((q.shape[0], N_COORD))
-        for s in range(0, q.shape[0], _CHUNK):
-            sl = slice(s, s + _CHUNK)
-            K, f0 = self._chain_system(q[sl], Pose(kin.p[sl], kin.R[sl]))
-            K_plat, f_plat, Kii_inv = self._condense(K, f0)
-            yp = np.linalg.solve(K_plat, (f[sl] + f_plat)[..., None])[..., 0]
-            rhs = f0[..., 6:] - (np.swapaxes(K[..., :6, 6:], -1, -2) @ yp[:, None, :, None])[..., 0]
-            yi = (Kii_inv @ rhs[..., None])[..., 0]                      # (n,3,4)
-            y[sl, :6] = yp
-            y[sl, 6:9] = yi[..., 0]
-            y[sl, 9:] = yi[..., 1:].reshape(-1, 9)
+
+        def solve_chunk(sl):
+            K_plat, f_plat, (L, X) = self._platform_system(q[sl], Pose(kin.p[sl], kin.R[sl]))
+            L_plat = _cholesky(K_plat)
+            yp = _backward_substitute(L_plat, _forward_substitute(L_plat, f[sl].T + f_plat))
+            yi = _backward_substitute(L, X[:, 6] - np.einsum("kaim,am->kim", X[:, :6], yp))
+            y[sl, :6] = yp.T
+            y[sl, 6:9] = yi[0].T
+            y[sl, 9:] = yi[1:].T.reshape(-1, 9)                                  # (m, chain, axis)
+
+        _map_chunks(solve_chunk, q.shape[0])
+        bad = np.flatnonzero(~np.all(np.isfinite(y), axis=1))
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(f"statics: no finite equilibrium at pose {i} (q = {q[i].tolist()} rad, "
+                             f"kinematic position {kin.p[i].tolist()} m; {bad.size} pose(s)): "
+                             "non-finite pose or stiffness not positive definite")
         R = Rotation.from_rotvec(y[:, 3:6]).as_matrix() @ kin.R
         return StaticResult(pose=Pose(kin.p + y[:, :3], R), kinematic_pose=kin, y=y)
 
     def compliance(self, q) -> np.ndarray:
         """Platform compliance (N,6,6) at motor coordinates q: [m/N, m/(N m); rad/N, rad/(N m)]."""
         q = np.atleast_2d(np.asarray(q, dtype=np.float64))
-        K, f0 = self._chain_system(q, forward(self.geom, q))
-        return np.linalg.inv(self._condense(K, f0)[0])
+        kin = forward(self.geom, q)
+        K_plat = _map_chunks(lambda sl: self._platform_system(q[sl], Pose(kin.p[sl], kin.R[sl]))[0],
+                             q.shape[0])
+        return np.linalg.inv(np.moveaxis(np.concatenate(K_plat, axis=-1), -1, 0))

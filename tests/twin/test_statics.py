@@ -1,5 +1,6 @@
 """Statics: compliance against finite differences of the exact potential energy; loop closure in
-MuJoCo's own kinematics; the seed's force magnitudes."""
+MuJoCo's own kinematics; the seed's force magnitudes; the structure-of-arrays assembly against
+the previous (array-of-matrices) implementation, kept below as the reference."""
 import mujoco
 import numpy as np
 import pytest
@@ -8,8 +9,9 @@ from scipy.spatial.transform import Rotation
 from models.geometry import build_geometry
 from models.mjcf import build_model, loop_closure, pose_model
 from models.params import load_params
-from twin.kinematics import forward, home_rod_directions, rotate_about_axis
-from twin.statics import Statics
+from twin.kinematics import (Pose, elbow_points, flexure_rest_directions, forward, home_rod_directions,
+                             rotate_about_axis)
+from twin.statics import GRAVITY_M_S2, Statics
 
 
 @pytest.fixture(scope="module")
@@ -134,3 +136,133 @@ def test_gravity_sags_the_platform_downwards(statics):
     expected = statics.compliance(np.zeros((1, 3)))[0][:3, 2] * (-statics.params.platform_mass_kg * 9.80665)
     assert np.allclose(sag, expected, rtol=1e-9, atol=1e-15)
     assert sag[2] < -50e-9
+
+
+# -- reference: the previous implementation (per-pose 10x10 matrices built from the strain maps) --
+def _skew(v):
+    S = np.zeros(v.shape + (3,))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def reference_chain_system(S, q, pose):
+    """Per-chain stiffness (N,3,10,10) and preload force (N,3,10), strain maps written out."""
+    g, k = S.geom, S.k
+    n_pose = q.shape[0]
+    theta = g.theta(q)
+    A = elbow_points(g, theta)
+    w = np.einsum("nab,ijb->nija", pose.R, g.P0)
+    dvec = pose.p[:, None, None, :] + w - A
+    L = np.linalg.norm(dvec, axis=-1)
+    n = dvec / L[..., None]
+    u = np.broadcast_to(g.axis[None], (n_pose, 3, 3))
+    E = g.B[None] + rotate_about_axis(u, theta, np.broadcast_to(g.elbow_vec, (n_pose, 3, 3)))
+    a_dir = E - g.B[None]
+    a_dir /= np.linalg.norm(a_dir, axis=-1, keepdims=True)
+    e_n = np.cross(a_dir, u)
+    e_n /= np.linalg.norm(e_n, axis=-1, keepdims=True)
+    axes = np.stack([u, u, e_n, a_dir], axis=2)
+    V = g.B[None] + (1.0 - S.params.prbm_gamma) * (E - g.B[None])
+    centres = np.stack([g.B[None].repeat(n_pose, 0), V, V, V], axis=2)
+    shape = (n_pose, 3, 2, 3, 10)
+    MP = np.zeros(shape)
+    MP[..., :3] = np.eye(3)
+    MP[..., 3:6] = -_skew(w)
+    MA = np.zeros(shape)
+    MA[..., 6:] = np.swapaxes(np.cross(axes[:, :, None, :, :],
+                                       A[:, :, :, None, :] - centres[:, :, None, :, :]), -1, -2)
+    Me = np.zeros(shape)
+    Me[..., 6:] = np.swapaxes(axes, -1, -2)[:, :, None]
+    D = MP - MA
+    nn = n[..., None]
+    axial = np.sum(nn * D, axis=-2)
+    w_rod = np.swapaxes(np.cross(n[..., None, :], np.swapaxes(D, -1, -2)), -1, -2) / L[..., None, None]
+    Me_n = np.sum(nn * Me, axis=-2)
+    B_elbow = w_rod - (Me - nn * Me_n[..., None, :])
+    B_plat = w_rod.copy()
+    B_plat[..., 3:6] -= np.eye(3) - nn * n[..., None, :]
+    tors = -Me_n
+    tors[..., 3:6] += n
+    rest_e, rest_p = flexure_rest_directions(g, q, pose, S.home_dirs)
+    e0_el, e0_pl = np.cross(rest_e, n), np.cross(rest_p, n)
+    rows = np.concatenate([
+        np.sqrt(k.rod_axial)[None, :, :, None, None] * axial[..., None, :],
+        np.sqrt(k.hinge_bending) * B_elbow,
+        np.sqrt(k.hinge_bending) * B_plat,
+        np.sqrt(0.5 * k.hinge_torsion) * tors[..., None, :],
+    ], axis=-2).reshape(n_pose, 3, -1, 10)
+    K = np.swapaxes(rows, -1, -2) @ rows
+    K[..., np.arange(6, 10), np.arange(6, 10)] += np.concatenate([[k.drive], k.arm])
+    f0 = -k.hinge_bending * (np.einsum("nijab,nija->nib", B_elbow, e0_el)
+                             + np.einsum("nijab,nija->nib", B_plat, e0_pl))
+    return K, f0
+
+
+def reference_solve(S, q, wrench, gravity):
+    """Generalised displacements (N,18) and platform compliance (N,6,6), dense linear algebra."""
+    pose = forward(S.geom, q)
+    K, f0 = reference_chain_system(S, q, pose)
+    Kpp, Kpi, Kii = K[..., :6, :6], K[..., :6, 6:], K[..., 6:, 6:]
+    Kii_inv = np.linalg.inv(Kii)
+    T = Kpi @ Kii_inv
+    K_plat = np.sum(Kpp - T @ np.swapaxes(Kpi, -1, -2), axis=1)
+    f_plat = np.sum(f0[..., :6] - (T @ f0[..., 6:, None])[..., 0], axis=1)
+    f = np.broadcast_to(wrench, (q.shape[0], 6)).copy()
+    if gravity:
+        f[:, 2] -= S.params.platform_mass_kg * GRAVITY_M_S2
+    yp = np.linalg.solve(K_plat, (f + f_plat)[..., None])[..., 0]
+    rhs = f0[..., 6:] - (np.swapaxes(Kpi, -1, -2) @ yp[:, None, :, None])[..., 0]
+    yi = (Kii_inv @ rhs[..., None])[..., 0]
+    y = np.concatenate([yp, yi[..., 0], yi[..., 1:].reshape(-1, 9)], axis=1)
+    return y, np.linalg.inv(K_plat)
+
+
+def flawed_statics(rng):
+    """A robot with joint, length, encoder and axis errors, so that no symmetry hides a term."""
+    p = load_params()
+    p = p.replace(d_rod_length_m=rng.normal(0, 20e-6, (3, 2)), d_arm_length_m=rng.normal(0, 20e-6, 3),
+                  d_base_joint_m=rng.normal(0, 50e-6, (3, 3)),
+                  d_elbow_joint_m=rng.normal(0, 50e-6, (3, 2, 3)),
+                  d_platform_joint_m=rng.normal(0, 50e-6, (3, 2, 3)),
+                  encoder_offset_rad=rng.normal(0, 2e-3, 3),
+                  actuator_axis_tilt_rad=rng.normal(0, 2e-3, (3, 2)))
+    return Statics(p, build_geometry(p))
+
+
+def _rel_err(a, b, axes):
+    """Worst per-pose difference relative to the pose's largest reference magnitude."""
+    return np.max(np.abs(a - b).max(axis=axes) / np.abs(b).max(axis=axes))
+
+
+@pytest.mark.parametrize("robot", ["nominal", "flawed"])
+def test_assembly_equals_previous_implementation(statics, robot):
+    """Chain stiffness, preload, solution and compliance on random poses equal the reference
+    (previous, matrix-based) implementation to rounding: the closed-form assembly is exact."""
+    rng = np.random.default_rng(11)
+    S = statics if robot == "nominal" else flawed_statics(rng)
+    q = rng.uniform(*S.geom.stroke, size=(2500, 3))        # more than one chunk
+    q[0] = 0.0                                             # home: flexures straight, no preload
+    pose = forward(S.geom, q)
+    K, f0 = S._chain_system(q[:300], Pose(pose.p[:300], pose.R[:300]))
+    K_ref, f0_ref = reference_chain_system(S, q[:300], Pose(pose.p[:300], pose.R[:300]))
+    assert K.shape == (10, 10, 3, 300) and f0.shape == (10, 3, 300)
+    assert _rel_err(np.moveaxis(K, (2, 3), (1, 0)), K_ref, (-1, -2)) < 1e-12
+    assert _rel_err(np.moveaxis(f0, (1, 2), (1, 0))[1:], f0_ref[1:], -1) < 1e-10
+    assert np.abs(f0[..., 0]).max() < 1e-12 * np.abs(f0_ref).max()
+    wrench = np.array([0.3, -0.8, 1.8, 0.01, -0.02, 0.005])
+    res = S.solve(q, wrench=wrench, gravity=True)
+    y_ref, C_ref = reference_solve(S, q, wrench, gravity=True)
+    assert _rel_err(res.y, y_ref, 1) < 1e-9
+    assert _rel_err(res.deflection[:, :3], y_ref[:, :3], 1) < 1e-9
+    assert _rel_err(S.compliance(q[:300]), C_ref[:300], (1, 2)) < 1e-9
+
+
+def test_non_finite_pose_is_reported_with_its_index(statics):
+    """A caller-supplied kinematic pose with NaN gives an error naming the pose, not NaN output."""
+    q = np.zeros((2000, 3))
+    pose = forward(statics.geom, q)
+    pose.p[1500, 2] = np.nan                               # in the second chunk
+    with pytest.raises(ValueError, match="pose 1500 .*1 pose"):
+        statics.solve(q, pose=pose)
