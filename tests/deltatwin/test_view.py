@@ -1,6 +1,7 @@
 """``deltatwin view``: real .rrd files written from a small synthetic campaign and a ladder of
 fitted DGMs, read back with rerun.chunk.RrdReader and compared with the data."""
 import os
+import subprocess
 from collections import defaultdict
 from pathlib import Path
 
@@ -109,6 +110,16 @@ def test_entities_exist(written):
         assert e in rrd, e
     text = rows_of(rrd, "/info", "TextDocument:text")[1][0][0]
     assert f"1 mm of arrow = {summary.arrow_scale_nm_per_mm:g} nm" in text
+
+
+def test_rerun_verifies_the_file(written):
+    """Rerun's own CLI loads and interprets every chunk (and the blueprint)."""
+    import rerun_cli
+    rerun = Path(rerun_cli.__file__).parent / "rerun"    # `python -m rerun_cli` drops the code
+    done = subprocess.run([str(rerun), "rrd", "verify", str(written[2].path)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "verified without error" in done.stdout + done.stderr
 
 
 def test_arrows_are_the_residuals_in_the_stated_unit(written):
