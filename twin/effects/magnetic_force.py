@@ -42,7 +42,7 @@ class MagneticForce(Effect):
         Parameter("coil_moment_per_A", "A*m^2/A", 0.16,
                   "coil + ferrite core dipole moment per ampere (800 turns)", 0.0),
         Parameter("core_depth_m", "m", 0.008, "coil dipole centre below the coil face", 0.0),
-        Parameter("coil_offset_m", "m", ((0.0, -0.006, 0.0), (0.0, -0.006, 0.0), (0.0, -0.006, 0.0)),
+        Parameter("coil_offset_m", "m", ((-0.0025, -0.006, 0.0),) * 3,
                   "each coil's position error from under its magnet at home (world x, y, z)"),
     )
 

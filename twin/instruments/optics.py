@@ -4,7 +4,7 @@ interferometers and autocollimators therefore read from the platform's full pose
 An interferometer reads the optical path change along its beam to a face of the Zerodur cube,
 divided by the air index it assumes: ``(n s - n0 s0) / n_comp``.  ``s`` is the exact distance
 along the beam to the (moving, tilting) mirror plane, so Abbe offsets, the cosine error of
-parasitic rotations (1 / cos of the face tilt) and beam misalignment come out of the geometry,
+parasitic rotations (the double pass's return path on a tilted face) and beam misalignment come out of the geometry,
 and the dead path (s0, the distance at the zero) multiplies every index change.  The Z beam
 runs horizontally to a 45 deg fold mirror and up to the cube's bottom face: it is traced as
 the fold mirror's image of the head (a longer path, two reflections).  Units: m, rad.
@@ -67,10 +67,19 @@ def face_distance(pose, cube_offset: np.ndarray, cube_size: float, axis: str, or
     return np.sum(nw * (c - origin), axis=-1) / np.sum(nw * direction, axis=-1)
 
 
+def return_factor(cos_incidence):
+    """Plane-mirror (double-pass) geometry: the beam goes out a distance s, comes back along the
+    mirror's reflection to the head's plane, s / cos(2 theta); the reading is half the round
+    trip, s (1 + 1/cos 2theta) / 2 ~ s (1 + theta^2): the cosine error of a tilted mirror."""
+    return 0.5 * (1.0 + 1.0 / (2.0 * cos_incidence ** 2 - 1.0))
+
+
 def optical_path(pose, cube_offset, cube_size, optics: Optics, axis: str) -> np.ndarray:
-    """Optical path n*s (m) of the beam of ``axis``."""
+    """Optical path n*s (m) of the beam of ``axis`` (half the round trip)."""
     o, b = optics.beam(axis)
-    return optics.n_air[axis] * face_distance(pose, cube_offset, cube_size, axis, o, b)
+    s = face_distance(pose, cube_offset, cube_size, axis, o, b)
+    cos_incidence = np.abs(np.sum((pose.R @ FACE_NORMALS[axis]) * b, axis=-1))
+    return optics.n_air[axis] * s * return_factor(cos_incidence)
 
 
 def autocollimator_angles(R: np.ndarray) -> dict[str, np.ndarray]:
@@ -94,6 +103,8 @@ def air_index(T_C, p_Pa, vapour_Pa, wavelength_m: float = 632.99e-9):
 
 def cosine_correction(reading_m, dead_path_m, angle_a, angle_b, angle_a0=0.0, angle_b0=0.0):
     """The seed's real-time cosine correction: the path to the mirror (dead path + reading)
-    shortened by cos a cos b of the measured face tilts, relative to the zero's tilts."""
-    return ((dead_path_m + reading_m) * np.cos(angle_a) * np.cos(angle_b)
-            - dead_path_m * np.cos(angle_a0) * np.cos(angle_b0))
+    divided by the double-pass factor of the measured face tilts (cos theta = cos a cos b),
+    relative to the zero's tilts."""
+    f = return_factor(np.cos(angle_a) * np.cos(angle_b))
+    f0 = return_factor(np.cos(angle_a0) * np.cos(angle_b0))
+    return (dead_path_m + reading_m) / f - dead_path_m / f0

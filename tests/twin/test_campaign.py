@@ -1,0 +1,147 @@
+"""Campaigns, scenarios, simulated instruments and effects (reduced scale)."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from twin.dataset import read_dataset
+from twin.effects import make_effect
+from twin.instruments.optics import Optics, face_distance
+from twin.kinematics import Pose
+from twin.scenario import Scenario, ScenarioError
+from twin.world import Schedule
+
+
+@pytest.mark.parametrize("name", ["paper-thermal", "paper-force"])
+def test_fast_path_equals_campaign_through_the_interface(name):
+    """The vectorised simulation and the point-by-point campaign over the simulated instruments
+    give the same dataset (same timeline, same noise draws), to the instruments' resolution."""
+    sc = Scenario.load(name)
+    fast, _ = sc.simulate(0.005 if name == "paper-thermal" else 0.05)
+    slow, _ = sc.run(0.005 if name == "paper-thermal" else 0.05, progress=False)
+    assert list(fast.columns) == list(slow.columns) and len(fast) == len(slow) > 20
+    for c in fast.columns:
+        if fast[c].dtype.kind == "f":
+            tol = 1e-6 if c.endswith("_s") else 1e-9
+            np.testing.assert_allclose(fast[c], slow[c], rtol=0, atol=tol, err_msg=c)
+        else:
+            assert (fast[c] == slow[c]).all(), c
+
+
+def test_same_seed_same_data_other_seed_other_data():
+    a, _ = Scenario.load("paper-force").simulate(0.02)
+    b, _ = Scenario.load("paper-force").simulate(0.02)
+    c, _ = Scenario.load("paper-force", seed=99).simulate(0.02)
+    assert a.equals(b)
+    assert not np.allclose(a["x_nm"], c["x_nm"])
+
+
+def test_force_campaign_layout_and_force_response():
+    df, meta = Scenario.load("paper-force").simulate(1.0)
+    assert (df["split"] == "cal").sum() == 6 ** 3 * 5 and (df["split"] == "val").sum() == 5 ** 3 * 5
+    assert len([c for c in df.columns if c.startswith("T_")]) == 13
+    assert meta["truth"]["noise_floor_nm"] == 5.0
+    # repulsive, stronger low: 2 N vs 0 N at each position, Y displacement grows as the platform
+    # goes down (all q up = arms down)
+    g = df.pivot_table(index="pos_id", columns="F_N", values="y_nm")
+    dy = (g[2.0] - g[0.0]).to_numpy()
+    qsum = df.groupby("pos_id")[["q1_rad", "q2_rad", "q3_rad"]].first().sum(axis=1).to_numpy()
+    assert np.corrcoef(qsum, dy)[0, 1] > 0.5
+    assert np.median(np.abs(dy)) > 50.0          # hundreds of nm at 2 N, not noise
+
+
+def test_thermal_scenario_sessions_and_sensors():
+    df, meta = Scenario.load("paper-thermal").simulate(0.01)
+    assert set(df["session"]) == {"xy", "z"}
+    assert df.loc[df["session"] == "xy", "z_nm"].isna().all()
+    assert df.loc[df["session"] == "z", ["x_nm", "y_nm"]].isna().all().all()
+    assert len([c for c in df.columns if c.startswith("T_")]) == 11
+    assert (df[["x_std_nm", "y_std_nm", "z_std_nm"]].max() < 10.0).all()   # acceptance rule
+    ids = df.groupby("pos_id")["split"].nunique()
+    assert (ids == 1).all()
+
+
+def test_room_climate_over_three_days():
+    """AC switched off: the room drifts between about 21 and 25 degC with a daily swing."""
+    sc = Scenario.load("paper-thermal")
+    twin, _ = sc.build(None)
+    t = twin.t_grid
+    room = twin.env.room_C[(t > 0) & (t < 3 * 86400)]
+    assert 20.5 < room.min() < 22.0 and 23.5 < room.max() < 25.5
+
+
+def test_cosine_error_comes_from_geometry():
+    """A mirror tilted by a returns the double-pass beam at 2a: the reading grows by
+    s0 (1/cos 2a - 1) / 2 ~ s0 a^2 (the cosine error), from the geometry alone; the cosine
+    correction with the measured tilt removes it."""
+    from twin.instruments.optics import cosine_correction, optical_path
+    a = 300e-6
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    optics = Optics.nominal(np.zeros(3), 1)
+    o, b = optics.beam("x")
+    s0 = face_distance(Pose(np.zeros((1, 3)), np.eye(3)[None]), np.zeros(3), 0.0, "x", o, b)[0]
+    flat = optical_path(Pose(np.zeros((1, 3)), np.eye(3)[None]), np.zeros(3), 0.0, optics, "x")[0]
+    tilted = optical_path(Pose(np.zeros((1, 3)), R[None]), np.zeros(3), 0.0, optics, "x")[0]
+    assert flat == pytest.approx(s0, abs=1e-15)
+    assert tilted - flat == pytest.approx(s0 * (1 / np.cos(2 * a) - 1) / 2, rel=1e-6)
+    assert tilted - flat > 5e-9                      # nanometres: it matters here
+    corrected = cosine_correction(tilted - flat, s0, a, 0.0)
+    assert abs(corrected) < 1e-13
+
+
+def test_thermal_network_pieces_equal_whole():
+    """Integrating the network in pieces (as a campaign advances) equals one integration."""
+    sc = Scenario.load("paper-force")
+    t1, _ = sc.build(0.01)
+    t2, _ = sc.build(0.01)
+    sched = Schedule()
+    sched.set_currents(100.0, [2.0, 2.0, 2.0])
+    t1.advance(3000.0, sched)
+    for t in np.linspace(10, 3000, 37):
+        t2.advance(t, sched)
+    a, b = t1.node_temperatures(np.array([2999.0])), t2.node_temperatures(np.array([2999.0]))
+    assert a["coil1"][0] > 25.0
+    for k in a:
+        assert a[k][0] == pytest.approx(b[k][0], abs=1e-9)
+
+
+@pytest.mark.parametrize("text, words", [
+    ('[scenario]\nnmae = "x"\n[campaign]\nkind = "force"\n', ["nmae", "did you mean 'name'"]),
+    ('[effects]\non = ["magnetic_forse"]\n[campaign]\nkind = "force"\n', ["magnetic_forse", "magnetic_force"]),
+    ('[effects]\non = ["room_climate"]\n[effects.room_climate]\npressure_std_Pa = "80 Pa"\n'
+     '[campaign]\nkind = "force"\n', ["pressure_std_Pa", "expected a number"]),
+    ('[instruments]\nnoise_floor_m = -5e-9\n[campaign]\nkind = "force"\n', ["noise_floor_m", ">= 0"]),
+    ('[campaign]\nkind = "force"\nforces_N = [0.0, 3.0]\n', ["forces_N", "2 A"]),
+    ('[sensors]\nbase = "bsae"\n[campaign]\nkind = "force"\n', ["bsae", "did you mean 'base'"]),
+])
+def test_bad_scenarios_name_file_key_reason(tmp_path, text, words):
+    f = tmp_path / "bad.toml"
+    f.write_text(text)
+    with pytest.raises(ScenarioError) as err:
+        Scenario.load(f)
+    msg = str(err.value)
+    assert str(f) in msg
+    for w in words:
+        assert w in msg
+
+
+def test_cli_simulate_writes_atomically(tmp_path):
+    out = tmp_path / "d.parquet"
+    r = subprocess.run([sys.executable, "-m", "deltatwin.cli", "simulate", "paper-force", "-o",
+                        str(out), "--scale", "0.02", "--quiet", "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    df, meta = read_dataset(out)
+    assert meta["seed"] == 2 and meta["source"] == "twin" and len(df) > 0
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[campaign]\nkind = "thermal"\nsessions = [{name = "xy", axes = ["w"], cal = 5, val = 5}]\n')
+    out2 = tmp_path / "e.parquet"
+    r = subprocess.run([sys.executable, "-m", "deltatwin.cli", "simulate", str(bad), "-o", str(out2),
+                        "--quiet"], capture_output=True, text=True)
+    assert r.returncode == 2 and "axes" in r.stderr
+    assert list(tmp_path.glob("e.parquet*")) == [] and list(tmp_path.glob(".e.parquet*")) == []
+
+
+def test_effect_parameters_validated():
+    with pytest.raises(ValueError, match="coil_offset_m"):
+        make_effect("magnetic_force", {"coil_offset_m": [0.0, 0.0]})
