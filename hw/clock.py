@@ -1,0 +1,62 @@
+"""Campaign clocks for the hardware side.
+
+``WallClock``: a laboratory's time (monotonic wall clock since the clock was made).
+``SerialClock``: the emulated laboratory's clock port (hw/emulators/clock.py), so that a campaign
+through the emulators follows the twin's simulated time and runs as fast as the serial exchanges
+allow. A real laboratory has no such port (its ports file has no ``[clock]`` section).
+
+Clock protocol (generic convention, docs/hardware.md):
+
+    *IDN?        -> IDN deltatwin emulated clock
+    TIME?        -> TIME <t_s>       campaign time (s, every digit)
+    SLEEP <s>    -> SLEEP OK         after <s> seconds of campaign time have passed
+"""
+from __future__ import annotations
+
+import time
+
+from hw.driver import LineInstrument
+from hw.protocol import Command, InstrumentRejected, generic_protocol, real
+from twin.instruments.interface import DEFAULT_TIMEOUT_S, Clock
+
+PROTOCOL = generic_protocol("deltatwin emulated clock", {
+    "now": Command("TIME?", "TIME {t_s}", {"t_s": real()}),
+    "sleep": Command("SLEEP {s}", "SLEEP OK", {"s": real()}),
+})
+IDENTITY_PREFIX = "deltatwin emulated clock"
+
+
+class WallClock(Clock):
+    def __init__(self):
+        self._t0 = time.monotonic()
+
+    def now(self) -> float:
+        return time.monotonic() - self._t0
+
+    def sleep(self, seconds: float) -> None:
+        if seconds > 0:
+            time.sleep(seconds)
+
+
+class SerialClock(LineInstrument, Clock):
+    protocol = PROTOCOL
+
+    def __init__(self, line, *, name="clock", **kw):
+        super().__init__(line, name=name, **kw)
+
+    def connect(self) -> None:
+        identity = self.ask("identify")["identity"]
+        if not identity.startswith(IDENTITY_PREFIX):
+            raise InstrumentRejected(self.name, f"{self.line.url} identifies as {identity!r}, "
+                                                f"not a {IDENTITY_PREFIX}")
+
+    def now(self) -> float:
+        return self.operation("now", lambda: self.ask("now")["t_s"], DEFAULT_TIMEOUT_S)
+
+    def sleep(self, seconds: float) -> None:
+        """Wait ``seconds`` of campaign time (a lost reply makes the retry wait again)."""
+        if seconds <= 0:
+            return
+        wait = seconds + self.line.timeout_s   # covers an emulator paced in real time
+        self.operation("sleep", lambda: self.ask("sleep", timeout_s=wait, s=seconds),
+                       DEFAULT_TIMEOUT_S + seconds)

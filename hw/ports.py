@@ -1,0 +1,276 @@
+"""The ports file (TOML, one per laboratory): where each instrument is and how to talk to it.
+
+Layout (docs/hardware.md has the full description and an example)::
+
+    lab = "ETH micro-nano lab"
+    [retry]                     # optional: bounded back-off of every driver
+    attempts = 5
+    first_delay_s = 0.05
+    factor = 2.0
+    max_delay_s = 2.0
+    [clock]                     # optional: absent = the wall clock (a real laboratory)
+    url = "/tmp/emu/clock"
+    [robot]
+    url = "/dev/ttyUSB0"        # device path, symlink, or pyserial URL (socket://host:port)
+    baud = 115200               # optional, per-instrument default
+    terminator = "LF"           # optional: LF, CR or CRLF
+    timeout_s = 1.0             # optional: longest wait for one reply line
+    xonxoff = false             # optional: software flow control by the OS
+    [interferometers]
+    url = "..."
+    axes = ["x", "y"]
+    [[autocollimators]]         # one table per LDS1000 controller
+    url = "..."
+    channels = { 1 = "ac1_ry", 2 = "ac1_rz" }
+    [thermometers]
+    url = "..."
+    channels = { 101 = "air_x", 102 = "base" }
+    [coils]                     # optional: only where the force simulator is fitted
+    url = "..."
+    n_coils = 3
+
+``load_ports`` validates everything and names the file, the key and the reason on any problem;
+``write_ports`` writes the same layout atomically.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import tempfile
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from hw.protocol import TERMINATORS
+from hw.retry import RetryPolicy
+
+# per instrument: (default baud, default terminator, default timeout_s)
+DEFAULTS = {
+    "clock": (115200, "LF", 2.0),
+    "robot": (115200, "LF", 1.0),
+    "interferometers": (115200, "LF", 2.0),
+    "autocollimators": (9600, "CR", 1.0),
+    "thermometers": (19200, "LF", 5.0),
+    "coils": (9600, "LF", 1.0),
+}
+PORT_KEYS = ("url", "baud", "terminator", "timeout_s", "xonxoff")
+EXTRA_KEYS = {"clock": (), "robot": (), "interferometers": ("axes",),
+              "autocollimators": ("channels",), "thermometers": ("channels",),
+              "coils": ("n_coils",)}
+NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+KEITHLEY_BAUDS = (300, 600, 1200, 2400, 4800, 9600, 19200)
+
+
+class PortsFileError(ValueError):
+    """A ports file that cannot be used; the message names the file, the key and the reason."""
+
+
+@dataclass(frozen=True)
+class Port:
+    url: str
+    baud: int
+    terminator: str
+    timeout_s: float
+    xonxoff: bool = False
+
+
+@dataclass(frozen=True)
+class LabPorts:
+    lab: str
+    robot: Port
+    interferometers: Port
+    interferometer_axes: tuple[str, ...]
+    autocollimators: tuple[tuple[Port, dict[int, str]], ...]
+    thermometers: Port
+    thermometer_channels: dict[int, str]
+    clock: Port | None = None
+    coils: Port | None = None
+    n_coils: int = 3
+    retry: RetryPolicy = RetryPolicy()
+
+
+def _fail(path, where: str, reason: str):
+    raise PortsFileError(f"{path}: [{where}] {reason}")
+
+
+def _port(path, where: str, kind: str, table) -> Port:
+    if not isinstance(table, dict):
+        _fail(path, where, f"must be a table, got {type(table).__name__}")
+    unknown = sorted(set(table) - set(PORT_KEYS) - set(EXTRA_KEYS[kind]))
+    if unknown:
+        _fail(path, where, f"unknown key(s) {unknown}; allowed: "
+                           f"{list(PORT_KEYS) + list(EXTRA_KEYS[kind])}")
+    baud, terminator, timeout_s = DEFAULTS[kind]
+    url = table.get("url")
+    if not isinstance(url, str) or not url:
+        _fail(path, where, "url: missing (a device path such as /dev/ttyUSB0, or "
+                           "socket://host:port)")
+    baud = table.get("baud", baud)
+    if not isinstance(baud, int) or isinstance(baud, bool) or baud <= 0:
+        _fail(path, where, f"baud: must be a positive integer, got {baud!r}")
+    if kind == "thermometers" and baud not in KEITHLEY_BAUDS:
+        _fail(path, where, f"baud: the Keithley 2700 runs at {list(KEITHLEY_BAUDS)}, got {baud}")
+    terminator = table.get("terminator", terminator)
+    if terminator not in TERMINATORS:
+        _fail(path, where, f"terminator: must be one of {sorted(TERMINATORS)}, got "
+                           f"{terminator!r}")
+    timeout_s = table.get("timeout_s", timeout_s)
+    if (not isinstance(timeout_s, (int, float)) or isinstance(timeout_s, bool)
+            or not math.isfinite(timeout_s) or timeout_s <= 0):
+        _fail(path, where, f"timeout_s: must be a positive number of seconds, got {timeout_s!r}")
+    xonxoff = table.get("xonxoff", False)
+    if not isinstance(xonxoff, bool):
+        _fail(path, where, f"xonxoff: must be true or false, got {xonxoff!r}")
+    return Port(url, baud, terminator, float(timeout_s), xonxoff)
+
+
+def _names(path, where: str, names, what: str) -> None:
+    for n in names:
+        if not isinstance(n, str) or not NAME.fullmatch(n):
+            _fail(path, where, f"{what} {n!r}: must be a name (letter, then letters, digits, _)")
+
+
+def _channel_map(path, where: str, table, valid, what: str) -> dict[int, str]:
+    if not isinstance(table, dict) or not table:
+        _fail(path, where, "channels: missing or empty (a table channel = \"sensor name\")")
+    out = {}
+    for key, name in table.items():
+        if not re.fullmatch(r"\d+", key) or not valid(int(key)):
+            _fail(path, where, f"channels: key {key!r} is not {what}")
+        _names(path, where, [name], f"channels.{key}: name")
+        out[int(key)] = name
+    if len(set(out.values())) != len(out):
+        dup = sorted({n for n in out.values() if list(out.values()).count(n) > 1})
+        _fail(path, where, f"channels: name(s) {dup} used more than once")
+    return dict(sorted(out.items()))
+
+
+def load_ports(path: str | os.PathLike) -> LabPorts:
+    path = Path(path)
+    if not path.exists():
+        raise PortsFileError(f"{path}: no such ports file")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise PortsFileError(f"{path}: not valid TOML: {exc}") from exc
+    known = {"lab", "retry", *DEFAULTS}
+    unknown = sorted(set(doc) - known)
+    if unknown:
+        raise PortsFileError(f"{path}: unknown key(s) {unknown}; allowed: {sorted(known)}")
+    for required in ("robot", "interferometers", "autocollimators", "thermometers"):
+        if required not in doc:
+            raise PortsFileError(f"{path}: [{required}] missing")
+    lab = doc.get("lab", path.stem)
+    if not isinstance(lab, str):
+        raise PortsFileError(f"{path}: lab: must be a string, got {lab!r}")
+
+    retry = RetryPolicy()
+    if "retry" in doc:
+        r = doc["retry"]
+        bad = sorted(set(r) - {"attempts", "first_delay_s", "factor", "max_delay_s"})
+        if bad:
+            _fail(path, "retry", f"unknown key(s) {bad}")
+        try:
+            retry = RetryPolicy(**r)
+        except (TypeError, ValueError) as exc:
+            _fail(path, "retry", str(exc))
+
+    ifm = doc["interferometers"]
+    axes = ifm.get("axes") if isinstance(ifm, dict) else None
+    if not isinstance(axes, list) or not axes:
+        _fail(path, "interferometers", "axes: missing (a list such as [\"x\", \"y\"])")
+    _names(path, "interferometers", axes, "axes: axis")
+
+    acs = doc["autocollimators"]
+    if not isinstance(acs, list) or not acs:
+        _fail(path, "autocollimators", "must be one or more [[autocollimators]] tables")
+    controllers = []
+    for k, table in enumerate(acs):
+        where = f"autocollimators #{k + 1}"
+        port = _port(path, where, "autocollimators", table)
+        controllers.append((port, _channel_map(path, where, table.get("channels"),
+                                               lambda a: a in (1, 2), "an LDS1000 axis (1, 2)")))
+    names = [n for _, ch in controllers for n in ch.values()]
+    if len(set(names)) != len(names):
+        _fail(path, "autocollimators", f"channel names repeat across controllers: {names}")
+
+    th = doc["thermometers"]
+    channels = _channel_map(path, "thermometers", th.get("channels") if isinstance(th, dict)
+                            else None, lambda c: c // 100 in (1, 2) and 1 <= c % 100 <= 40,
+                            "a multiplexer channel (101-140, 201-240)")
+    coils, n_coils = None, 3
+    if "coils" in doc:
+        coils = _port(path, "coils", "coils", doc["coils"])
+        n_coils = doc["coils"].get("n_coils", 3)
+        if not isinstance(n_coils, int) or isinstance(n_coils, bool) or n_coils < 1:
+            _fail(path, "coils", f"n_coils: must be a positive integer, got {n_coils!r}")
+    return LabPorts(
+        lab=lab,
+        robot=_port(path, "robot", "robot", doc["robot"]),
+        interferometers=_port(path, "interferometers", "interferometers", ifm),
+        interferometer_axes=tuple(axes),
+        autocollimators=tuple(controllers),
+        thermometers=_port(path, "thermometers", "thermometers", th),
+        thermometer_channels=channels,
+        clock=_port(path, "clock", "clock", doc["clock"]) if "clock" in doc else None,
+        coils=coils, n_coils=n_coils, retry=retry)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    raise TypeError(f"cannot write {v!r} to TOML")
+
+
+def _port_lines(port: Port, **extra) -> list[str]:
+    lines = [f"url = {_toml_value(port.url)}", f"baud = {port.baud}",
+             f"terminator = {_toml_value(port.terminator)}", f"timeout_s = {port.timeout_s!r}"]
+    if port.xonxoff:
+        lines.append("xonxoff = true")
+    lines += [f"{k} = {_toml_value(v)}" for k, v in extra.items()]
+    return lines
+
+
+def format_ports(ports: LabPorts, comment: str = "") -> str:
+    out = [f"# {line}" for line in comment.splitlines()]
+    out.append(f"lab = {_toml_value(ports.lab)}")
+    r = ports.retry
+    out += ["", "[retry]", f"attempts = {r.attempts}", f"first_delay_s = {r.first_delay_s!r}",
+            f"factor = {r.factor!r}", f"max_delay_s = {r.max_delay_s!r}"]
+    if ports.clock is not None:
+        out += ["", "[clock]", *_port_lines(ports.clock)]
+    out += ["", "[robot]", *_port_lines(ports.robot)]
+    out += ["", "[interferometers]",
+            *_port_lines(ports.interferometers, axes=list(ports.interferometer_axes))]
+    for port, axes in ports.autocollimators:
+        out += ["", "[[autocollimators]]", *_port_lines(port, channels=axes)]
+    out += ["", "[thermometers]",
+            *_port_lines(ports.thermometers, channels=ports.thermometer_channels)]
+    if ports.coils is not None:
+        out += ["", "[coils]", *_port_lines(ports.coils, n_coils=ports.n_coils)]
+    return "\n".join(out) + "\n"
+
+
+def write_ports(path: str | os.PathLike, ports: LabPorts, comment: str = "") -> Path:
+    """Write ``ports`` as TOML, atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(format_ports(ports, comment))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
