@@ -17,6 +17,7 @@ COMMAND_MODULES = (
     "calibration.cli",
     "deltatwin.commands.simulate",
     "deltatwin.commands.view",
+    "deltatwin.commands.emulate",
 )
 
 

@@ -29,11 +29,14 @@ from twin.instruments.interface import InstrumentSet
 
 class EmulatedLab:
     """``link``: "pty" (symlinks in ``directory``) or "tcp"; ``realtime`` paces the backing
-    clock by the wall clock; ``timeout_s`` per reply line goes to the ports file."""
+    clock by the wall clock; ``timeout_s`` per reply line goes to the ports file; ``ac_unit``
+    is the LDS1000s' display unit (``sec``: arcsec to 0.01, which holds the twin's 0.02 arcsec
+    steps exactly; ``µrad`` to 0.1)."""
 
     def __init__(self, instruments: InstrumentSet, directory: str | Path | None = None, *,
                  link: str = "pty", realtime: bool = False, timeout_s: float | None = None,
-                 retry: RetryPolicy = RetryPolicy(), name: str = "emulated laboratory"):
+                 retry: RetryPolicy = RetryPolicy(), name: str = "emulated laboratory",
+                 ac_unit: str = "sec"):
         if link not in ("pty", "tcp"):
             raise ValueError(f"link must be 'pty' or 'tcp', got {link!r}")
         self._tmp = None
@@ -62,7 +65,8 @@ class EmulatedLab:
         for k in range(0, len(channels), 2):
             axes = {i + 1: ch for i, ch in enumerate(channels[k:k + 2])}
             name = f"autocollimator{k // 2 + 1}"
-            self.emulators[name] = LDS1000Emulator(b, make_link(name), axes, source, name=name)
+            self.emulators[name] = LDS1000Emulator(b, make_link(name), axes, source,
+                                                   unit=ac_unit, name=name)
             self.autocollimator_axes.append((name, axes))
         sensors = tuple(instruments.thermometers.sensors)
         if len(sensors) > 80:

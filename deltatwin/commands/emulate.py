@@ -1,0 +1,95 @@
+"""``deltatwin emulate SCENARIO``: the scenario's twin served as serial instruments.
+
+One emulator per instrument (robot controller, SP-2000, two LDS1000, Keithley 2700, coil supply,
+and the clock port that carries the twin's simulated time), each on its own pseudo-terminal
+(published as a symlink in ``--dir``) or, with ``--tcp``, on a ``socket://`` port; all backed by
+one twin built from the scenario exactly as ``deltatwin simulate`` builds it (same seed, same
+scale -> the same data). Prints the device paths, writes the ports file (``--ports-out``) that
+``campaign --instruments serial --ports`` reads, and serves until interrupted (Ctrl-C, SIGTERM).
+"""
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("emulate", help="serve a scenario's twin as serial instruments (one "
+                                       "pseudo-terminal each) until interrupted",
+                       description=__doc__.split("\n\n")[1])
+    p.add_argument("scenario", help="scenario TOML path or name in scenarios/")
+    p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale")
+    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points "
+                   "(use the same as the campaign: the twin's time horizon depends on it)")
+    p.add_argument("--ports-out", type=Path, default=None, help="write the ports file (TOML)")
+    p.add_argument("--dir", type=Path, default=None,
+                   help="folder for the device symlinks (default: a temporary folder)")
+    p.add_argument("--tcp", action="store_true", help="serve socket://127.0.0.1:PORT "
+                                                      "instead of pseudo-terminals")
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the twin's clock by the wall clock (default: as fast as the "
+                        "serial exchanges allow)")
+    p.add_argument("--timeout-s", type=float, default=None,
+                   help="per-reply timeout written to the ports file (default: per instrument)")
+    p.add_argument("--json", action="store_true", help="print the devices as one JSON line")
+    p.set_defaults(func=run)
+
+
+def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None):
+    """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it."""
+    from twin.instruments.simulated import SimulatedLab
+    from twin.scenario import Scenario
+
+    sc = Scenario.load(scenario, seed=seed)
+    twin, _ = sc.build(sc.reduced_scale if reduced else scale)
+    return sc, SimulatedLab(twin, sc.settings).instrument_set()
+
+
+def serve(instruments, *, name: str, directory: Path | None, ports_out: Path | None,
+          tcp: bool, realtime: bool, timeout_s: float | None, as_json: bool,
+          stop: threading.Event) -> int:
+    """Run the emulated laboratory until ``stop`` is set; prints the devices, then ``ready``."""
+    from hw.emulators.lab import EmulatedLab
+    from hw.ports import write_ports
+
+    with EmulatedLab(instruments, directory, link="tcp" if tcp else "pty", realtime=realtime,
+                     timeout_s=timeout_s, name=name) as lab:
+        devices = lab.devices()
+        if ports_out is not None:
+            write_ports(ports_out, lab.ports(),
+                        comment=f"emulated laboratory for {name}: valid while `deltatwin "
+                                f"emulate` runs")
+        if as_json:
+            print(json.dumps({"devices": {n: {"url": u, "device": d}
+                                          for n, (u, d) in devices.items()},
+                              "ports": None if ports_out is None else str(ports_out)}))
+        else:
+            for n, (url, device) in devices.items():
+                print(f"  {n:>16}: {url}" + (f" -> {device}" if device != url else ""))
+            if ports_out is not None:
+                print(f"  ports file: {ports_out}")
+            print("ready (Ctrl-C to stop)")
+        sys.stdout.flush()
+        stop.wait()
+    return 0
+
+
+def run(args) -> int:
+    if args.timeout_s is not None and not args.timeout_s > 0:
+        raise ValueError(f"--timeout-s must be > 0, got {args.timeout_s}")
+    sc, instruments = simulated_instruments(args.scenario, args.seed, args.reduced, args.scale)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        return serve(instruments, name=f"{sc.name} (seed {sc.seed})", directory=args.dir,
+                     ports_out=args.ports_out, tcp=args.tcp, realtime=args.realtime,
+                     timeout_s=args.timeout_s, as_json=args.json, stop=stop)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
