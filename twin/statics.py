@@ -77,12 +77,18 @@ def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _cross(a, b):
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+def _cross(a, b, out=None):
+    if out is None:
+        out = np.empty(np.broadcast_shapes(a.shape, b.shape))
     for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
         np.multiply(a[j], b[k], out=out[i])
         out[i] -= a[k] * b[j]
     return out
+
+
+def _rod_pairs(a, b):
+    """sum over a chain's two rods of the outer products a b^T: (k,3,2,m), (l,3,2,m) -> (k,l,3,m)."""
+    return np.einsum("aijm,bijm->abim", a, b)
 
 
 def _both_rods(x):
@@ -107,35 +113,40 @@ def _map_chunks(fun, n_poses: int) -> list:
 
 
 def _cholesky(K):
-    """Lower Cholesky factors (n,n,...) of symmetric positive-definite matrices K (n,n,...);
-    the diagonal holds the reciprocal of the factor's diagonal (for the substitutions)."""
+    """Cholesky factors of symmetric positive-definite matrices K (n,n,...), outer-product form:
+    the lower triangle holds the factor L, with the reciprocal of L's diagonal on the diagonal
+    (for the substitutions); NaN where K is not positive definite."""
+    L = K.copy()
     n = K.shape[0]
-    L = np.zeros_like(K)
     for j in range(n):
-        pivot = K[j, j] - np.sum(L[j, :j] ** 2, axis=0)
-        inv_diag = 1.0 / np.sqrt(np.where(pivot > 0.0, pivot, np.nan))   # NaN: not positive definite
-        L[j, j] = inv_diag
+        pivot = L[j, j]
+        inv_diag = 1.0 / np.sqrt(np.where(pivot > 0.0, pivot, np.nan))
         if j + 1 < n:
-            L[j + 1:, j] = (K[j + 1:, j] - np.sum(L[j + 1:, :j] * L[j, :j], axis=1)) * inv_diag
+            col = L[j + 1:, j]
+            col *= inv_diag
+            L[j + 1:, j + 1:] -= col[:, None] * col[None]
+        L[j, j] = inv_diag
     return L
 
 
 def _forward_substitute(L, b):
     """Solve L x = b for factors from ``_cholesky``; b (n, ...) broadcasting against L[i, k]."""
-    x = np.empty_like(b)
+    x = b.copy()
     for i in range(L.shape[0]):
-        acc = b[i] - sum(L[i, k] * x[k] for k in range(i)) if i else b[i]
-        x[i] = acc * L[i, i]
+        for k in range(i):
+            x[i] -= L[i, k] * x[k]
+        x[i] *= L[i, i]
     return x
 
 
 def _backward_substitute(L, b):
     """Solve L^T x = b for factors from ``_cholesky``."""
     n = L.shape[0]
-    x = np.empty_like(b)
+    x = b.copy()
     for i in reversed(range(n)):
-        acc = b[i] - sum(L[k, i] * x[k] for k in range(i + 1, n)) if i < n - 1 else b[i]
-        x[i] = acc * L[i, i]
+        for k in range(i + 1, n):
+            x[i] -= L[k, i] * x[k]
+        x[i] *= L[i, i]
     return x
 
 
@@ -194,11 +205,16 @@ class Statics:
 
         axes = np.stack([np.broadcast_to(self._u, a_dir.shape), np.broadcast_to(self._u, a_dir.shape),
                          e_n, a_dir], axis=1)                                     # (3,4,3,1,m)
+        # lever arms of the elbow hinge about the centres (B, V, V, V): c_k = a_k x lever_k
         arm_A, pivot_A = A - self._base, A - pivot
-        c = _cross(axes, np.stack([arm_A, pivot_A, pivot_A, pivot_A], axis=1))    # (3,4,3,2,m)
+        c = np.empty((3, 4) + A.shape[1:])                                        # (3,4,3,2,m)
+        _cross(self._u, arm_A, out=c[:, 0])
+        _cross(axes[:, 1:], pivot_A[:, None], out=c[:, 1:])
         n_c = _dot(n[:, None], c)                                                 # (4,3,2,m)
-        n_a = _dot(n[:, None], axes)
-        G = 0.5 * _cross(n[:, None], axes) - c * inv_len                          # v's eta columns
+        # v's eta columns G_k = n x a_k / 2 - c_k / L = (lever_k / L + n / 2) x a_k
+        G = np.empty_like(c)
+        _cross(arm_A * inv_len + 0.5 * n, self._u, out=G[:, 0])
+        _cross((pivot_A * inv_len + 0.5 * n)[:, None], axes[:, 1:], out=G[:, 1:])
         wn = _cross(w, n)                                                         # s1's dr columns
         h = w * inv_len - 0.5 * n                                                 # v's dr columns: -[h]x
         kb = k.hinge_bending
@@ -207,24 +223,31 @@ class Statics:
         s_tw = 0.5 * (k.hinge_torsion - kb)                                       # weight of (n.r)^2
         kv_len = kv * inv_len
 
-        # rank-one terms: rows of n.delta (all coordinates) and of n.r (dr, eta)
-        axial_row = np.concatenate([n, wn, -n_c])                                 # (10,3,2,m)
-        twist_row = np.concatenate([-n, n_a])                                     # (7,3,2,m)
-        K = np.einsum("aijm,bijm->abim", s_ax * axial_row, axial_row)
-        K[3:, 3:] += s_tw * np.einsum("aijm,bijm->abim", twist_row, twist_row)
-        # |v|^2 with v = [I/L, -[h]x, G] x, and |r|^2 with r = [0, -I, axes] x (chain level)
-        K[_PLAT, _PLAT] += np.eye(3)[:, :, None, None] * _both_rods(kv_len * inv_len)
+        # Hessian blocks of the upper triangle, each summed over the chain's two rods, from
+        #   (n.delta)^2: rank one per rod, row [n, w x n, -n.c_k], weight s_ax;
+        #   |v|^2: rows [I/L, -[h]x, G], weight kv;
+        #   |r|^2 and (n.r)^2 with r = [0, -I, axes] the same for both rods: r^T W r at chain level,
+        #   W = k_b I + s_tw sum_j n_j n_j^T.
+        axes_c = axes[..., 0, :]                                                  # (3,4,3,m)
+        W = s_tw * _rod_pairs(n, n)                                               # (3,3,3,m)
+        for a in range(3):
+            W[a, a] += kb
+        WA = np.einsum("abim,bkim->akim", W, axes_c)                              # W axes
+        sn, swn = s_ax * n, s_ax * wn
+        eye = np.eye(3)[:, :, None, None]
+        K = np.empty((10, 10, 3, m))
+        K[_PLAT, _PLAT] = _rod_pairs(sn, n) + eye * _both_rods(kv_len * inv_len)
+        K[_PLAT, _ROT] = _rod_pairs(sn, wn)
         kh = _both_rods(kv_len * h)
         for a, b, comp, sign in _SKEW_ENTRIES:                                    # -kv/L [h]x
             K[a, 3 + b] -= sign * kh[comp]
-        K[_PLAT, _INT] += _both_rods(kv_len * G)
-        K[_ROT, _ROT] += (np.eye(3)[:, :, None, None] * (kv * _both_rods(_dot(h, h)) + kb)
-                          - kv * np.einsum("aijm,bijm->abim", h, h))
-        axes_c = axes[..., 0, :]                                                  # (3,4,3,m)
-        K[_ROT, _INT] += kv * _both_rods(_cross(h[:, None], G)) - kb * axes_c
-        K[_INT, _INT] += (kv * np.einsum("ckijm,clijm->klim", G, G)
-                          + kb * np.einsum("ckim,clim->klim", axes_c, axes_c)
-                          + np.diag(self._k_internal)[:, :, None, None])
+        K[_PLAT, _INT] = _both_rods(kv_len * G) - _rod_pairs(sn, n_c)
+        K[_ROT, _ROT] = (_rod_pairs(swn, wn) - kv * _rod_pairs(h, h)
+                         + eye * (kv * _both_rods(_dot(h, h))) + W)
+        K[_ROT, _INT] = kv * _both_rods(_cross(h[:, None], G)) - _rod_pairs(swn, n_c) - WA
+        K[_INT, _INT] = (_rod_pairs(s_ax * n_c, n_c) + kv * np.einsum("ckijm,clijm->klim", G, G)
+                         + np.einsum("akim,alim->klim", axes_c, WA)
+                         + np.diag(self._k_internal)[:, :, None, None])
         for lower, upper in ((_ROT, _PLAT), (_INT, _PLAT), (_INT, _ROT)):
             K[lower, upper] = K[upper, lower].swapaxes(0, 1)
 
