@@ -33,6 +33,8 @@ Implementation: structure of arrays.  Every per-pose quantity is an array whose 
 over the poses of a chunk, with vector component / matrix entry, chain and rod as leading axes,
 so each numpy call works on thousands of poses at once; the condensation (4x4 per chain) and the
 platform solve (6x6) are Cholesky factorisations written entry by entry over those arrays.
+Chunks of CHUNK_POSES poses are solved on THREADS threads (numpy releases the GIL inside its
+loops); each chunk writes its own rows, so the result does not depend on the thread count.
 """
 from __future__ import annotations
 
@@ -53,7 +55,7 @@ GRAVITY_M_S2 = 9.80665
 N_COORD = 18  # dp(3) dr(3) dtheta(3) phi(3 chains x 3)
 CHUNK_POSES = 1024  # poses per assembly chunk (working set stays in the CPU caches)
 THREADS = len(os.sched_getaffinity(0))  # chunks solved in parallel (numpy releases the GIL)
-_PLAT, _ROT, _INT = slice(0, 3), slice(3, 6), slice(6, 10)   # chain coordinates dp, dr, eta
+_DP, _DR, _ETA = slice(0, 3), slice(3, 6), slice(6, 10)   # chain coordinates (see module doc)
 # [h]x entries: (row, column, component of h, sign)
 _SKEW_ENTRIES = ((0, 1, 2, -1.0), (0, 2, 1, 1.0), (1, 0, 2, 1.0), (1, 2, 0, -1.0),
                  (2, 0, 1, -1.0), (2, 1, 0, 1.0))
@@ -154,7 +156,7 @@ class Statics:
     """Static model of one robot (parameters -> geometry, stiffness, home rod directions)."""
 
     def __init__(self, params: RobotParams, geom: Geometry):
-        if getattr(geom, "batched", False):
+        if geom.batched:
             raise ValueError("Statics needs the geometry of one robot state; a batched (per-point) "
                              "geometry is not supported")
         self.params, self.geom = params, geom
@@ -162,15 +164,14 @@ class Statics:
         self.home_dirs = home_rod_directions(geom)
         # pose-independent terms, component-first with a trailing pose axis (see _chain_system)
         g, axis = geom, geom.axis
+        unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)
         self._u = np.moveaxis(axis, -1, 0)[:, :, None, None]                        # (3,3,1,1)
         self._base = np.moveaxis(g.B, -1, 0)[:, :, None, None]
         self._elbow_arm = _rotation_terms(axis[:, None], g.arm_vec)                  # (3,3,2,1)
+        # arm direction a and out-of-plane normal e_n = a x u, turning with the arm: (3,3,1,1)
+        self._arm_dir = _rotation_terms(axis[:, None], unit(g.elbow_vec)[:, None])
+        self._arm_normal = _rotation_terms(axis[:, None], unit(np.cross(g.elbow_vec, axis))[:, None])
         elbow_len = np.linalg.norm(g.elbow_vec, axis=-1)
-        self._arm_dir = _rotation_terms(axis, g.elbow_vec / elbow_len[:, None])     # (3,3,1)
-        normal = np.cross(g.elbow_vec, axis)
-        self._arm_normal = _rotation_terms(axis, normal / np.linalg.norm(normal, axis=-1)[:, None])
-        self._arm_dir = tuple(t[:, :, None] for t in self._arm_dir)                   # (3,3,1,1)
-        self._arm_normal = tuple(t[:, :, None] for t in self._arm_normal)
         self._pivot_lever = ((1.0 - params.prbm_gamma) * elbow_len)[:, None, None]  # |V - B|
         n0, n0_plat = self.home_dirs
         self._rest_elbow = _rotation_terms(axis[:, None], n0)                       # (3,3,2,1)
@@ -236,19 +237,19 @@ class Statics:
         sn, swn = s_ax * n, s_ax * wn
         eye = np.eye(3)[:, :, None, None]
         K = np.empty((10, 10, 3, m))
-        K[_PLAT, _PLAT] = _rod_pairs(sn, n) + eye * _both_rods(kv_len * inv_len)
-        K[_PLAT, _ROT] = _rod_pairs(sn, wn)
+        K[_DP, _DP] = _rod_pairs(sn, n) + eye * _both_rods(kv_len * inv_len)
+        K[_DP, _DR] = _rod_pairs(sn, wn)
         kh = _both_rods(kv_len * h)
         for a, b, comp, sign in _SKEW_ENTRIES:                                    # -kv/L [h]x
             K[a, 3 + b] -= sign * kh[comp]
-        K[_PLAT, _INT] = _both_rods(kv_len * G) - _rod_pairs(sn, n_c)
-        K[_ROT, _ROT] = (_rod_pairs(swn, wn) - kv * _rod_pairs(h, h)
+        K[_DP, _ETA] = _both_rods(kv_len * G) - _rod_pairs(sn, n_c)
+        K[_DR, _DR] = (_rod_pairs(swn, wn) - kv * _rod_pairs(h, h)
                          + eye * (kv * _both_rods(_dot(h, h))) + W)
-        K[_ROT, _INT] = kv * _both_rods(_cross(h[:, None], G)) - _rod_pairs(swn, n_c) - WA
-        K[_INT, _INT] = (_rod_pairs(s_ax * n_c, n_c) + kv * np.einsum("ckijm,clijm->klim", G, G)
+        K[_DR, _ETA] = kv * _both_rods(_cross(h[:, None], G)) - _rod_pairs(swn, n_c) - WA
+        K[_ETA, _ETA] = (_rod_pairs(s_ax * n_c, n_c) + kv * np.einsum("ckijm,clijm->klim", G, G)
                          + np.einsum("akim,alim->klim", axes_c, WA)
                          + np.diag(self._k_internal)[:, :, None, None])
-        for lower, upper in ((_ROT, _PLAT), (_INT, _PLAT), (_INT, _ROT)):
+        for lower, upper in ((_DR, _DP), (_ETA, _DP), (_ETA, _DR)):
             K[lower, upper] = K[upper, lower].swapaxes(0, 1)
 
         # preload: initial bending strains (rest direction x actual direction) of both hinges
@@ -257,9 +258,9 @@ class Statics:
         e_elbow, e_plat = _cross(rest_elbow, n), _cross(rest_plat, n)
         sigma = _cross(e_elbow + e_plat, n) * inv_len
         f0 = np.empty((10, 3, m))
-        f0[_PLAT] = -kb * _both_rods(sigma)
-        f0[_ROT] = kb * _both_rods(e_plat - _cross(w, sigma))
-        f0[_INT] = kb * (np.einsum("cijm,ckijm->kim", sigma, c)
+        f0[_DP] = -kb * _both_rods(sigma)
+        f0[_DR] = kb * _both_rods(e_plat - _cross(w, sigma))
+        f0[_ETA] = kb * (np.einsum("cijm,ckijm->kim", sigma, c)
                          + np.einsum("cim,ckim->kim", _both_rods(e_elbow), axes_c))
         return K, f0
 
@@ -268,8 +269,8 @@ class Statics:
         """Condense the chains' internal coordinates: platform stiffness (6,6,m), force (6,m),
         and the map back to internal coordinates (Cholesky factors of K_ii (4,4,3,m) and
         L^-1 [K_ip, f_i] (4,7,3,m))."""
-        L = _cholesky(K[_INT, _INT])
-        X = _forward_substitute(L, np.concatenate([K[_INT, :6], f0[_INT, None]], axis=1))
+        L = _cholesky(K[_ETA, _ETA])
+        X = _forward_substitute(L, np.concatenate([K[_ETA, :6], f0[_ETA, None]], axis=1))
         S = np.einsum("kaim,kbim->abm", X, X)                                      # (7,7,m)
         K_plat = np.sum(K[:6, :6], axis=2) - S[:6, :6]
         f_plat = np.sum(f0[:6], axis=1) - S[:6, 6]

@@ -11,6 +11,7 @@ from models.mjcf import build_model, loop_closure, pose_model
 from models.params import load_params
 from twin.kinematics import (Pose, elbow_points, flexure_rest_directions, forward, home_rod_directions,
                              rotate_about_axis)
+import twin.statics
 from twin.statics import GRAVITY_M_S2, Statics
 
 
@@ -266,3 +267,19 @@ def test_non_finite_pose_is_reported_with_its_index(statics):
     pose.p[1500, 2] = np.nan                               # in the second chunk
     with pytest.raises(ValueError, match="pose 1500 .*1 pose"):
         statics.solve(q, pose=pose)
+
+
+def test_result_does_not_depend_on_the_thread_count(statics, monkeypatch):
+    """Chunks are solved on threads, each writing its own rows: identical bits for 1 or 2."""
+    q = np.random.default_rng(5).uniform(*statics.geom.stroke, size=(2500, 3))
+    pose = forward(statics.geom, q)
+    monkeypatch.setattr(twin.statics, "THREADS", 1)
+    one = statics.solve(q, pose=pose).y
+    monkeypatch.setattr(twin.statics, "THREADS", 2)
+    assert np.array_equal(statics.solve(q, pose=pose).y, one)
+
+
+def test_batched_geometry_is_refused_clearly(statics):
+    geom = build_geometry(statics.params, temperatures={"rods": np.full((4, 3, 2), 21.0)})
+    with pytest.raises(ValueError, match="batched"):
+        Statics(statics.params, geom)
