@@ -177,3 +177,21 @@ def test_emulated_lab_over_tcp(tmp_path):
         serial = session(inst)
         inst.close()
     assert_same(serial, session(toy_lab()), ac_tol_rad=0.05e-6)
+
+
+def test_realtime_pacing_follows_the_backing_clock(tmp_path):
+    """--realtime: the twin's clock is paced by the wall clock (sleep 0.3 s + a 0.5 s move of
+    the toy robot take >= 0.8 s); without it the same calls take a few milliseconds."""
+    import time
+    for realtime, lo, hi in ((True, 0.8, 2.0), (False, 0.0, 0.5)):
+        t0 = time.monotonic()           # pacing counts from the emulators' start
+        with EmulatedLab(toy_lab(), tmp_path / str(realtime), realtime=realtime,
+                         timeout_s=LINE_TIMEOUT_S, retry=FAST_RETRY) as lab:
+            inst = open_lab(lab.ports())
+            inst.connect()
+            inst.clock.sleep(0.3)
+            inst.robot.move_to(np.array([0.01, 0.0, 0.0]))
+            elapsed = time.monotonic() - t0
+            assert inst.clock.now() == pytest.approx(0.8)
+            inst.close()
+        assert lo <= elapsed < hi, (realtime, elapsed)
