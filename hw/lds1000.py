@@ -30,8 +30,8 @@ ERROR_CODES = {"@": "no error", "A": "unknown command", "B": "bad axis", "C": "o
 REJECTED_CODES = frozenset({"A", "B"})
 ARCSEC_RAD = math.pi / 648000.0
 UNIT_RAD = {"µrad": 1e-6, "urad": 1e-6, "mrad": 1e-3, "sec": ARCSEC_RAD}
-# how the controller writes a reading in each unit (resolution 0.02 arcsec ~ 0.1 µrad)
-UNIT_FORMAT = {"µrad": "{:.1f}", "urad": "{:.1f}", "mrad": "{:.4f}", "sec": "{:.2f}"}
+# decimals the controller writes in each unit (resolution 0.02 arcsec ~ 0.1 µrad)
+UNIT_DECIMALS = {"µrad": 1, "urad": 1, "mrad": 4, "sec": 2}
 
 AXIS = integer()
 PROTOCOL = Protocol(

@@ -17,7 +17,7 @@ from __future__ import annotations
 import re
 
 from hw.driver import LineInstrument
-from hw.protocol import Command, Field, InstrumentRejected, generic_protocol, integer, real, text
+from hw.protocol import Command, Field, InstrumentRejected, generic_protocol, integer, real
 from twin.instruments.interface import (DEFAULT_TIMEOUT_S, Clock, InterferometerReading,
                                         Interferometers)
 

@@ -55,9 +55,8 @@ class Keithley2700Emulator(LineEmulator):
         if bad:
             self._queue(-222, "Parameter data out of range")
             return None
-        if p.commands[command].reply is None:      # a set-up command: remember it
-            self.state[command] = values.get("channels", values.get("n", values.get("mode",
-                                                                                    True)))
+        if p.commands[command].reply is None:      # a set-up command: remember its argument
+            self.state[command] = next(iter(values.values()), True)
             return None
         raise AssertionError(f"unhandled command {command}")
 

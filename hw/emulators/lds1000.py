@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 from hw.emulators.base import LineEmulator
-from hw.lds1000 import ERROR_CODES, PROTOCOL, UNIT_FORMAT, UNIT_RAD
+from hw.lds1000 import ERROR_CODES, PROTOCOL, UNIT_DECIMALS, UNIT_RAD
 from twin.instruments.interface import InstrumentError
 
 RANGE_ARCSEC = 400.0   # the LDS-1000 measures +-400 arcsec
@@ -50,8 +50,7 @@ class LDS1000Emulator(LineEmulator):
         self._last_value = {a: 0.0 for a in self.axes}
 
     def _format(self, angle_rad: float) -> float:
-        decimals = int(UNIT_FORMAT[self.unit].split(".")[1][0])
-        return round(angle_rad / UNIT_RAD[self.unit], decimals)
+        return round(angle_rad / UNIT_RAD[self.unit], UNIT_DECIMALS[self.unit])
 
     def handle(self, command: str, values: dict) -> str | None:
         p = self.protocol

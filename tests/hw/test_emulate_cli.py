@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 
 from hw.lab import open_lab
 from hw.ports import load_ports

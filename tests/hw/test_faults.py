@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from hw.lds1000 import PROTOCOL as LDS
-from hw.protocol import PortLost, ReplyError
+from hw.protocol import ReplyError
 from hw.retry import RetryPolicy
 from twin.instruments.interface import InstrumentError, InstrumentTimeout
 
-from .conftest import ToyCoils, ToyRobot
 
 ONE_OFF = ("no_reply", "garbled", "truncated", "dropped_bytes", "error_code")
 

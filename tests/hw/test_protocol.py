@@ -10,7 +10,7 @@ import pytest
 
 from hw.keithley2700 import PROTOCOL as KEITHLEY, format_reading
 from hw.protocol import (CRC16, Command, InstrumentRejected, PortLost, ReplyError, SerialLine,
-                         generic_protocol, integer, real, reals, text)
+                         generic_protocol, real, reals, text)
 from hw.retry import RetryPolicy, retry
 from hw.robot_controller import PROTOCOL as ROBOT
 from twin.instruments.interface import InstrumentError, InstrumentTimeout
