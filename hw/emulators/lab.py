@@ -39,6 +39,9 @@ class EmulatedLab:
                  ac_unit: str = "sec"):
         if link not in ("pty", "tcp"):
             raise ValueError(f"link must be 'pty' or 'tcp', got {link!r}")
+        sensors = tuple(instruments.thermometers.sensors)
+        if len(sensors) > 80:
+            raise ValueError(f"{len(sensors)} thermometers: two 40-channel cards hold 80")
         self._tmp = None
         if directory is None and link == "pty":
             self._tmp = tempfile.TemporaryDirectory(prefix="deltatwin-emu-")
@@ -68,9 +71,6 @@ class EmulatedLab:
             self.emulators[name] = LDS1000Emulator(b, make_link(name), axes, source,
                                                    unit=ac_unit, name=name)
             self.autocollimator_axes.append((name, axes))
-        sensors = tuple(instruments.thermometers.sensors)
-        if len(sensors) > 80:
-            raise ValueError(f"{len(sensors)} thermometers: two 40-channel cards hold 80")
         self.thermometer_channels = {100 * (1 + i // 40) + 1 + i % 40: s
                                      for i, s in enumerate(sensors)}
         self.emulators["thermometers"] = Keithley2700Emulator(
