@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 
 from hw.driver import LineInstrument
-from hw.protocol import Command, InstrumentRejected, generic_protocol, real
+from hw.protocol import Command, generic_protocol, real
 from twin.instruments.interface import DEFAULT_TIMEOUT_S, Clock
 
 PROTOCOL = generic_protocol("deltatwin emulated clock", {
@@ -40,15 +40,10 @@ class WallClock(Clock):
 
 class SerialClock(LineInstrument, Clock):
     protocol = PROTOCOL
+    identity_prefix = IDENTITY_PREFIX
 
     def __init__(self, line, *, name="clock", **kw):
         super().__init__(line, name=name, **kw)
-
-    def connect(self) -> None:
-        identity = self.ask("identify")["identity"]
-        if not identity.startswith(IDENTITY_PREFIX):
-            raise InstrumentRejected(self.name, f"{self.line.url} identifies as {identity!r}, "
-                                                f"not a {IDENTITY_PREFIX}")
 
     def now(self) -> float:
         return self.operation("now", lambda: self.ask("now")["t_s"], DEFAULT_TIMEOUT_S)

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from hw.driver import LineInstrument
-from hw.protocol import Command, InstrumentRejected, ReplyError, generic_protocol, integer, reals
+from hw.protocol import Command, ReplyError, generic_protocol, integer, reals
 from twin.instruments.interface import DEFAULT_TIMEOUT_S, CoilSupply, InstrumentTimeout
 
 PROTOCOL = generic_protocol("deltatwin coil supply", {
@@ -30,16 +30,11 @@ POLL_S = 0.002
 
 class CoilSupplyDriver(LineInstrument, CoilSupply):
     protocol = PROTOCOL
+    identity_prefix = IDENTITY_PREFIX
 
     def __init__(self, line, *, n_coils: int = 3, name="coils", **kw):
         super().__init__(line, name=name, **kw)
         self.n_coils = n_coils
-
-    def connect(self) -> None:
-        identity = self.ask("identify")["identity"]
-        if not identity.startswith(IDENTITY_PREFIX):
-            raise InstrumentRejected(self.name, f"{self.line.url} identifies as {identity!r}, "
-                                                f"not a {IDENTITY_PREFIX}")
 
     def _set_once(self, currents: np.ndarray, deadline: float) -> None:
         self.ask("set", currents=currents)

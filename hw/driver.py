@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from typing import Any, Callable, TypeVar
 
-from hw.protocol import PortLost, Protocol, ReplyError, SerialLine
+from hw.protocol import InstrumentRejected, PortLost, Protocol, ReplyError, SerialLine
 from hw.retry import RetryPolicy, retry
 from twin.instruments.interface import InstrumentError, InstrumentTimeout
 
@@ -22,6 +22,7 @@ T = TypeVar("T")
 
 class LineInstrument:
     protocol: Protocol
+    identity_prefix: str | None = None   # generic protocols: what ``identify`` must start with
 
     def __init__(self, line: SerialLine, *, name: str, retry_policy: RetryPolicy = RetryPolicy()):
         self.line, self.name, self.retry_policy = line, name, retry_policy
@@ -38,7 +39,14 @@ class LineInstrument:
 
     # ---- hooks
     def connect(self) -> None:
-        """Identify and set up the instrument (after opening and after every failure)."""
+        """Identify and set up the instrument (after opening and after every failure). The
+        default checks the generic protocols' identity against ``identity_prefix``."""
+        if self.identity_prefix is None:
+            return
+        identity = self.ask("identify")["identity"]
+        if not identity.startswith(self.identity_prefix):
+            raise InstrumentRejected(self.name, f"{self.line.url} identifies as {identity!r}, "
+                                                f"not a {self.identity_prefix}")
 
     def pending_error(self) -> InstrumentError | None:
         """The instrument's own error, if it keeps one, after a failed exchange."""

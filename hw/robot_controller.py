@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from hw.driver import LineInstrument
-from hw.protocol import Command, InstrumentRejected, generic_protocol, integer, reals
+from hw.protocol import Command, generic_protocol, integer, reals
 from twin.instruments.interface import DEFAULT_TIMEOUT_S, InstrumentTimeout, Robot
 
 PROTOCOL = generic_protocol("deltatwin robot controller", {
@@ -31,15 +31,10 @@ POLL_S = 0.002   # in-position polling period (wall clock)
 
 class RobotController(LineInstrument, Robot):
     protocol = PROTOCOL
+    identity_prefix = IDENTITY_PREFIX
 
     def __init__(self, line, *, name="robot", **kw):
         super().__init__(line, name=name, **kw)
-
-    def connect(self) -> None:
-        identity = self.ask("identify")["identity"]
-        if not identity.startswith(IDENTITY_PREFIX):
-            raise InstrumentRejected(self.name, f"{self.line.url} identifies as {identity!r}, "
-                                                f"not a {IDENTITY_PREFIX}")
 
     def _move_once(self, q: np.ndarray, deadline: float) -> None:
         self.ask("move", q=q)
