@@ -266,20 +266,17 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
     truth_ac = twin.truth(twin.points(t_ac.reshape(-1), qr, Ir))
     sess_r = np.repeat(plan.session, R)
     noise = lab.ifm_bank.take(0, windows)[win_rows.reshape(-1)]
+    flat, flat_std = ifm.reshape(-1, 3), ifm_std.reshape(-1, 3)      # views: rows = readings
     for k_sess, (_, axes) in enumerate(plan.sessions):
-        m = sess_r == k_sess
-        if not m.any():
+        m = np.flatnonzero(sess_r == k_sess)
+        if m.size == 0:
             continue
-        sub = type(truth_mid)(pose=None, kinematic_pose=None, wrench=None,
-                              optical_path_m={a: v[m] for a, v in truth_mid.optical_path_m.items()},
-                              n_comp={a: v[m] for a, v in truth_mid.n_comp.items()}, angles_rad={})
-        vals, stds = interferometer_values(sub, zero_path[k_sess], axes, noise[m], s)
+        vals, stds = interferometer_values({a: v[m] for a, v in truth_mid.optical_path_m.items()},
+                                           {a: v[m] for a, v in truth_mid.n_comp.items()},
+                                           zero_path[k_sess], axes, noise[m], s)
         cols = [AXES.index(a) for a in axes]
-        flat = ifm.reshape(-1, 3)
-        flat_std = ifm_std.reshape(-1, 3)
-        sel = np.flatnonzero(m)
-        flat[np.ix_(sel, cols)] = vals
-        flat_std[np.ix_(sel, cols)] = stds
+        flat[np.ix_(m, cols)] = vals
+        flat_std[np.ix_(m, cols)] = stds
     ang, _ = autocollimator_values(truth_ac, lab.ac_bank.take(0, ac_reads)[ac_rows.reshape(-1)], s)
     ac = ang.reshape(n, R, 4)
     scan_k = np.floor(t_s / s.scan_period_s).astype(int)

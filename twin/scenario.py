@@ -180,8 +180,8 @@ class Scenario:
         if max(forces) / per_A > 2.0 + 1e-12:
             raise ScenarioError(f"{f} forces_N: {max(forces)} N needs {max(forces) / per_A:.2f} A, "
                                 "above the coils' 2 A")
-        return force_plan(stroke, cal, val, forces, per_A, levels("readings", 4) if "readings" in c
-                          else 4)
+        readings = _number(f"{f} readings", c.get("readings", 4), 1, True)
+        return force_plan(stroke, cal, val, forces, per_A, readings)
 
     def dead_path(self) -> dict:
         """Nominal beam path head -> cube face (m) per axis, for the cosine correction."""

@@ -77,8 +77,9 @@ def sensor_set(names_parts: dict[str, str]) -> tuple[Sensor, ...]:
 
 @dataclass
 class Inputs:
-    """Network inputs on the integration grid (each (n_grid,)): room air and supports in degC,
-    heat powers in W by heated node."""
+    """Network inputs on the integration grid ``t_grid`` (s, campaign time; each array
+    (n_grid,)): room air and supports in degC, heat powers in W by heated node."""
+    t_grid: np.ndarray
     room_C: np.ndarray
     supports_C: dict[str, np.ndarray] = field(default_factory=dict)
     power_W: dict[str, np.ndarray] = field(default_factory=dict)

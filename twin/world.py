@@ -126,10 +126,9 @@ class Twin:
         # campaign-independent environment on the whole grid
         t_grid = -warmup_s + GRID_S * np.arange(int(np.ceil((horizon_s + warmup_s) / GRID_S)) + 2)
         T_ref = params.reference_temperature_C
-        self.env = Inputs(room_C=np.full(t_grid.size, T_ref),
+        self.env = Inputs(t_grid=t_grid, room_C=np.full(t_grid.size, T_ref),
                           supports_C={s: np.full(t_grid.size, T_ref) for s in SUPPORTS},
                           pressure_Pa=np.full(t_grid.size, 101325.0))
-        self.env.t_grid = t_grid
         for e in self.effects:
             e.environment(self.env, self.rng["environment"])
         self.t_grid = t_grid
@@ -190,8 +189,9 @@ class Twin:
             temps.update(e.part_temperatures(pts) or {})
         qu, inv = np.unique(pts.q, axis=0, return_inverse=True)
         inv = inv.reshape(-1)
+        geom = build_geometry(self.params, temps) if temps else self.geom
         if temps:
-            kin = forward(build_geometry(self.params, temps), pts.q)
+            kin = forward(geom, pts.q)
         else:
             ku = forward(self.geom, qu)
             kin = Pose(ku.p[inv], ku.R[inv])
@@ -207,13 +207,11 @@ class Twin:
         y = base.deflection[inv] + (C[inv] @ wrench[..., None])[..., 0]
         R = Rotation.from_rotvec(y[:, 3:6]).as_matrix() @ kin.R
         pose = Pose(kin.p + y[:, :3], R)
-        geom_cube = (build_geometry(self.params, {"platform": temps["platform"]}).cube_offset
-                     if "platform" in temps else self.geom.cube_offset)
         optics = Optics.nominal(self.cube_home, n, n_nominal=1.0)
         for e in self.effects:
             e.optics(pts, optics)
         size = self.params.mirror_cube_size_m
-        paths = {a: optical_path(pose, geom_cube, size, optics, a) for a in AXES}
+        paths = {a: optical_path(pose, geom.cube_offset, size, optics, a) for a in AXES}
         return Truth(pose=pose, kinematic_pose=kin, wrench=wrench, optical_path_m=paths,
                      n_comp=dict(optics.n_comp), angles_rad=autocollimator_angles(pose.R),
                      optics=optics)

@@ -106,12 +106,14 @@ def thermometer_bank(rng, s: InstrumentSettings, n_sensors: int) -> NoiseBank:
     return NoiseBank(rng, lambda g, n: s.T_noise_C * g.standard_normal((n, n_sensors)))
 
 
-def interferometer_values(truth, zero_path, axes, noise_row, s: InstrumentSettings):
-    """Displacements (n, len(axes)) m and window stds from the twin's truth and noise rows."""
+def interferometer_values(optical_path_m, n_comp, zero_path, axes, noise_row,
+                          s: InstrumentSettings):
+    """Displacements (n, len(axes)) m and window stds from the optical paths and compensation
+    indices by axis ((n,) each), the zero's paths and the windows' noise rows."""
     vals, stds = [], []
     for a in axes:
         k = AXES.index(a)
-        geo = (truth.optical_path_m[a] - zero_path[a]) / truth.n_comp[a]
+        geo = (optical_path_m[a] - zero_path[a]) / n_comp[a]
         vals.append(quantize(geo + noise_row[:, 0, k], s.resolution_m))
         stds.append(noise_row[:, 1, k])
     return np.stack(vals, axis=1), np.stack(stds, axis=1)
@@ -199,7 +201,8 @@ class SimInterferometers(Interferometers):
         truth = lab.truth_now(t_mid)
         row = lab.ifm_bank.take(lab.windows, lab.windows + 1)
         lab.windows += 1
-        vals, stds = interferometer_values(truth, lab.zero_path, self.axes, row, lab.s)
+        vals, stds = interferometer_values(truth.optical_path_m, truth.n_comp, lab.zero_path,
+                                           self.axes, row, lab.s)
         lab.t += lab.s.window_s
         return InterferometerReading(
             t_s=t_mid, displacement_m={a: float(vals[0, i]) for i, a in enumerate(self.axes)},
