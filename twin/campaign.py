@@ -11,6 +11,7 @@ operations and evaluates the twin once for all readings.  Both assemble rows wit
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -173,8 +174,11 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
 
 
 def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosine: bool,
-                      dead_path: dict) -> pd.DataFrame:
-    """The same campaign as ``run_campaign`` over the simulated instruments, vectorised."""
+                      dead_path: dict, noise_free: bool = False):
+    """The same campaign as ``run_campaign`` over the simulated instruments, vectorised.
+    With ``noise_free`` also the dataset a perfect instrument would have given on the same
+    timeline (no noise, no quantisation, exact angles): ``(df, df_noise_free)``. The
+    difference is the measurement noise, from which the dataset's noise floor follows."""
     s = settings
     lab = SimulatedLab(twin, s)                 # for its noise banks (same streams, same layout)
     n, R = len(plan), plan.readings
@@ -251,34 +255,48 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
         q_prev, I_prev = q[-1].copy(), I[-1].copy()
     twin.advance(t, schedule)
     # zeros: truth at home with the currents then in force (zero)
-    ifm = np.full((n, R, 3), np.nan)
-    ifm_std = np.full((n, R, 3), np.nan)
     zero_ac = np.zeros((n, 4))
+    zero_ac_exact = np.zeros((n, 4))
     zero_path = {}
     for tz, k_sess, ac_row, idx in zero_events:
         truth = twin.truth(twin.points([tz], np.zeros((1, 3)), np.zeros((1, 3))))
         zero_path[k_sess] = {a: float(truth.optical_path_m[a][0]) for a in AXES}
         ang, _ = autocollimator_values(truth, lab.ac_bank.take(ac_row, ac_row + 1), s)
         zero_ac[idx] = ang[0]
+        zero_ac_exact[idx] = [truth.angles_rad[c][0] for c in AC_CHANNELS]
     qr = np.repeat(plan.q, R, axis=0)
     Ir = np.repeat(plan.currents_A, R, axis=0)
     truth_mid = twin.truth(twin.points(t_mid.reshape(-1), qr, Ir))
     truth_ac = twin.truth(twin.points(t_ac.reshape(-1), qr, Ir))
     sess_r = np.repeat(plan.session, R)
     noise = lab.ifm_bank.take(0, windows)[win_rows.reshape(-1)]
-    flat, flat_std = ifm.reshape(-1, 3), ifm_std.reshape(-1, 3)      # views: rows = readings
-    for k_sess, (_, axes) in enumerate(plan.sessions):
-        m = np.flatnonzero(sess_r == k_sess)
-        if m.size == 0:
-            continue
-        vals, stds = interferometer_values({a: v[m] for a, v in truth_mid.optical_path_m.items()},
-                                           {a: v[m] for a, v in truth_mid.n_comp.items()},
-                                           zero_path[k_sess], axes, noise[m], s)
-        cols = [AXES.index(a) for a in axes]
-        flat[np.ix_(m, cols)] = vals
-        flat_std[np.ix_(m, cols)] = stds
-    ang, _ = autocollimator_values(truth_ac, lab.ac_bank.take(0, ac_reads)[ac_rows.reshape(-1)], s)
-    ac = ang.reshape(n, R, 4)
+    ac_noise = lab.ac_bank.take(0, ac_reads)[ac_rows.reshape(-1)]
     scan_k = np.floor(t_s / s.scan_period_s).astype(int)
     T = scan_temperatures(twin, s, lab.T_bank, lab.sensors, scan_k)
-    return _rows(plan, t_s, ifm, ifm_std, ac, T, lab.sensors, zero_ac, cosine, dead_path)
+
+    def dataset(noise, ac_noise, zero_ac, s):
+        ifm = np.full((n, R, 3), np.nan)
+        ifm_std = np.full((n, R, 3), np.nan)
+        flat, flat_std = ifm.reshape(-1, 3), ifm_std.reshape(-1, 3)   # views: rows = readings
+        for k_sess, (_, axes) in enumerate(plan.sessions):
+            m = np.flatnonzero(sess_r == k_sess)
+            if m.size == 0:
+                continue
+            vals, stds = interferometer_values(
+                {a: v[m] for a, v in truth_mid.optical_path_m.items()},
+                {a: v[m] for a, v in truth_mid.n_comp.items()}, zero_path[k_sess], axes,
+                noise[m], s)
+            cols = [AXES.index(a) for a in axes]
+            flat[np.ix_(m, cols)] = vals
+            flat_std[np.ix_(m, cols)] = stds
+        ang, _ = autocollimator_values(truth_ac, ac_noise, s)
+        return _rows(plan, t_s, ifm, ifm_std, ang.reshape(n, R, 4), T, lab.sensors, zero_ac,
+                     cosine, dead_path)
+
+    df = dataset(noise, ac_noise, zero_ac, s)
+    if not noise_free:
+        return df
+    perfect = dataclasses.replace(s, resolution_m=0.0, ac_resolution_rad=0.0,
+                                  ac_range_rad=np.inf)
+    clean = dataset(np.zeros_like(noise), np.zeros_like(ac_noise), zero_ac_exact, perfect)
+    return df, clean

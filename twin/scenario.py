@@ -60,6 +60,22 @@ def _number(where, value, minimum=None, integer=False):
     return int(value) if integer else float(value)
 
 
+def noise_floor(df: pd.DataFrame, noise_free: pd.DataFrame) -> dict:
+    """The dataset's noise floor per axis (nm): the validation error (90th percentile of |error|)
+    of the true model, i.e. of the readings against what a perfect instrument would have read
+    on the same timeline."""
+    val = (df["split"] == "val").to_numpy()
+    out = {}
+    for a in ("x", "y", "z"):
+        c = f"{a}_nm"
+        if c in df:
+            e = np.abs(df[c].to_numpy()[val] - noise_free[c].to_numpy()[val])
+            e = e[np.isfinite(e)]
+            if e.size:
+                out[a] = float(np.quantile(e, 0.9))
+    return out
+
+
 @dataclass
 class Scenario:
     path: Path
@@ -206,20 +222,22 @@ class Scenario:
         twin = Twin(self.params, self.effects, self.sensors, self.seed, self.horizon_s(plan), warmup)
         return twin, plan
 
-    def metadata(self, twin: Twin, scale) -> dict:
+    def metadata(self, twin: Twin, scale, noise_floor_nm: dict | None = None) -> dict:
         from deltatwin import __version__
         return {"source": "twin", "scenario": self.name, "scenario_toml": self.text,
                 "seed": self.seed, "scale": 1.0 if scale is None else scale,
                 "deltatwin_version": __version__, "sensors": dict(self.sensors),
                 "truth": {"effects": [e.describe() for e in self.effects],
-                          "noise_floor_nm": self.settings.noise_floor_m * 1e9,
+                          "reading_noise_std_nm": self.settings.noise_floor_m * 1e9,
+                          "noise_floor_nm": noise_floor_nm,
                           "cosine_correction": self.cosine}}
 
     def simulate(self, scale: float | None = None) -> tuple[pd.DataFrame, dict]:
         """The campaign's dataset through the vectorised fast path."""
         twin, plan = self.build(scale)
-        df = simulate_campaign(plan, twin, self.settings, self.cosine, self.dead_path())
-        return df, self.metadata(twin, scale)
+        df, clean = simulate_campaign(plan, twin, self.settings, self.cosine, self.dead_path(),
+                                      noise_free=True)
+        return df, self.metadata(twin, scale, noise_floor(df, clean))
 
     def run(self, scale: float | None = None, progress: bool = True, instruments=None):
         """The same campaign point by point through the instrument interface (simulated

@@ -90,7 +90,8 @@ def autocollimator_bank(rng, s: InstrumentSettings) -> NoiseBank:
 
 
 def quantize(x, step):
-    return np.round(np.asarray(x) / step) * step
+    """``x`` rounded to the resolution ``step`` (unchanged for a perfect instrument, step 0)."""
+    return np.round(np.asarray(x) / step) * step if step > 0 else np.asarray(x)
 
 
 def scan_temperatures(twin: Twin, s: InstrumentSettings, bank: NoiseBank, sensors, scan_index):
