@@ -18,6 +18,7 @@ COMMAND_MODULES = (
     "deltatwin.commands.simulate",
     "deltatwin.commands.view",
     "deltatwin.commands.emulate",
+    "deltatwin.commands.campaign",
 )
 
 

@@ -27,8 +27,12 @@ IDENTITY_PREFIX = "deltatwin emulated clock"
 
 
 class WallClock(Clock):
-    def __init__(self):
-        self._t0 = time.monotonic()
+    """Seconds since the campaign started: ``start_s`` at creation, then the monotonic wall
+    clock. A resumed campaign passes the campaign time it has reached (last journaled point +
+    the wall time since it was journaled), so its timeline continues."""
+
+    def __init__(self, start_s: float = 0.0):
+        self._t0 = time.monotonic() - start_s
 
     def now(self) -> float:
         return time.monotonic() - self._t0

@@ -49,12 +49,14 @@ class SerialInstrumentSet(InstrumentSet):
                 d.operation("connect", lambda: None, timeout_s)
 
 
-def open_lab(ports: LabPorts | str | os.PathLike) -> SerialInstrumentSet:
-    """Drivers for every instrument of the ports file (ports open at first use)."""
+def open_lab(ports: LabPorts | str | os.PathLike,
+             wall_clock_start_s: float = 0.0) -> SerialInstrumentSet:
+    """Drivers for every instrument of the ports file (ports open at first use). Without a
+    ``[clock]`` port the campaign time is the wall clock, starting at ``wall_clock_start_s``."""
     if not isinstance(ports, LabPorts):
         ports = load_ports(ports)
     kw = {"retry_policy": ports.retry}
-    clock = (WallClock() if ports.clock is None
+    clock = (WallClock(wall_clock_start_s) if ports.clock is None
              else SerialClock(serial_line(ports.clock, "clock"), **kw))
     controllers = [LDS1000(serial_line(port, f"autocollimator{k + 1}"), axes,
                            name=f"autocollimator{k + 1}", **kw)

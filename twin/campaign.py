@@ -120,57 +120,120 @@ def _rows(plan: Plan, t_s, ifm, ifm_std, ac, T, sensors, zero_ac, cosine: bool,
 
 
 def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, cosine: bool,
-                 dead_path: dict, progress: bool = True, journal=None) -> pd.DataFrame:
-    """Execute ``plan`` through the instrument interface, point by point."""
+                 dead_path: dict, progress: bool = True, journal=None,
+                 replay: bool = False) -> pd.DataFrame:
+    """Execute ``plan`` through the instrument interface, point by point.
+
+    ``journal`` (a ``twin.journal.Journal``, optional): each accepted point's raw readings are
+    appended (and fsync'ed) before the next move; points already in it are not taken again
+    (resume) and the dataset is assembled from it. A resume re-establishes the instruments as a
+    session start does (coils off, home, wait, zero the interferometers, autocollimator zero
+    reading): the zero did not survive the crash, so the resumed points are relative to this
+    new zero (each journaled point carries the time and the autocollimator angles of the zero it
+    refers to, ``zero_t_s`` and ``zero_ac_rad``). Before that, the clock is let run on to the
+    end of the last journaled point (the time it would have reached) if it is behind: a rebuilt
+    simulated or emulated world starts again at 0 s.
+
+    ``replay``: the instruments are a simulated world rebuilt after a crash (nothing of it
+    survived): the journaled points are taken again, with the zeros of earlier resumes where they
+    were, to bring that world (clock, heat, noise streams) to where it was, and each must give
+    exactly the journaled values (else ``JournalError``); then the campaign resumes as above.
+    """
+    import json
+    import logging
+
+    from .journal import JournalError, canonical_json
+
+    log = logging.getLogger(__name__)
     n, R = len(plan), plan.readings
-    ifm = np.full((n, R, 3), np.nan)
-    ifm_std = np.full((n, R, 3), np.nan)
-    ac = np.full((n, R, 4), np.nan)
     sensors = inst.thermometers.sensors
-    T = np.full((n, len(sensors)), np.nan)
-    t_s = np.zeros(n)
-    zero_ac = np.zeros((n, 4))
+    done = {} if journal is None else journal.points()
+    if sorted(done) != list(range(len(done))) or len(done) > n:
+        raise JournalError(f"{journal.path}: holds points {sorted(done)[:5]}... of a plan of {n}:"
+                           " not the prefix this campaign writes")
+    resume_at = len(done) if 0 < len(done) < n else None
+    if resume_at is not None:
+        log.info("resuming at point %d of %d (%d journaled)%s", resume_at, n, len(done),
+                 ", replaying the journaled points first" if replay else "")
     currents = np.zeros(3)
-    session = -1
-    ac0 = None
-    for k in tqdm(range(n), desc="campaign", unit="pt", disable=not progress):
-        if plan.session[k] != session:
-            session = plan.session[k]
-            if k > 0:
+    zero = None
+    bar = tqdm(total=n, initial=len(done), desc="campaign", unit="pt", disable=not progress)
+    for k in range(n):
+        if k in done and not replay:
+            continue
+        session = plan.session[k]
+        new_session = k == 0 or session != plan.session[k - 1]
+        rezero = k == resume_at or (k in done and done[k]["rezero"])
+        if rezero:                                # the clock runs on from the last point
+            behind = done[k - 1]["t_s"] + settings.overhead_s - inst.clock.now()
+            if behind > 0:
+                inst.clock.sleep(behind)
+            if inst.coils is not None and np.any(plan.currents_A != 0):
+                currents = np.full(3, np.nan)     # unknown after a crash: switched off below
+        if new_session or rezero:
+            if new_session and k > 0:
                 inst.clock.sleep(settings.session_gap_s)
             if np.any(currents != 0):
                 inst.coils.set_currents(np.zeros(3))
                 currents = np.zeros(3)
             inst.robot.move_to(np.zeros(3))
             inst.clock.sleep(settings.wait_s)
+            zero_t = inst.clock.now()
             inst.interferometers.zero()
             ac0 = inst.autocollimators.read()
-        zero_ac[k] = [ac0.angles_rad[c] for c in AC_CHANNELS]
+            zero = {"zero_t_s": zero_t, "zero_ac_rad": [ac0.angles_rad[c] for c in AC_CHANNELS]}
+            if rezero and not new_session:
+                log.warning("point %d: interferometers zeroed again at home at t = %.1f s (the "
+                            "zero of session %r did not survive the interruption)", k, zero_t,
+                            plan.sessions[session][0])
         if np.any(plan.currents_A[k] != currents):
             inst.coils.set_currents(plan.currents_A[k])
             currents = plan.currents_A[k].copy()
         inst.robot.move_to(plan.q[k])
         inst.clock.sleep(settings.wait_s)
         axes = plan.sessions[session][1]
+        ifm = np.full((R, 3), np.nan)
+        ifm_std = np.full((R, 3), np.nan)
+        ac = np.full((R, 4), np.nan)
         for r in range(R):
             for attempt in range(settings.max_rereads + 1):
                 reading = inst.interferometers.read()
                 if all(reading.std_m[a] < settings.std_limit_m for a in axes):
                     break
+                log.info("point %d reading %d: window rejected (sample std %s nm, limit %.0f "
+                         "nm); taking it again", k, r, {a: round(reading.std_m[a] * 1e9, 1)
+                                                        for a in axes},
+                         settings.std_limit_m * 1e9)
             else:
                 raise InstrumentError(inst.interferometers.name,
                                       f"point {k}: sample std above {settings.std_limit_m * 1e9:.0f}"
                                       f" nm in {settings.max_rereads + 1} windows in a row")
             for a in axes:
-                ifm[k, r, AXES.index(a)] = reading.displacement_m[a]
-                ifm_std[k, r, AXES.index(a)] = reading.std_m[a]
+                ifm[r, AXES.index(a)] = reading.displacement_m[a]
+                ifm_std[r, AXES.index(a)] = reading.std_m[a]
             ang = inst.autocollimators.read()
-            ac[k, r] = [ang.angles_rad[c] for c in AC_CHANNELS]
-        t_s[k] = inst.clock.now()
+            ac[r] = [ang.angles_rad[c] for c in AC_CHANNELS]
+        t_end = inst.clock.now()
         scan = inst.thermometers.scan()
-        T[k] = [scan.temperatures_C[s] for s in sensors]
+        point = {"pos_id": int(plan.pos_id[k]), "t_s": t_end, **zero, "rezero": bool(rezero),
+                 "ifm_m": ifm, "ifm_std_m": ifm_std, "ac_rad": ac,
+                 "T_C": [scan.temperatures_C[s] for s in sensors]}
+        if k in done:                             # replay: the rebuilt world must agree
+            if canonical_json(point) != canonical_json(done[k]):
+                raise JournalError(f"{journal.path}: point {k} taken again in the rebuilt "
+                                   "simulated world differs from the journal (another deltatwin "
+                                   "version or scenario file?); cannot resume it")
+        else:
+            if journal is not None:
+                journal.append(k, point)
+            done[k] = json.loads(canonical_json(point))
+            bar.update()
         inst.clock.sleep(settings.overhead_s)
-    return _rows(plan, t_s, ifm, ifm_std, ac, T, sensors, zero_ac, cosine, dead_path)
+    bar.close()
+    pts = [done[k] for k in range(n)]
+    arr = lambda key: np.array([p[key] for p in pts], dtype=np.float64)
+    return _rows(plan, arr("t_s"), arr("ifm_m"), arr("ifm_std_m"), arr("ac_rad"), arr("T_C"),
+                 sensors, arr("zero_ac_rad"), cosine, dead_path)
 
 
 def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosine: bool,

@@ -50,12 +50,14 @@ def _plain(value):
     raise TypeError(f"cannot journal a value of type {type(value).__name__}: {value!r}")
 
 
-def _dumps(obj) -> str:
+def canonical_json(obj) -> str:
+    """The one-line JSON text of ``obj`` as the journal writes it (floats exact, NaN allowed):
+    equal texts mean equal values."""
     return json.dumps(obj, default=_plain, separators=(",", ":"), allow_nan=True)
 
 
 def _normalise(header: dict) -> dict:
-    return json.loads(_dumps(header))
+    return json.loads(canonical_json(header))
 
 
 def _same(a, b) -> bool:
@@ -163,7 +165,7 @@ class Journal:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         try:
             with os.fdopen(fd, "wb") as f:
-                f.write((_dumps({"deltatwin_journal": FORMAT_VERSION, "header": header})
+                f.write((canonical_json({"deltatwin_journal": FORMAT_VERSION, "header": header})
                          + "\n").encode())
                 f.flush()
                 os.fsync(f.fileno())
@@ -192,7 +194,7 @@ class Journal:
             raise JournalError(f"{self.path}: point {index} is already recorded")
         if not isinstance(point, dict):
             raise TypeError(f"point must be a dict of column -> value, got {type(point).__name__}")
-        line = memoryview((_dumps({"index": int(index), "point": point}) + "\n").encode())
+        line = memoryview((canonical_json({"index": int(index), "point": point}) + "\n").encode())
         while line:                          # unbuffered: one write, unless the OS splits it
             line = line[self._file.write(line):]
         os.fsync(self._file.fileno())

@@ -15,7 +15,8 @@ and a driver reopening the same path finds it again. ``TcpLink`` serves ``socket
 (one client at a time), and comes back on the same port.
 
 Faults (``inject``), consumed one per request (``count`` requests, or every request until
-``clear_faults`` when ``count`` is None); all but ``error_code`` only affect requests that the
+``clear_faults`` when ``count`` is None), starting ``after`` requests from now (so that a test can
+place a fault in the middle of a campaign); all but ``error_code`` only affect requests that the
 instrument answers:
   ``no_reply``      the request is lost: not executed, no reply (the driver times out);
   ``garbled``       executed; a third of the reply's bytes replaced by bytes 0x80-0xFF;
@@ -23,7 +24,10 @@ instrument answers:
   ``dropped_bytes`` executed; a burst of 1-3 bytes lost from the reply (terminator kept);
   ``xoff``          executed; a stray XOFF byte (0x13) inserted in the reply;
   ``error_code``    not executed; the instrument reports error ``code`` (``reason``) its way;
-  ``vanish``        (immediately, not per request) the port disappears for ``down_s`` seconds.
+  ``vanish``        the port disappears for ``down_s`` seconds: at once, or with ``after`` at
+                    that request (which is lost);
+an emulator may add faults of its own instrument (``instrument_faults``; its ``serve`` sees the
+fault applying to the present request as ``self.active_fault``).
 Random choices (which bytes) come from the emulator's seeded ``numpy.random.Generator``.
 """
 from __future__ import annotations
@@ -123,6 +127,8 @@ class PtyLink:
             except BlockingIOError:
                 select.select([], [self._master], [], 0.1)
                 continue
+            except OSError:              # closed meanwhile (the port vanished): reply lost
+                return
             view = view[n:]
 
 
@@ -196,6 +202,8 @@ class Fault:
     count: int | None = 1           # requests affected; None = until cleared
     code: str | int | None = None   # error_code: the instrument's code
     reason: str = "injected fault"
+    after: int = 0                  # requests (to which it applies) to let pass first
+    down_s: float = 0.5             # vanish: how long the port stays away
 
 
 # --------------------------------------------------------------------------- the emulator
@@ -204,6 +212,7 @@ class LineEmulator:
     """Serves one instrument's protocol on ``link`` from a daemon thread."""
     protocol: Protocol
     default_error_code: str | int = 5
+    instrument_faults: tuple[str, ...] = ()
 
     def __init__(self, backing: BackingLab, link, *, name: str, terminator: str | None = None,
                  seed: int = 0):
@@ -219,7 +228,8 @@ class LineEmulator:
         self._thread = threading.Thread(target=self._serve, name=f"emulator-{name}",
                                         daemon=True)
         self.requests = 0      # requests served (for tests and logs)
-        self.faults_applied = dict.fromkeys(FAULTS, 0)
+        self.faults_applied = dict.fromkeys(FAULTS + self.instrument_faults, 0)
+        self.active_fault: Fault | None = None   # the fault applying to the request served
 
     # ---- subclass hooks
     def handle(self, command: str, values: dict) -> str | None:
@@ -247,31 +257,56 @@ class LineEmulator:
         self.link.down()
 
     def inject(self, kind: str, count: int | None = 1, *, code=None, reason: str = "injected "
-               "fault", down_s: float = 0.5) -> None:
-        if kind not in FAULTS:
-            raise ValueError(f"{self.name}: unknown fault {kind!r}; known: {FAULTS}")
-        if kind == "vanish":
+               "fault", down_s: float = 0.5, after: int = 0) -> None:
+        known = FAULTS + self.instrument_faults
+        if kind not in known:
+            raise ValueError(f"{self.name}: unknown fault {kind!r}; known: {known}")
+        if after < 0:
+            raise ValueError(f"{self.name}: after must be >= 0, got {after}")
+        if kind == "vanish" and after == 0:
             with self._fault_lock:
-                self.link.down()
-                self._back_at = time.monotonic() + down_s
-                self.faults_applied["vanish"] += 1
-            log.info("%s: port vanished for %.2f s", self.name, down_s)
+                self._vanish(down_s)
             return
         with self._fault_lock:
-            self._faults.append(Fault(kind, count, code, reason))
+            self._faults.append(Fault(kind, 1 if kind == "vanish" else count, code, reason,
+                                      after, down_s))
+
+    def _vanish(self, down_s: float) -> None:
+        """Take the port away for ``down_s`` seconds (call with the fault lock held)."""
+        self.link.down()
+        self._buffer.clear()
+        self._back_at = time.monotonic() + down_s
+        self.faults_applied["vanish"] += 1
+        log.info("%s: port vanished for %.2f s", self.name, down_s)
 
     def clear_faults(self) -> None:
         with self._fault_lock:
             self._faults.clear()
 
-    def _next_fault(self, answers: bool) -> Fault | None:
+    def instrument_fault_applies(self, kind: str, command: str | None) -> bool:
+        """Whether this instrument's own fault ``kind`` applies to ``command`` (None: a request
+        that is no declared command)."""
+        return True
+
+    def _next_fault(self, answers: bool, command: str | None) -> Fault | None:
         """Consume the next fault, if it applies to this request: ``error_code`` applies to any
-        request, the others only to requests that the instrument answers."""
+        request, an instrument fault where ``instrument_fault_applies``, the others only to
+        requests that the instrument answers."""
         with self._fault_lock:
-            if not self._faults or not (answers or self._faults[0].kind == "error_code"):
+            if not self._faults:
                 return None
             fault = self._faults[0]
-            self.faults_applied[fault.kind] += 1
+            if fault.kind in self.instrument_faults:
+                applies = self.instrument_fault_applies(fault.kind, command)
+            else:
+                applies = answers or fault.kind == "error_code"
+            if not applies:
+                return None
+            if fault.after > 0:
+                fault.after -= 1
+                return None
+            if fault.kind != "vanish":
+                self.faults_applied[fault.kind] += 1
             if fault.count is not None:
                 fault.count -= 1
                 if fault.count <= 0:
@@ -313,10 +348,17 @@ class LineEmulator:
         self.requests += 1
         parsed = self.protocol.parse_request(line)
         answers = parsed is None or self.protocol.commands[parsed[0]].reply is not None
-        fault = self._next_fault(answers)
+        fault = self._next_fault(answers, None if parsed is None else parsed[0])
         if fault is not None and fault.kind == "no_reply":
             log.info("%s: fault no_reply for %r", self.name, line)
             return
+        if fault is not None and fault.kind == "vanish":
+            log.info("%s: fault vanish at %r", self.name, line)
+            with self._fault_lock:
+                self._vanish(fault.down_s)
+            return
+        self.active_fault = fault if fault is not None and fault.kind in self.instrument_faults \
+            else None
         try:
             if fault is not None and fault.kind == "error_code":
                 code = self.default_error_code if fault.code is None else fault.code

@@ -1,0 +1,159 @@
+"""``deltatwin campaign SCENARIO --instruments sim|serial``: a scenario's campaign, point by
+point through the instrument interface, journaled, resumable, written as a dataset.
+
+``sim``: the scenario's twin as simulated instruments, in this process. ``serial``: the serial
+drivers (hw/lab.py) on the laboratory of ``--ports`` (the ports file of a real laboratory, or
+the one ``deltatwin emulate --ports-out`` writes). Every accepted point is appended to the
+journal (``OUT.journal``, fsync'ed) before the robot moves on; ``--resume`` continues a campaign
+that stopped (crash, ``kill -9``, a persistent instrument fault) where it stopped, and the
+dataset is written (atomically) once every point is in the journal, which is kept.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+# exit code of a campaign stopped by an instrument fault (2 = bad input, see deltatwin.cli)
+EXIT_INSTRUMENT_FAULT = 3
+
+
+def register(sub) -> None:
+    p = sub.add_parser("campaign", help="run a scenario's campaign through the instruments "
+                                        "(simulated or serial), journaled and resumable",
+                       description=__doc__.split("\n\n")[1])
+    p.add_argument("scenario", help="scenario TOML path or name in scenarios/")
+    p.add_argument("--instruments", choices=("sim", "serial"), required=True,
+                   help="sim: the scenario's simulated instruments; serial: the drivers on "
+                        "the ports file's laboratory")
+    p.add_argument("--ports", type=Path, default=None,
+                   help="ports file (TOML) for --instruments serial")
+    p.add_argument("-o", "--output", type=Path, default=None,
+                   help="dataset (Parquet, or CSV by suffix; default SCENARIO.parquet)")
+    p.add_argument("--journal", type=Path, default=None,
+                   help="journal file (default: OUTPUT.journal)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the campaign of the existing journal")
+    p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale")
+    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points "
+                   "(with serial: the same as `deltatwin emulate` was given)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def journal_header(sc, scale: float, n_points: int, instruments: str) -> dict:
+    """What identifies a campaign: a journal is only resumed by the same one."""
+    return {"scenario": sc.name, "scenario_sha256": hashlib.sha256(sc.text.encode()).hexdigest(),
+            "seed": sc.seed, "scale": scale, "points": n_points, "instruments": instruments}
+
+
+def zeros_taken(plan, points: dict) -> list[dict]:
+    """The interferometer zeros the journaled points refer to: one per session start, one more
+    after every resume inside a session."""
+    out, last = [], None
+    for k, p in points.items():
+        if p["zero_t_s"] != last:
+            out.append({"session": plan.sessions[plan.session[k]][0], "first_point": k,
+                        "t_s": p["zero_t_s"], "after_resume": bool(p["rezero"])})
+            last = p["zero_t_s"]
+    return out
+
+
+def resumed_wall_clock_s(journal) -> float:
+    """Campaign time for a wall clock after a resume: the last journaled point's time plus the
+    wall time since it was journaled (the journal file's modification time)."""
+    points = journal.points()
+    if not points:
+        return 0.0
+    last = points[max(points)]["t_s"]
+    return last + max(0.0, time.time() - journal.path.stat().st_mtime)
+
+
+def run(args) -> int:
+    from deltatwin.cli import UserError
+    from twin.campaign import run_campaign
+    from twin.dataset import write_dataset
+    from twin.instruments.interface import InstrumentError
+    from twin.instruments.simulated import SimulatedLab
+    from twin.journal import Journal
+    from twin.scenario import Scenario
+
+    if args.instruments == "serial" and args.ports is None:
+        raise UserError("--instruments serial needs --ports FILE (a laboratory's ports file, or "
+                        "the one `deltatwin emulate --ports-out FILE` writes)")
+    if args.instruments == "sim" and args.ports is not None:
+        raise UserError("--ports is only for --instruments serial")
+    if args.scale is not None and not 0 < args.scale <= 1:
+        raise UserError(f"--scale must be in (0, 1], got {args.scale}")
+    t0 = time.perf_counter()
+    sc = Scenario.load(args.scenario, seed=args.seed)
+    scale = sc.reduced_scale if args.reduced else args.scale
+    output = args.output or Path(f"{sc.name}.parquet")
+    journal_path = args.journal or output.with_name(output.name + ".journal")
+    if args.resume and not journal_path.exists():
+        raise UserError(f"--resume: no journal {journal_path} to resume (run without --resume "
+                        "to start the campaign)")
+    if not args.resume and journal_path.exists():
+        raise UserError(f"{journal_path} exists: continue that campaign with --resume, or "
+                        "remove the journal (or choose another output) to start anew")
+    if args.instruments == "serial":
+        from hw.ports import load_ports
+        ports = load_ports(args.ports)
+    if not args.quiet:
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+
+    twin, plan = sc.build(scale)
+    header = journal_header(sc, 1.0 if scale is None else float(scale), len(plan),
+                            args.instruments)
+    with Journal.open(journal_path, header) as journal:
+        before = len(journal.done())
+        if args.instruments == "sim":
+            instruments = SimulatedLab(twin, sc.settings).instrument_set()
+            described = {"kind": "sim", "world": "the scenario's twin (simulated instruments)"}
+        else:
+            from hw.lab import open_lab
+            instruments = open_lab(ports, wall_clock_start_s=resumed_wall_clock_s(journal))
+            described = {"kind": "serial", "ports_file": str(args.ports), "lab": ports.lab,
+                         "clock": "wall" if ports.clock is None else "clock port",
+                         "ports": {name: getattr(ports, name).url for name in
+                                   ("robot", "interferometers", "thermometers", "coils", "clock")
+                                   if getattr(ports, name) is not None}
+                         | {f"autocollimator{k + 1}": port.url
+                            for k, (port, _) in enumerate(ports.autocollimators)}}
+        try:
+            if args.instruments == "serial":
+                instruments.connect()          # a wrong port is reported before anything moves
+            df = run_campaign(plan, instruments, sc.settings, sc.cosine, sc.dead_path(),
+                              progress=not args.quiet, journal=journal,
+                              replay=args.instruments == "sim")
+        except InstrumentError as exc:
+            done = len(journal.done())
+            print(f"deltatwin campaign: stopped by an instrument fault at point {done} of "
+                  f"{len(plan)}: {exc}\n  {done} point(s) are safe in the journal {journal_path};"
+                  f" fix the cause and run the same command with --resume", file=sys.stderr)
+            return EXIT_INSTRUMENT_FAULT
+        finally:
+            instruments.close()
+        points = journal.points()
+    zeros = zeros_taken(plan, points)
+    meta = sc.metadata(twin, scale)
+    meta["source"] = "twin" if args.instruments == "sim" else "lab"
+    meta["instruments"] = described
+    meta["campaign"] = {"points": len(plan), "journal": str(journal_path),
+                        "taken_before_resume": before, "zeros": zeros}
+    write_dataset(df, meta, output)
+    summary = {"scenario": sc.name, "seed": sc.seed, "instruments": args.instruments,
+               "points": len(df), "resumed_with": before, "output": str(output),
+               "journal": str(journal_path) + " (kept)",
+               "zeros_after_resume": sum(z["after_resume"] for z in zeros),
+               "seconds": round(time.perf_counter() - t0, 2),
+               "campaign_time_h": round(float(df["t_s"].max()) / 3600.0, 3)}
+    print(json.dumps(summary) if args.json else
+          "\n".join(f"{k:>20}: {v}" for k, v in summary.items()))
+    return 0
