@@ -76,7 +76,6 @@ def resumed_wall_clock_s(journal) -> float:
 
 
 def run(args) -> int:
-    from deltatwin.cli import UserError
     from twin.campaign import run_campaign
     from twin.dataset import write_dataset
     from twin.instruments.interface import InstrumentError
@@ -85,22 +84,22 @@ def run(args) -> int:
     from twin.scenario import Scenario
 
     if args.instruments == "serial" and args.ports is None:
-        raise UserError("--instruments serial needs --ports FILE (a laboratory's ports file, or "
+        raise ValueError("--instruments serial needs --ports FILE (a laboratory's ports file, or "
                         "the one `deltatwin emulate --ports-out FILE` writes)")
     if args.instruments == "sim" and args.ports is not None:
-        raise UserError("--ports is only for --instruments serial")
+        raise ValueError("--ports is only for --instruments serial")
     if args.scale is not None and not 0 < args.scale <= 1:
-        raise UserError(f"--scale must be in (0, 1], got {args.scale}")
+        raise ValueError(f"--scale must be in (0, 1], got {args.scale}")
     t0 = time.perf_counter()
     sc = Scenario.load(args.scenario, seed=args.seed)
     scale = sc.reduced_scale if args.reduced else args.scale
     output = args.output or Path(f"{sc.name}.parquet")
     journal_path = args.journal or output.with_name(output.name + ".journal")
     if args.resume and not journal_path.exists():
-        raise UserError(f"--resume: no journal {journal_path} to resume (run without --resume "
+        raise ValueError(f"--resume: no journal {journal_path} to resume (run without --resume "
                         "to start the campaign)")
     if not args.resume and journal_path.exists():
-        raise UserError(f"{journal_path} exists: continue that campaign with --resume, or "
+        raise ValueError(f"{journal_path} exists: continue that campaign with --resume, or "
                         "remove the journal (or choose another output) to start anew")
     if args.instruments == "serial":
         from hw.ports import load_ports

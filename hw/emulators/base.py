@@ -280,8 +280,11 @@ class LineEmulator:
         log.info("%s: port vanished for %.2f s", self.name, down_s)
 
     def clear_faults(self) -> None:
+        """Drop the pending faults; a vanished port comes back now."""
         with self._fault_lock:
             self._faults.clear()
+            if self._back_at is not None:
+                self._back_at = time.monotonic()
 
     def instrument_fault_applies(self, kind: str, command: str | None) -> bool:
         """Whether this instrument's own fault ``kind`` applies to ``command`` (None: a request

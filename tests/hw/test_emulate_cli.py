@@ -1,6 +1,6 @@
-"""`deltatwin emulate` in a real subprocess: the scenario's twin behind pseudo-terminals; a
-campaign taken through the serial drivers equals the one taken with the simulated instruments
-directly, to the instruments' resolution."""
+"""`deltatwin emulate` in a real subprocess: the scenario's twin behind pseudo-terminals;
+`deltatwin campaign --instruments serial` through it (another real subprocess) equals
+`deltatwin campaign --instruments sim`, to the instruments' resolution."""
 import json
 import os
 import signal
@@ -9,9 +9,9 @@ import sys
 
 import numpy as np
 
-from hw.lab import open_lab
+from deltatwin.cli import main
 from hw.ports import load_ports
-from twin.scenario import Scenario
+from twin.dataset import read_dataset
 
 SCALE = 0.002        # paper-thermal: 57 points in two sessions (x/y, then z)
 # half the last digit each instrument writes (docs/hardware.md): nm to 0.001, arcsec to 0.01,
@@ -38,17 +38,29 @@ def test_campaign_through_emulate_matches_the_simulated_instruments(tmp_path):
         assert ports.interferometer_axes == ("x", "y", "z")
         assert len(ports.thermometer_channels) == 11
 
-        sc = Scenario.load("paper-thermal")
-        inst = open_lab(ports)
-        serial, meta = sc.run(SCALE, progress=False, instruments=inst)
-        inst.close()
+        campaign = subprocess.run(
+            [sys.executable, "-m", "deltatwin.cli", "campaign", "paper-thermal", "--scale",
+             str(SCALE), "--instruments", "serial", "--ports", str(ports_file), "-o",
+             str(tmp_path / "serial.parquet"), "--quiet", "--json"],
+            capture_output=True, text=True, timeout=300)
+        assert campaign.returncode == 0, campaign.stderr
+        assert json.loads(campaign.stdout)["points"] == 57
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
     assert not any(os.path.lexists(d["url"]) for d in devices.values())   # symlinks gone
 
-    direct, _ = sc.run(SCALE, progress=False)
+    assert main(["campaign", "paper-thermal", "--scale", str(SCALE), "--instruments", "sim",
+                 "-o", str(tmp_path / "sim.parquet"), "--quiet"]) == 0
+    serial, meta = read_dataset(tmp_path / "serial.parquet")
+    direct, meta_sim = read_dataset(tmp_path / "sim.parquet")
+    assert meta["instruments"]["kind"] == "serial" and meta["source"] == "lab"
+    assert meta["instruments"]["clock"] == "clock port"
+    assert meta["instruments"]["ports"]["robot"] == devices["robot"]["url"]
+    assert meta_sim["instruments"]["kind"] == "sim" and meta_sim["source"] == "twin"
+    assert {k: v for k, v in meta.items() if k not in ("instruments", "source", "campaign")} == \
+        {k: v for k, v in meta_sim.items() if k not in ("instruments", "source", "campaign")}
     assert list(serial.columns) == list(direct.columns) and len(serial) == len(direct) == 57
     for c in direct.columns:
         tol = next((t for suffix, t in TOLERANCE.items() if c.endswith(suffix)), None)
