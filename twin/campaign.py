@@ -152,6 +152,7 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
         raise JournalError(f"{journal.path}: holds points {sorted(done)[:5]}... of a plan of {n}:"
                            " not the prefix this campaign writes")
     resume_at = len(done) if 0 < len(done) < n else None
+    replay = replay and resume_at is not None     # a complete journal needs no world
     if resume_at is not None:
         log.info("resuming at point %d of %d (%d journaled)%s", resume_at, n, len(done),
                  ", replaying the journaled points first" if replay else "")

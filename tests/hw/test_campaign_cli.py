@@ -252,3 +252,27 @@ def test_wall_clock_continues_after_a_resume(tmp_path):
     assert 150.0 <= start < 155.0
     clock = WallClock(start)
     assert start <= clock.now() < start + 5.0
+
+
+def test_sim_resume_replays_the_journal_and_refuses_a_world_that_differs(tmp_path, capsys):
+    """--instruments sim rebuilds the world and replays the journaled points; a journal whose
+    points the rebuilt world does not reproduce is refused (nothing written)."""
+    out = tmp_path / "run.parquet"
+    journal = tmp_path / "run.parquet.journal"
+    assert main([*campaign_cmd(out, FAULT_SCALE), "--instruments", "sim"]) == 0
+    complete, _ = read_dataset(out)
+    lines = journal.read_bytes().split(b"\n")
+    out.unlink()
+    journal.write_bytes(b"\n".join(lines[:4]) + b"\n")             # header + points 0, 1, 2
+    assert main([*campaign_cmd(out, FAULT_SCALE, "--resume"), "--instruments", "sim"]) == 0
+    resumed, meta = read_dataset(out)
+    assert resumed.iloc[:3].equals(complete.iloc[:3]) and len(resumed) == 8
+    assert [z["first_point"] for z in meta["campaign"]["zeros"] if z["after_resume"]] == [3]
+
+    out.unlink()
+    journal.write_bytes(b"\n".join(lines[:2] + [lines[2].replace(b'"t_s":', b'"t_s":1')])
+                        + b"\n")
+    assert main([*campaign_cmd(out, FAULT_SCALE, "--resume"), "--instruments", "sim"]) == 2
+    assert "point 1 taken again in the rebuilt simulated world differs from the journal" in \
+        capsys.readouterr().err
+    assert not out.exists()
