@@ -321,10 +321,14 @@ class _StepwiseModel:
     kind = "?"
     geo_inputs: tuple[str, ...] = ()
     preset_name = "?"
+    output_columns: dict[str, str] = {}    # output name -> its data column
+    output_noun = "output(s)"               # what the outputs are, for error messages
 
-    def __init__(self, features="preset", *, sensors=None, penter=_PENTER_DEFAULT,
+    def __init__(self, features=None, *, sensors=None, penter=_PENTER_DEFAULT,
                  premove=None, maxiter=None, window_s: float = DEFAULT_WINDOW_S,
                  T_ref_K: float = DEFAULT_T_REF_K, outputs=None, min_rows_margin: int = 2):
+        if features is None:
+            features = self.preset_name
         if isinstance(features, str):
             if features not in ("preset", self.preset_name):
                 raise CalibrationInputError(f"{self.kind}: features {features!r} unknown; use "
@@ -343,6 +347,11 @@ class _StepwiseModel:
         self.window_s = float(window_s)
         self.T_ref_K = float(T_ref_K)
         self.outputs = None if outputs is None else list(outputs)
+        if self.outputs is not None:
+            bad = [o for o in self.outputs if o not in self.output_columns]
+            if bad:
+                raise CalibrationInputError(f"{self.kind}: unknown {self.output_noun} {bad}; "
+                                            f"use {', '.join(self.output_columns)}")
         self.min_rows_margin = int(min_rows_margin)
 
     # -- to override
@@ -466,20 +475,24 @@ class _StepwiseModel:
         obj = cls(features=features, sensors=list(sensors) or None, **kw)
         obj.features_ = features
         obj.sensors_ = list(sensors)
-        cand = set(features.names)
-        for o in outputs:
-            extra = [t.name for t in o.terms if t.name not in cand]
-            if extra:
-                raise CalibrationInputError(f"output {o.output!r}: term(s) {extra[:5]} not in "
-                                            f"the feature set {features.name!r}")
-        obj._set_outputs(outputs)
+        obj._set_outputs(outputs, CalibrationInputError)
         return obj
 
     def stepwise_result(self, output: str):
         """The full :class:`StepwiseResult` of an output (after fit, not after load)."""
         return getattr(self, f"_stepwise_{output}")
 
-    def _set_outputs(self, outputs):
+    def _set_outputs(self, outputs, foreign_term_error: type[Exception] | None = None):
+        """Install fitted outputs. With ``foreign_term_error`` (outputs given from outside: a
+        file, a caller), first check that every term belongs to ``self.features_`` and raise
+        that error class naming the output and the foreign terms otherwise."""
+        if foreign_term_error is not None:
+            cand = set(self.features_.names)
+            for o in outputs:
+                extra = [t.name for t in o.terms if t.name not in cand]
+                if extra:
+                    raise foreign_term_error(f"output {o.output!r}: term(s) {extra[:5]} not in "
+                                             f"the feature set {self.features_.name!r}")
         self.outputs_ = list(outputs)
         self.output_names_ = [o.output for o in self.outputs_]
         vs: dict[str, None] = {}
@@ -584,14 +597,7 @@ class _StepwiseModel:
             raise ModelFileError("the model's candidate term list does not match its feature "
                                  "families")
         obj.sensors_ = list(d.get("sensors") or [])
-        outs = [OutputModel.from_dict(o) for o in d["outputs"]]
-        cand = set(obj.features_.names)
-        for o in outs:
-            extra = [t.name for t in o.terms if t.name not in cand]
-            if extra:
-                raise ModelFileError(f"output {o.output!r} uses term(s) {extra[:5]} that are "
-                                     f"not in its feature set {obj.features_.name!r}")
-        obj._set_outputs(outs)
+        obj._set_outputs([OutputModel.from_dict(o) for o in d["outputs"]], ModelFileError)
         return obj
 
 
@@ -648,13 +654,8 @@ class DGM(_StepwiseModel):
     kind = "DGM"
     geo_inputs = JOINT_INPUTS
     preset_name = "thermal"
-
-    def __init__(self, features="thermal", **kw):
-        super().__init__(features, **kw)
-        if self.outputs is not None:
-            bad = [a for a in self.outputs if a not in AXIS_COLUMNS]
-            if bad:
-                raise CalibrationInputError(f"DGM: unknown axis(es) {bad}; use x, y, z")
+    output_columns = AXIS_COLUMNS
+    output_noun = "axis(es)"
 
     def _sensors_for(self, df, meta):
         return thermal_sensors(df, meta, self.sensors)
@@ -793,13 +794,8 @@ class DirectIGM(_StepwiseModel):
     kind = "DirectIGM"
     geo_inputs = CARTESIAN_INPUTS
     preset_name = "force"
-
-    def __init__(self, features="force", **kw):
-        super().__init__(features, **kw)
-        if self.outputs is not None:
-            bad = [m for m in self.outputs if m not in MOTOR_COLUMNS]
-            if bad:
-                raise CalibrationInputError(f"DirectIGM: unknown motor(s) {bad}; use q1, q2, q3")
+    output_columns = MOTOR_COLUMNS
+    output_noun = "motor(s)"
 
     def _default_features(self, sensors):
         return force_preset()
