@@ -30,7 +30,7 @@ from .world import Twin, random_streams
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 TABLES = {"scenario": {"name", "description", "seed"}, "robot": {"file"},
           "effects": None, "sensors": None, "instruments": None, "campaign": None,
-          "reduced": {"scale"}}
+          "reduced": {"scale"}, "hidden": {"effects", "baseline"}}
 CAMPAIGN_KEYS = {"thermal": {"kind", "warmup_s", "n_positions", "cal_fraction", "sessions"},
                  "force": {"kind", "warmup_s", "cal_levels", "val_levels", "forces_N",
                            "force_per_A", "readings"}}
@@ -89,6 +89,7 @@ class Scenario:
     cosine: bool
     campaign: dict
     reduced_scale: float
+    hidden: dict | None = None     # [hidden] effects the data holds and the baseline lacks
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -155,9 +156,27 @@ class Scenario:
                                 f"{sorted(CAMPAIGN_KEYS)}")
         _check_keys(f"{f} [campaign]", camp, CAMPAIGN_KEYS[kind])
         red = _number(f"{f} [reduced] scale", doc.get("reduced", {}).get("scale", 0.05), 0.0)
+        hidden = doc.get("hidden")
+        if hidden is not None:
+            for key in ("effects", "baseline"):
+                names = hidden.get(key)
+                if not isinstance(names, list) or not all(isinstance(x, str) for x in names):
+                    raise ScenarioError(f"{f} [hidden] {key}: expected a list of effect names")
+                for x in names:
+                    if x not in LIBRARY:
+                        close = difflib.get_close_matches(x, LIBRARY, n=1)
+                        raise ScenarioError(f"{f} [hidden] {key}: unknown effect {x!r}"
+                                            + (f" (did you mean {close[0]!r}?)" if close else ""))
+            not_on = [x for x in hidden["effects"] + hidden["baseline"] if x not in on]
+            if not_on:
+                raise ScenarioError(f"{f} [hidden]: effect(s) {not_on} are not in [effects] on "
+                                    f"= {on}: the data cannot hold them")
+            both = sorted(set(hidden["effects"]) & set(hidden["baseline"]))
+            if both:
+                raise ScenarioError(f"{f} [hidden]: {both} both hidden and in the baseline")
         sc = cls(path=path, text=text, name=name, seed=seed, params=params, effects=effects,
                  sensors=sensors, settings=settings, cosine=cosine, campaign=camp,
-                 reduced_scale=red)
+                 reduced_scale=red, hidden=hidden)
         sc.plan(random_streams(0)["campaign"], scale)      # validate the plan's keys now
         return sc
 
@@ -228,6 +247,7 @@ class Scenario:
                 "seed": self.seed, "scale": 1.0 if scale is None else scale,
                 "deltatwin_version": __version__, "sensors": dict(self.sensors),
                 "truth": {"effects": [e.describe() for e in self.effects],
+                          "hidden": self.hidden,
                           "reading_noise_std_nm": self.settings.noise_floor_m * 1e9,
                           "noise_floor_nm": noise_floor_nm,
                           "cosine_correction": self.cosine}}

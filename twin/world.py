@@ -183,35 +183,49 @@ class Twin:
 
     # -- geometry, load, optics ---------------------------------------------------------------
     def truth(self, pts: Points) -> Truth:
-        n = pts.t_s.shape[0]
-        temps = {}
-        for e in self.effects:
-            temps.update(e.part_temperatures(pts) or {})
+        geom, kin = kinematic_pose(self.params, self.geom, self.effects, pts)
         qu, inv = np.unique(pts.q, axis=0, return_inverse=True)
         inv = inv.reshape(-1)
-        geom = build_geometry(self.params, temps) if temps else self.geom
-        if temps:
-            kin = forward(geom, pts.q)
-        else:
-            ku = forward(self.geom, qu)
-            kin = Pose(ku.p[inv], ku.R[inv])
-        pts.pose = kin
-        wrench = np.zeros((n, 6))
-        for e in self.effects:
-            w = e.wrench(pts)
-            if w is not None:
-                wrench += w
         # statics are linear in the load: preload deflection + compliance * wrench, per position
-        base = self.statics.solve(qu, gravity=False)
-        C = self.statics.compliance(qu)
-        y = base.deflection[inv] + (C[inv] @ wrench[..., None])[..., 0]
-        R = Rotation.from_rotvec(y[:, 3:6]).as_matrix() @ kin.R
-        pose = Pose(kin.p + y[:, :3], R)
-        optics = Optics.nominal(self.cube_home, n, n_nominal=1.0)
-        for e in self.effects:
-            e.optics(pts, optics)
-        size = self.params.mirror_cube_size_m
-        paths = {a: optical_path(pose, geom.cube_offset, size, optics, a) for a in AXES}
-        return Truth(pose=pose, kinematic_pose=kin, wrench=wrench, optical_path_m=paths,
-                     n_comp=dict(optics.n_comp), angles_rad=autocollimator_angles(pose.R),
-                     optics=optics)
+        preload = self.statics.solve(qu, gravity=False).deflection[inv]
+        return observe(geom, kin, self.effects, pts, preload, self.statics.compliance(qu)[inv],
+                       self.cube_home, self.params.mirror_cube_size_m)
+
+
+def kinematic_pose(params: RobotParams, geom, effects: list[Effect], pts: Points):
+    """Geometry and kinematic pose at the points: the effects' part temperatures scale the
+    geometry per point (exact kinematics), otherwise one geometry for all (FK per unique q)."""
+    temps = {}
+    for e in effects:
+        temps.update(e.part_temperatures(pts) or {})
+    if temps:
+        geom = build_geometry(params, temps)
+        return geom, forward(geom, pts.q)
+    qu, inv = np.unique(pts.q, axis=0, return_inverse=True)
+    ku = forward(geom, qu)
+    inv = inv.reshape(-1)
+    return geom, Pose(ku.p[inv], ku.R[inv])
+
+
+def observe(geom, kin: Pose, effects: list[Effect], pts: Points, preload: np.ndarray,
+            compliance: np.ndarray, cube_home: np.ndarray, cube_size_m: float) -> Truth:
+    """Load and optics stages: the effects' wrench through the compliance (N,6,6) on top of the
+    preload deflection (N,6) moves the platform; the effects' optics give what the
+    instruments look at."""
+    n = pts.t_s.shape[0]
+    pts.pose = kin
+    wrench = np.zeros((n, 6))
+    for e in effects:
+        w = e.wrench(pts)
+        if w is not None:
+            wrench += w
+    y = preload + (compliance @ wrench[..., None])[..., 0]
+    R = Rotation.from_rotvec(y[:, 3:6]).as_matrix() @ kin.R
+    pose = Pose(kin.p + y[:, :3], R)
+    optics = Optics.nominal(cube_home, n, n_nominal=1.0)
+    for e in effects:
+        e.optics(pts, optics)
+    paths = {a: optical_path(pose, geom.cube_offset, cube_size_m, optics, a) for a in AXES}
+    return Truth(pose=pose, kinematic_pose=kin, wrench=wrench, optical_path_m=paths,
+                 n_comp=dict(optics.n_comp), angles_rad=autocollimator_angles(pose.R),
+                 optics=optics)

@@ -17,9 +17,10 @@ class AirRefraction(Effect):
     parameters = (
         Parameter("wavelength_m", "m", 632.99e-9, "HeNe vacuum wavelength", 0.0),
         Parameter("beam_room_fraction", "-", 0.3,
-                  "fraction of the beam path in room air rather than the air by the sensor", 0.0),
+                  "fraction of the beam path in room air rather than the air by the sensor", 0.0,
+                  fit_scale=0.2),
         Parameter("compensation_offset_C", "degC", (0.02, -0.03, 0.01),
-                  "error of each axis' compensation air sensor"),
+                  "error of each axis' compensation air sensor", fit_scale=0.05, fit_start=0.0),
         Parameter("assumed_pressure_Pa", "Pa", 101325.0, "pressure the instrument assumes", 0.0),
         Parameter("vapour_pressure_Pa", "Pa", 1000.0, "water-vapour partial pressure", 0.0),
     )

@@ -7,6 +7,15 @@ the instruments' optics. An effect overrides the hooks of the stages it changes 
 else; an effect that is off is simply absent, and every stage then keeps its ideal value
 (parts at the reference temperature, no load, beams on their nominal lines, vacuum-like air
 index constant). Adding an effect = one module in twin/effects/ + one line in LIBRARY.
+
+The same effect is also a term of a physics model fitted to measurements (calibration/physics.py):
+there the stages that act on the robot (``robot``, ``part_temperatures``, ``wrench``, ``optics``)
+are evaluated on conditions taken from the data (sensor temperatures, motor coordinates, coil
+currents) with ``rng=None`` (nothing random), and the parameters declared with a ``fit_scale``
+are the ones a fit adjusts, starting from ``fit_start`` (the effect's "not yet known" value, e.g.
+zero misalignment) or the default. Effects that only act through the thermal network
+(``environment``, ``heat_sources``) have no model form: in measurements their consequences
+arrive through the temperature sensors.
 """
 from __future__ import annotations
 
@@ -28,10 +37,15 @@ class Parameter:
     default: float | tuple
     doc: str
     minimum: float | None = None   # inclusive bound checked on every element
+    fit_scale: float | None = None  # typical size (unit as above) when a fit adjusts it
+    fit_start: float | tuple | None = None  # a fit's starting value (default: ``default``)
 
     @property
     def shape(self) -> tuple:
         return np.shape(self.default)
+
+
+MODEL_STAGES = ("robot", "part_temperatures", "wrench", "optics")
 
 
 class Effect:
@@ -67,9 +81,20 @@ class Effect:
         for k, v in self.values.items():
             setattr(self, k, v)
 
+    @classmethod
+    def model_stages(cls) -> tuple[str, ...]:
+        """The stages this effect changes that a model fitted to measurements can evaluate."""
+        return tuple(h for h in MODEL_STAGES if getattr(cls, h) is not getattr(Effect, h))
+
+    @classmethod
+    def free_parameters(cls) -> tuple[Parameter, ...]:
+        """The parameters a physics fit adjusts."""
+        return tuple(p for p in cls.parameters if p.fit_scale is not None)
+
     # -- stage hooks (twin/world.py calls them in this order) ---------------------------------
     def robot(self, params, rng):
-        """Robot parameters (RobotParams) -> changed parameters (geometric errors)."""
+        """Robot parameters (RobotParams) -> changed parameters (geometric errors); ``rng`` is
+        None in a model fitted to measurements (no random draw)."""
         return params
 
     def environment(self, env, rng) -> None:

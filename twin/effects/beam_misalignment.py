@@ -23,9 +23,10 @@ class BeamMisalignment(Effect):
                "displacement).")
     parameters = (
         Parameter("angle_rad", "rad", ((2e-4, -1e-4), (-1.5e-4, 2e-4), (1e-4, 1.5e-4)),
-                  "per axis x, y, z: two tilt angles of the beam"),
+                  "per axis x, y, z: two tilt angles of the beam", fit_scale=2e-4, fit_start=0.0),
         Parameter("abbe_offset_m", "m", ((0.8e-3, -0.5e-3), (-0.6e-3, 0.7e-3), (0.5e-3, 0.9e-3)),
-                  "per axis x, y, z: two sideways offsets of the beam from the cube centre"),
+                  "per axis x, y, z: two sideways offsets of the beam from the cube centre",
+                  fit_scale=1e-3, fit_start=0.0),
     )
 
     def optics(self, points, optics):

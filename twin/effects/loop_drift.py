@@ -14,9 +14,11 @@ class LoopDrift(Effect):
                "the base by CTE * dT * length of every leg of the loop.")
     parameters = (
         Parameter("frame_height_m", "m", 0.35, "table top to the robot's base plane", 0.0),
-        Parameter("table_cte_per_K", "1/K", 11.7e-6, "table (steel)", 0.0),
-        Parameter("frame_cte_per_K", "1/K", 11.7e-6, "metrology frame (steel)", 0.0),
-        Parameter("support_cte_per_K", "1/K", 23e-6, "instrument supports (aluminium)", 0.0),
+        Parameter("table_cte_per_K", "1/K", 11.7e-6, "table (steel)", 0.0, fit_scale=2e-6),
+        Parameter("frame_cte_per_K", "1/K", 11.7e-6, "metrology frame (steel)", 0.0,
+                  fit_scale=2e-6),
+        Parameter("support_cte_per_K", "1/K", 23e-6, "instrument supports (aluminium)", 0.0,
+                  fit_scale=3e-6),
         Parameter("reference_C", "degC", 20.0, "temperature at which the loop is as drawn"),
     )
 

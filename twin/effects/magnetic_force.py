@@ -40,10 +40,11 @@ class MagneticForce(Effect):
         Parameter("magnet_moment_Am2", "A*m^2", 0.64,
                   "magnet dipole moment (Br V / mu0: 1.2 T, 15x15x3 mm)", 0.0),
         Parameter("coil_moment_per_A", "A*m^2/A", 0.16,
-                  "coil + ferrite core dipole moment per ampere (800 turns)", 0.0),
+                  "coil + ferrite core dipole moment per ampere (800 turns)", 0.0, fit_scale=0.02),
         Parameter("core_depth_m", "m", 0.008, "coil dipole centre below the coil face", 0.0),
         Parameter("coil_offset_m", "m", ((-0.0025, -0.006, 0.0),) * 3,
-                  "each coil's position error from under its magnet at home (world x, y, z)"),
+                  "each coil's position error from under its magnet at home (world x, y, z)",
+                  fit_scale=1e-3, fit_start=0.0),
     )
 
     def __init__(self, where="effect", **values):
