@@ -55,7 +55,8 @@ def thermal_sensors(df: pd.DataFrame, meta: dict | None, sensors=None) -> list[s
     """The temperature sensors of the thermal preset.
 
     An explicit list wins (each must have a ``T_<name>_C`` column).  Otherwise the sensors of
-    ``meta['sensors']`` whose part is not ``air`` (the first paper's 9 of 11), in table order.
+    ``meta['sensors']`` whose part is not air (``air``, or an air volume such as the twin's
+    ``air_x``: the first paper's 9 of 11), in table order.
     Without that metadata: every ``T_*_C`` column whose name does not start with ``air``,
     with a :class:`MissingMetadataWarning` naming the choice.
     """
@@ -72,7 +73,7 @@ def thermal_sensors(df: pd.DataFrame, meta: dict | None, sensors=None) -> list[s
         return sensors
     parts = (meta or {}).get("sensors")
     if isinstance(parts, dict) and parts:
-        chosen = [s for s in present if s in parts and str(parts[s]).lower() != "air"]
+        chosen = [s for s in present if s in parts and not str(parts[s]).lower().startswith("air")]
         unknown = [s for s in present if s not in parts]
         if unknown:
             warnings.warn(f"temperature column(s) {[f'T_{s}_C' for s in unknown]} have no entry "
