@@ -366,13 +366,22 @@ def force_ladder() -> list[tuple[str, FeatureSet]]:
 # ----- causal temperature derivatives -------------------------------------------------
 
 def causal_derivatives(t_s, values, window_s: float = DEFAULT_WINDOW_S, degree: int = 2):
-    """First and second time derivatives using only past and present samples.
+    """First and second time derivatives using only past and present samples (see
+    ``causal_fit``). Returns ``(d1, d2, n_used)`` with the shape of ``values``."""
+    _, d1, d2, count = causal_fit(t_s, values, window_s, degree)
+    return d1, d2, count
+
+
+def causal_fit(t_s, values, window_s: float = DEFAULT_WINDOW_S, degree: int = 2):
+    """Level and first and second time derivatives using only past and present samples.
 
     ``t_s``: (n,) sample times, non-decreasing (one session).  ``values``: (n,) or (n, c).
     At each sample i, fits a polynomial of ``degree`` (1 or 2) in time by least squares to
     the samples with ``t_i - window_s <= t_j <= t_i`` and returns its derivatives at ``t_i``.
     Uneven spacing is handled; fewer distinct times than ``degree + 1`` lower the degree
-    (1 sample: 0 and 0).  Returns ``(d1, d2, n_used)`` with the shape of ``values``.
+    (1 sample: the sample itself, derivatives 0).  Returns ``(level, d1, d2, n_used)`` with
+    the shape of ``values``: ``level`` is the polynomial's value at ``t_i``, a causal smoothing
+    of the samples that follows a linear trend without lag.
     """
     t = np.asarray(t_s, dtype=float).ravel()
     v = np.asarray(values, dtype=float)
@@ -388,10 +397,12 @@ def causal_derivatives(t_s, values, window_s: float = DEFAULT_WINDOW_S, degree: 
         raise CalibrationInputError(f"causal_derivatives: window_s = {window_s} must be > 0 "
                                     f"and degree = {degree} 1 or 2")
     n, c = v.shape
+    level = v.copy()
     d1 = np.zeros((n, c))
     d2 = np.zeros((n, c))
     if n == 0:
-        return (d1[:, 0], d2[:, 0], np.zeros(0, int)) if squeeze else (d1, d2, np.zeros(0, int))
+        return ((level[:, 0], d1[:, 0], d2[:, 0], np.zeros(0, int)) if squeeze
+                else (level, d1, d2, np.zeros(0, int)))
     lo = np.searchsorted(t, t - window_s, side="left")
     count = np.arange(n) - lo + 1
     new_time = np.concatenate([[1], (np.diff(t) > 0).astype(int)])
@@ -416,12 +427,13 @@ def causal_derivatives(t_s, values, window_s: float = DEFAULT_WINDOW_S, degree: 
         Y = v[idx[rows]] - v[rows][:, None, :]                          # (r, K, c)
         B = np.einsum("rkp,rkc->rpc", Vw, Y)
         coef = np.linalg.solve(G, B)                                    # (r, dg+1, c)
+        level[rows] = v[rows] + coef[:, 0, :]
         d1[rows] = coef[:, 1, :] / window_s
         if dg == 2:
             d2[rows] = 2.0 * coef[:, 2, :] / window_s**2
     if squeeze:
-        return d1[:, 0], d2[:, 0], count
-    return d1, d2, count
+        return level[:, 0], d1[:, 0], d2[:, 0], count
+    return level, d1, d2, count
 
 
 # ----- from a dataset table to base variables -------------------------------------------

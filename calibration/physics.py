@@ -41,6 +41,7 @@ from twin.statics import Statics
 from twin.thermal import PART_NODES
 from twin.world import Points, kinematic_pose, observe
 
+from .features import causal_fit
 from .errors import CalibrationInputError, MissingColumnsError, TooFewPointsError
 from .validation import error_figures
 
@@ -50,6 +51,7 @@ SIBLINGS = {"arm": ("arm1", "arm2", "arm3"), "rod": ("rod1", "rod2", "rod3"),
             "motor": ("motor1", "motor2", "motor3"), "coil": ("coil1", "coil2", "coil3"),
             "air": ("air_x", "air_y", "air_z")}
 REQUIRED = ("t_s", "split", "session", "q1_rad", "q2_rad", "q3_rad")
+TEMPERATURE_WINDOW_S = 600.0   # causal smoothing of the temperature streams
 NM = 1e9   # the solver works on residuals in nm, where its tolerances are meaningful
 
 
@@ -90,16 +92,27 @@ class Measurements:
         return self._statics
 
 
-def node_temperatures(df: pd.DataFrame, sensors: dict, T_ref_C: float) -> dict:
+def node_temperatures(df: pd.DataFrame, sensors: dict, T_ref_C: float,
+                      window_s: float = TEMPERATURE_WINDOW_S) -> dict:
     """Part temperatures (degC, per row) from the sensors on each part; parts without a sensor
-    take the mean of their sensed siblings, else the reference temperature."""
+    take the mean of their sensed siblings, else the reference temperature. Each sensor's
+    stream is smoothed causally (local linear fit over the past ``window_s``, as a controller
+    could): a thermometer's mK noise times a CTE and a 0.35 m loop leg is tens of nm."""
+    t = df["t_s"].to_numpy(dtype=np.float64)
+    order = np.argsort(t, kind="stable")
     cols = {}
     for s, part in sensors.items():
         c = f"T_{s}_C"
         if c not in df:
             raise MissingColumnsError(f"metadata 'sensors' names sensor {s!r} (on {part!r}) but "
                                       f"the data has no column {c!r}")
-        cols.setdefault(part, []).append(df[c].to_numpy(dtype=np.float64))
+        raw = df[c].to_numpy(dtype=np.float64)
+        if not np.all(np.isfinite(raw)):
+            raise CalibrationInputError(f"column {c!r}: row {int(np.flatnonzero(~np.isfinite(raw))[0])}"
+                                        " is not a finite temperature")
+        smooth = np.empty_like(raw)
+        smooth[order] = causal_fit(t[order], raw[order], window_s, degree=1)[0]
+        cols.setdefault(part, []).append(smooth)
     n = len(df)
     T = {p: np.mean(v, axis=0) for p, v in cols.items()}
     out = {}
@@ -320,9 +333,11 @@ class PhysicsModel:
             self.set_theta(theta)
         return self._observe(meas, self._kinematics(meas))
 
-    def jacobian(self, meas: Measurements, theta: np.ndarray, rel_step: float = 1e-3):
+    def jacobian(self, meas: Measurements, theta: np.ndarray, rel_step: float = 1e-3,
+                 columns: np.ndarray | None = None):
         """(A, J): the prediction (N,3) and its forward-difference derivative (N,3,p) with
-        respect to theta; steps of ``rel_step`` times each parameter's fit scale.
+        respect to theta (only the ``columns`` mask when given, zeros elsewhere); steps of
+        ``rel_step`` times each parameter's fit scale.
 
         Geometry parameters under per-point part temperatures go by the chain rule: the
         kinematic pose's derivative on the unique motor coordinates (at the reference
@@ -335,8 +350,9 @@ class PhysicsModel:
         J = np.zeros(A.shape + (theta.size,))
         by = self.free_by_stage()
         steps = rel_step * self.scales
-        chain = by["robot"] & stage[1].batched
-        for j in np.flatnonzero(~chain):
+        wanted = np.ones(theta.size, bool) if columns is None else np.asarray(columns, bool)
+        chain = by["robot"] & stage[1].batched & wanted
+        for j in np.flatnonzero(~chain & wanted):
             th = theta.copy()
             th[j] += steps[j]
             self.set_theta(th)
