@@ -568,6 +568,7 @@ class PhysicsFit:
         self.cal_ = figures_nm(self.residual_, meas.cal)
         self.val_ = figures_nm(self.residual_, meas.val)
         self.jacobian_ = J
+        self.identified_directions_ = V
         self._identifiability(model, Js, s, Vt, keep, J * S, meas, r, V, theta, theta0)
         return self
 

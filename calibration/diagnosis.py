@@ -1,0 +1,186 @@
+"""Which physical effect is missing: rank the library's effects by how much of a fitted model's
+residual each explains, and name what the residual still depends on when none does.
+
+For every model effect of the library (twin/effects/) that the fitted model lacks, the model
+is linearised at its fitted parameters: the candidate switched on at its starting values
+changes the predictions by ``delta0``, and its free parameters add Jacobian columns. Only the
+candidate's directions that the data determine (the same identifiability rule as the fit,
+after removing what the model's own identified directions already span) count. A linear
+least-squares refit on the calibration rows (session zeros projected out) then gives:
+
+* the calibration residual sum of squares before and after: a nested F test (p-value) and the
+  change of the Bayesian information criterion (BIC, which charges ln(n) per direction: of two
+  effects that explain the same, the one with fewer parameters ranks first);
+* the validation residual after (zeros re-estimated on the calibration rows): the explained
+  fraction of the validation residual's power and its 90 % error.
+
+An effect is *significant* when p < ``alpha``, the BIC falls, and it explains at least
+``min_explained`` of the validation residual — the guard against fitting noise with many
+parameters. Significant effects rank first, by BIC; the rest by explained fraction.
+
+The ``unexplained`` part regresses the residual on each recorded variable (time, each
+temperature and its causal rate, motor coordinates, force, autocollimator angles) with a cubic
+polynomial (statsmodels OLS) and lists those it still depends on (F test, Bonferroni over all
+tests) by R^2.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import statsmodels.api as sm
+from scipy import stats
+
+from twin.instruments.optics import AC_CHANNELS, AXES
+
+from .features import causal_derivatives
+from .physics import (PhysicsFit, PhysicsModel, _projected, figures_nm, group_offsets,
+                      model_effects, residuals)
+
+ALPHA = 1e-3
+MIN_EXPLAINED = 0.1
+
+
+def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
+    """Residual (N,3) after adding ``change`` (N,3) to the fitted prediction, zeros re-estimated
+    on the calibration rows."""
+    pred = fit.prediction_ + change
+    return residuals(meas, pred, group_offsets(meas, pred, meas.cal))
+
+
+def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, rss0: float, n: int, k_m: int):
+    meas = fit.measurements_
+    model = PhysicsModel(fit.effects + [name], fit.model_.params, fit.model_.values())
+    theta = model.theta()
+    new = np.zeros(model.n_free, bool)
+    for f in model.free:
+        new[f.sl] = f.effect == name
+    A, J = model.jacobian(meas, theta, columns=new)
+    delta0 = A - fit.prediction_
+    Jc = J[:, :, new] * model.scales[new]
+    cal = meas.cal
+    r = _projected(meas, cal, meas.y - A)              # residual with the candidate on
+    Pc = _projected(meas, cal, Jc)
+    # the candidate's directions beyond the model's own, that the data determine
+    if Jm.shape[1]:
+        Q, _ = np.linalg.qr(Jm)
+        Pc = Pc - Q @ (Q.T @ Pc)
+    k_c = 0
+    if Pc.shape[1]:
+        _, s, Vt = np.linalg.svd(Pc, full_matrices=False)
+        keep = s > (fit.noise_nm * 1e-9) / fit.identifiable_ratio
+        k_c = int(keep.sum())
+        Vc = Vt[keep].T
+    X = np.hstack([Jm, _projected(meas, cal, Jc) @ Vc]) if k_c else Jm
+    coef = np.linalg.lstsq(X, r, rcond=None)[0] if X.shape[1] else np.zeros(0)
+    rss1 = float(np.sum((r - X @ coef) ** 2))
+    # the same change on every row (the model's own columns re-adjust too)
+    full = [fit.jacobian_ * fit.model_.scales @ fit.identified_directions_] if k_m else []
+    if k_c:
+        full.append(Jc @ Vc)
+    change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
+    after = _val_after(meas, fit, change)
+    before = fit.residual_
+    val = meas.val[:, None] & np.isfinite(before)
+    p_before, p_after = float(np.sum(before[val] ** 2)), float(np.sum(after[val] ** 2))
+    df1 = max(k_c, 1)
+    df2 = max(n - k_m - k_c - len(meas.groups), 1)
+    if rss1 > 0 and rss0 > rss1:
+        F = ((rss0 - rss1) / df1) / (rss1 / df2)
+        p_value = float(stats.f.sf(F, df1, df2))
+    else:
+        p_value = 1.0
+    d_bic = (n * math.log(max(rss1, 1e-300) / max(rss0, 1e-300)) + k_c * math.log(n))
+    explained = 1.0 - p_after / p_before if p_before > 0 else 0.0
+    fig = figures_nm(after, meas.val)
+    return {"effect": name, "explained_fraction": explained,
+            "val_err90_after_nm": fig["all"]["err_p90"],
+            "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
+            "new_directions": k_c, "p_value": p_value, "delta_bic": d_bic,
+            "significant": bool(p_value < ALPHA and d_bic < 0 and explained >= MIN_EXPLAINED)}
+
+
+def recorded_variables(df: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The variables a residual can depend on, by name (column names; rates as dT_<s>_dt)."""
+    out = {"t_s": df["t_s"].to_numpy(dtype=np.float64)}
+    t = out["t_s"]
+    order = np.argsort(t, kind="stable")
+    for c in df.columns:
+        if c.startswith("T_") and c.endswith("_C"):
+            v = df[c].to_numpy(dtype=np.float64)
+            out[c] = v
+            rate = np.empty_like(v)
+            rate[order] = causal_derivatives(t[order], v[order], degree=1)[0]
+            out[f"dT_{c[2:-2]}_dt_K_per_s"] = rate
+    for c in ("q1_rad", "q2_rad", "q3_rad", "F_N", "coil1_A", "coil2_A", "coil3_A") + tuple(
+            f"{a}_arcsec" for a in AC_CHANNELS):
+        if c in df:
+            out[c] = df[c].to_numpy(dtype=np.float64)
+    return {k: v for k, v in out.items() if np.nanstd(v) > 0}
+
+
+def residual_dependence(df: pd.DataFrame, res: np.ndarray, alpha: float = ALPHA) -> list[dict]:
+    """Variables the residual (N,3) still depends on: cubic OLS of each axis' residual on each
+    variable; significant after Bonferroni, sorted by R^2 (largest first)."""
+    variables = recorded_variables(df)
+    tests = []
+    for k, a in enumerate(AXES):
+        e = res[:, k]
+        ok = np.isfinite(e)
+        if ok.sum() < 20:
+            continue
+        for name, v in variables.items():
+            m = ok & np.isfinite(v)
+            if m.sum() < 20:
+                continue
+            x = (v[m] - v[m].mean()) / v[m].std()
+            X = sm.add_constant(np.column_stack([x, x ** 2, x ** 3]), has_constant="add")
+            r = sm.OLS(e[m] * 1e9, X).fit()
+            tests.append({"variable": name, "axis": a, "r2": float(r.rsquared),
+                          "p_value": float(r.f_pvalue)})
+    limit = alpha / max(len(tests), 1)
+    hits = [t for t in tests if t["p_value"] < limit and t["r2"] >= 0.05]
+    return sorted(hits, key=lambda t: -t["r2"])
+
+
+def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
+    """Rank the library effects the fitted model lacks (see the module docstring)."""
+    meas = fit.measurements_
+    cal = meas.cal
+    k_m = fit.identifiability_["n_identified_directions"]
+    Jm = (_projected(meas, cal, fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_
+          if k_m else np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
+    r0 = _projected(meas, cal, fit.residual_)
+    rss0 = float(np.sum(r0 ** 2))
+    n = r0.size
+    candidates = [e for e in model_effects() if e not in fit.effects]
+    ranking = []
+    for name in candidates:
+        if progress:
+            progress(name)
+        ranking.append(_candidate(fit, name, Jm, rss0, n, k_m))
+    ranking.sort(key=lambda c: (not c["significant"],
+                                c["delta_bic"] if c["significant"] else -c["explained_fraction"]))
+    val_fig = fit.val_
+    out = {"effects": fit.effects, "val_err90_nm": val_fig["all"]["err_p90"],
+           "val_err90_by_axis_nm": {a: val_fig[a]["err_p90"] for a in AXES if a in val_fig},
+           "ranking": ranking}
+    best = next((c for c in ranking if c["significant"]), None)
+    dependence = residual_dependence(meas.df, fit.residual_)
+    if best:
+        effects = ",".join(fit.effects + [best["effect"]])
+        out["missing_effect"] = best["effect"]
+        out["next_command"] = f"deltatwin fit {data} --effects {effects} -o fitted.toml"
+        out["scenario_change"] = (f"add \"{best['effect']}\" to the model's effects "
+                                  f"(a scenario's [hidden] baseline, or --effects)")
+        out["unexplained"] = {"claimed": False, "depends_on": dependence[:10]}
+    else:
+        names = sorted({d["variable"] for d in dependence})
+        out["missing_effect"] = None
+        out["unexplained"] = {
+            "claimed": False, "depends_on": dependence[:10],
+            "message": ("no library effect explains the residual significantly"
+                        + (f"; it still depends on: {', '.join(names[:8])}" if names else
+                           "; it does not depend on any recorded variable (noise-like)"))}
+    return out
