@@ -184,3 +184,38 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
                         + (f"; it still depends on: {', '.join(names[:8])}" if names else
                            "; it does not depend on any recorded variable (noise-like)"))}
     return out
+
+
+def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DATA",
+                  max_added: int = 3, progress=None, **fit_options):
+    """The loop a researcher runs: fit the baseline, diagnose, add the significant effect the
+    diagnosis names, refit, until none is significant (or ``max_added`` were added).
+
+    Returns (ladder, diagnoses, fits): one ladder row per model ({model, effects, added,
+    n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm}), the
+    diagnosis of every model, and the fits."""
+    noise = ((meta or {}).get("truth") or {}).get("noise_floor_nm")
+    effects = list(baseline)
+    ladder, diagnoses, fits, start = [], [], [], None
+    for round_ in range(max_added + 1):
+        if progress:
+            progress(f"fit {'+'.join(effects) or 'nominal robot'}")
+        fit = PhysicsFit(effects, start=start, **fit_options).fit(df, meta)
+        fits.append(fit)
+        ladder.append({"model": "baseline" if round_ == 0 else f"+ {effects[-1]}",
+                       "effects": list(effects), "added": None if round_ == 0 else effects[-1],
+                       "n_parameters": fit.model_.n_free,
+                       "n_identified": fit.identifiability_["n_identified_directions"],
+                       "val_err90_nm": fit.val_["all"]["err_p90"],
+                       "val_err90_by_axis_nm": {a: fit.val_[a]["err_p90"] for a in AXES
+                                                if a in fit.val_},
+                       "noise_floor_nm": noise})
+        if progress:
+            progress(f"diagnose {'+'.join(effects) or 'nominal robot'}")
+        d = diagnose(fit, data)
+        diagnoses.append(d)
+        if d["missing_effect"] is None or round_ == max_added:
+            break
+        start = fit.model_.values()
+        effects = effects + [d["missing_effect"]]
+    return ladder, diagnoses, fits

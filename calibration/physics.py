@@ -565,6 +565,7 @@ class PhysicsFit:
         self.offsets_ = group_offsets(meas, A, cal)
         self.residual_ = residuals(meas, A, self.offsets_)
         self.prediction_ = A
+        self.reading_m_ = meas.y - self.residual_      # the model's reading per row (m)
         self.cal_ = figures_nm(self.residual_, meas.cal)
         self.val_ = figures_nm(self.residual_, meas.val)
         self.jacobian_ = J

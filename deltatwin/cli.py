@@ -15,6 +15,7 @@ COMMAND_MODULES = (
     "deltatwin.commands.demo",
     "models.cli",
     "calibration.cli",
+    "deltatwin.commands.fit",
     "deltatwin.commands.simulate",
     "deltatwin.commands.view",
     "deltatwin.commands.emulate",

@@ -1,0 +1,117 @@
+"""``deltatwin fit`` and ``deltatwin diagnose``: physics models from the effect library fitted to a
+dataset, and which effect they miss (calibration/physics.py, calibration/diagnosis.py)."""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def register(sub) -> None:
+    p = sub.add_parser("fit", help="fit a physics model (library effects) to a dataset")
+    p.add_argument("data", help="dataset (.parquet, or .csv with its .meta.json)")
+    p.add_argument("--effects", required=True,
+                   help="comma-separated library effects, e.g. geometric_errors,thermal_expansion "
+                        "('none' for the nominal robot); `deltatwin effects` lists them")
+    p.add_argument("--noise-nm", type=float, default=5.0,
+                   help="the readings' noise (nm): directions the data determine to better than "
+                        "a third of their parameters' typical size are fitted (default 5)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("-o", "--output", help="write the fitted model (TOML) here")
+    p.set_defaults(func=run_fit)
+    d = sub.add_parser("diagnose", help="rank the library effects a fitted model lacks")
+    d.add_argument("data", help="dataset (.parquet, or .csv with its .meta.json)")
+    d.add_argument("--model", required=True, help="fitted model (TOML from `deltatwin fit -o`)")
+    d.add_argument("--json", action="store_true", help="print one JSON object")
+    d.set_defaults(func=run_diagnose)
+
+
+def _effects(text: str) -> list[str]:
+    names = [e.strip() for e in text.split(",") if e.strip()]
+    return [] if names == ["none"] else names
+
+
+def _write_text(path: str, text: str) -> None:
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _json_default(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(type(x).__name__)
+
+
+def run_fit(args) -> int:
+    from calibration.physics import PhysicsFit, fitted_toml
+    from twin.dataset import read_dataset
+
+    df, meta = read_dataset(args.data)
+    fit = PhysicsFit(_effects(args.effects), noise_nm=args.noise_nm,
+                     progress=not args.json).fit(df, meta)
+    if args.output:
+        _write_text(args.output, fitted_toml(fit, str(args.data)))
+    s = fit.summary()
+    if args.json:
+        print(json.dumps(s, default=_json_default))
+        return 0
+    ident = s["identifiability"]
+    print(f"fitted {', '.join(fit.effects) or 'the nominal robot'} to {args.data}: "
+          f"{ident['n_parameters']} parameters, {ident['n_identified_directions']} directions "
+          f"identified (condition {ident['condition_number_identified'] or 0:.3g})")
+    print(f"  {'axis':>4} {'cal err90 nm':>13} {'val err90 nm':>13}")
+    for a in ("x", "y", "z", "all"):
+        if a in s["val"]:
+            print(f"  {a:>4} {s['cal'].get(a, float('nan')):13.1f} {s['val'][a]:13.1f}")
+    floor = (meta.get("truth") or {}).get("noise_floor_nm")
+    if floor:
+        print(f"  noise floor (twin's truth): " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items())
+              + " nm")
+    if ident["not_identifiable"]:
+        print(f"  not identifiable from these data (held at their start): "
+              f"{len(ident['not_identifiable'])} parameters, e.g. "
+              + ", ".join(ident["not_identifiable"][:6]))
+    if args.output:
+        print(f"  model written to {args.output}")
+    return 0
+
+
+def run_diagnose(args) -> int:
+    from calibration.diagnosis import diagnose
+    from calibration.physics import PhysicsFit, load_fitted
+    from twin.dataset import read_dataset
+
+    df, meta = read_dataset(args.data)
+    model, doc = load_fitted(args.model)
+    # refine from the file's values on this dataset's calibration rows (its zeros are new)
+    fit = PhysicsFit(model.names, start=model.values(),
+                     noise_nm=float(doc["model"].get("noise_nm", 5.0))).fit(df, meta)
+    d = diagnose(fit, str(args.data))
+    if args.json:
+        print(json.dumps(d, default=_json_default))
+        return 0
+    print(f"model {', '.join(fit.effects) or 'nominal robot'}: validation error (90 %) "
+          f"{d['val_err90_nm']:.1f} nm")
+    print(f"  {'effect':<20} {'explains':>9} {'val err90 after':>16} {'p-value':>9} "
+          f"{'dBIC':>8}  significant")
+    for c in d["ranking"]:
+        print(f"  {c['effect']:<20} {100 * c['explained_fraction']:8.1f}% "
+              f"{c['val_err90_after_nm']:13.1f} nm {c['p_value']:9.2g} {c['delta_bic']:8.0f}  "
+              f"{'yes' if c['significant'] else 'no'}")
+    if d["missing_effect"]:
+        print(f"\nmissing effect: {d['missing_effect']}; add it with:\n  {d['next_command']}")
+    else:
+        print("\n" + d["unexplained"]["message"])
+    return 0
