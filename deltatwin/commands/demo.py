@@ -1,80 +1,102 @@
-"""``deltatwin demo``: the main job on the embedded twin.
+"""``deltatwin demo``: the main job on the embedded twin, end to end.
 
-Until the diagnosis loop lands, it shows what exists: the model and its key figures, the
-workspace, and a short simulated sweep (kinematics, parasitic rotations from a rod-length
-error, gravity sag and the deflection under the force simulator's ~2 N)."""
+Simulate a campaign whose data hold an effect the starting model lacks (a scenario of
+scenarios/hidden/), fit the starting model, show where it fails, name the missing effect, add
+it, refit, and print the falling-error ladder; write the dataset, the fitted models, a report
+(Markdown + PNG) and a Rerun recording into ``--out``."""
 from __future__ import annotations
 
 import json
+import time
+from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
-ARCSEC_PER_RAD = 180.0 / np.pi * 3600.0
+DEFAULT_SCENARIO = "hidden/magnetic-force"
 
 
 def register(sub) -> None:
-    p = sub.add_parser("demo", help="run the main job on the embedded twin")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--points", type=int, default=9, help="points of the sweep along each motor")
+    p = sub.add_parser("demo", help="run the main job on the embedded twin: find a hidden effect")
+    p.add_argument("--scenario", default=DEFAULT_SCENARIO,
+                   help=f"a scenario with a [hidden] table (default {DEFAULT_SCENARIO})")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="campaign size relative to the scenario's full scale (default 1)")
+    p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    p.add_argument("--out", default="deltatwin-demo", help="output folder (default deltatwin-demo)")
+    p.add_argument("--json", action="store_true", help="also print one JSON object")
+    p.add_argument("--no-recording", action="store_true", help="skip the Rerun recording")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from models.cli import model_info
-    from models.geometry import build_geometry
-    from models.params import load_params
-    from twin.statics import Statics
+    from calibration.diagnosis import effect_ladder
+    from calibration.physics import fitted_toml
+    from calibration.report import write_report
+    from deltatwin.commands.fit import _write_text
+    from deltatwin.view import LadderStep, write_recording
+    from twin.dataset import write_dataset
+    from twin.scenario import Scenario
 
-    if args.points < 2:
-        raise ValueError(f"--points must be >= 2, got {args.points}")
-    steps = tqdm(total=3, desc="demo", disable=args.json)
-    info = model_info()
-    steps.update()
-    params = load_params()
-    ideal = Statics(params, build_geometry(params))
-    dev = np.zeros((3, 2))
-    dev[0, 0] = 10e-6                                     # rod 1 of chain 1 is 10 um long
-    flawed_params = params.replace(d_rod_length_m=dev)
-    flawed = Statics(flawed_params, build_geometry(flawed_params))
-    lo, hi = ideal.geom.stroke
-    line = np.linspace(lo, hi, args.points)
-    q = np.column_stack([line, -line, np.zeros_like(line)])
-    coil = np.array([0.0, 0.0, 2.0, 0.0, 0.0, 0.0])
-    base = ideal.solve(q, gravity=False)
-    sag = ideal.solve(q, gravity=True)
-    loaded = ideal.solve(q, wrench=coil, gravity=True)
-    tilted = flawed.solve(q, gravity=True)
-    steps.update()
-    rows = []
-    for k in range(len(q)):
-        rows.append({
-            "q_rad": q[k].tolist(),
-            "p_mm": (base.kinematic_pose.p[k] * 1e3).tolist(),
-            "gravity_sag_nm": ((sag.pose.p[k] - base.pose.p[k]) * 1e9).tolist(),
-            "coil_2N_nm": ((loaded.pose.p[k] - sag.pose.p[k]) * 1e9).tolist(),
-            "rod_error_rotation_arcsec": (tilted.pose.rotvec[k] * ARCSEC_PER_RAD).tolist(),
-        })
-    steps.update()
-    steps.close()
+    if not 0 < args.scale <= 1:
+        raise ValueError(f"--scale must be in (0, 1], got {args.scale}")
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sc = Scenario.load(args.scenario, seed=args.seed)
+    if not sc.hidden:
+        raise ValueError(f"{sc.path}: no [hidden] table (effects = [...], baseline = [...]); "
+                         "the demo needs a scenario of scenarios/hidden/")
+    say = (lambda m: None) if args.json else (lambda m: tqdm.write(f"[{time.perf_counter() - t0:5.1f} s] {m}"))
+    say(f"simulating {sc.name} (hidden from the model: {', '.join(sc.hidden['effects'])})")
+    df, meta = sc.simulate(None if args.scale == 1 else args.scale)
+    data = out / "data.parquet"
+    write_dataset(df, meta, data)
+    floor = meta["truth"]["noise_floor_nm"]
+    say(f"{len(df)} rows -> {data}; noise floor (twin's truth) "
+        + ", ".join(f"{k} {v:.1f}" for k, v in floor.items()) + " nm")
+    ladder, diagnoses, fits = effect_ladder(df, meta, sc.hidden["baseline"], data=str(data),
+                                            progress=say)
+    for k, (row, fit) in enumerate(zip(ladder, fits)):
+        _write_text(out / f"model{k}.toml", fitted_toml(fit, str(data)))
+        d = diagnoses[k]
+        say(f"model {k} ({', '.join(row['effects']) or 'nominal robot'}): validation error 90 % "
+            f"{row['val_err90_nm']:.1f} nm")
+        if k == 0:
+            worst = sorted(((v, a) for a, v in row["val_err90_by_axis_nm"].items()), reverse=True)
+            say(f"  where it fails: worst axis {worst[0][1]} ({worst[0][0]:.1f} nm); the residual "
+                "depends on " + ", ".join(sorted({x['variable'] for x in
+                                                 d['unexplained']['depends_on'][:6]})))
+        top = d["ranking"][:3]
+        say("  diagnosis: " + "; ".join(f"{c['effect']} explains {100 * c['explained_fraction']:.0f} %"
+                                        f"{' (significant)' if c['significant'] else ''}" for c in top))
+        if d["missing_effect"]:
+            say(f"  missing effect: {d['missing_effect']} -> {d['next_command']}")
+        else:
+            say("  " + d["unexplained"]["message"])
+    recording = None
+    if not args.no_recording:
+        say("writing the Rerun recording")
+        steps = [LadderStep(row["model"], fit.reading_m_) for row, fit in zip(ladder, fits)]
+        recording = out / "recording.rrd"
+        write_recording(df, meta, steps, recording)
+    report = write_report(out, df, meta, ladder, diagnoses, fits, sc.hidden, recording)
+    diagnosed = next((d["missing_effect"] for d in diagnoses if d["missing_effect"]), None)
+    summary = {"scenario": sc.name, "hidden_effect": sc.hidden["effects"],
+               "diagnosed_effect": diagnosed,
+               "diagnosed_effects": [d["missing_effect"] for d in diagnoses if d["missing_effect"]],
+               "noise_floor_nm": floor,
+               "ladder": [{"model": r["model"], "effects": r["effects"],
+                           "val_err90_nm": r["val_err90_nm"]} for r in ladder],
+               "report": str(report), "recording": str(recording) if recording else None,
+               "seconds": round(time.perf_counter() - t0, 1)}
     if args.json:
-        print(json.dumps({"model": info, "sweep": rows}, indent=1))
+        print(json.dumps(summary))
         return 0
-    print(f"\ndeltatwin demo: {params.name} ({info['parameter_file']})")
-    print(f"  workspace {info['workspace_cm3']:.3f} cm^3, extent "
-          f"{np.round(info['workspace_extent_mm'], 1).tolist()} mm; envelope "
-          f"{np.round(info['envelope_mm'], 0).tolist()} mm")
-    C = np.array(info["compliance_nm_per_N"])
-    print(f"  compliance at the centre: {np.round(np.diag(C), 1).tolist()} nm/N (X, Y, Z); flexures "
-          f"bend up to {info['flexure_max_angle_deg']:.2f} deg ({info['flexure_max_stress_MPa']:.0f} MPa)")
-    print("\n  sweep q = (s, -s, 0): platform position, gravity sag, +2 N up (coils), rotation with "
-          "rod 1.1 +10 um")
-    print(f"  {'q1 mrad':>8} {'x mm':>8} {'y mm':>8} {'z mm':>9} {'sag z nm':>9} "
-          f"{'2N x,y,z nm':>22} {'rot x,y,z arcsec':>24}")
-    for r in rows:
-        f = r["coil_2N_nm"]
-        rot = r["rod_error_rotation_arcsec"]
-        print(f"  {r['q_rad'][0] * 1e3:8.1f} {r['p_mm'][0]:8.3f} {r['p_mm'][1]:8.3f} {r['p_mm'][2]:9.3f} "
-              f"{r['gravity_sag_nm'][2]:9.1f} {f[0]:7.1f},{f[1]:7.1f},{f[2]:6.1f} "
-              f"{rot[0]:7.2f},{rot[1]:7.2f},{rot[2]:7.2f}")
+    print(f"\nladder ({sc.name}; hidden: {', '.join(sc.hidden['effects'])}):")
+    print(f"  {'model':<28} {'val err90 nm':>13}")
+    for r in ladder:
+        print(f"  {r['model'] + ' (' + (', '.join(r['effects']) or 'nominal') + ')':<60.60} "
+              f"{r['val_err90_nm']:10.1f}")
+    print(f"  noise floor: " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items()) + " nm")
+    print(f"report: {report}" + (f"; recording: {recording}" if recording else ""))
     return 0
