@@ -16,6 +16,7 @@ COMMAND_MODULES = (
     "models.cli",
     "calibration.cli",
     "deltatwin.commands.fit",
+    "deltatwin.commands.compare",
     "deltatwin.commands.simulate",
     "deltatwin.commands.view",
     "deltatwin.commands.emulate",
