@@ -1,4 +1,4 @@
-"""Compare a model with measurements and see where it fails (docs/calibration.md, issue 5).
+"""Compare a model with measurements and see where it fails (``deltatwin compare``).
 
 The model is a physics model (``calibration.physics.PhysicsModel``, e.g. from a fitted-model
 TOML via ``load_fitted``) or a stepwise DGM (``calibration.models.DGM``, a ``model.json``).

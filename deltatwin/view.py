@@ -86,12 +86,9 @@ def calibration_step(name: str, model, df: pd.DataFrame) -> LadderStep:
     its end-effector error ``J^-1 (q_pred - q_meas)``, the reading its motor-coordinate error
     amounts to (first order)."""
     from calibration.models import DGM, DirectIGM
-    n = len(df)
-    reading = np.full((n, 3), np.nan)
+    from calibration.compare import dgm_reading_m
     if isinstance(model, DGM):
-        pred = model.predict(df)
-        for k, out in enumerate(model.output_names_):
-            reading[:, AXES.index(out)] = pred[:, k]
+        reading = dgm_reading_m(model, df)
     elif isinstance(model, DirectIGM):
         reading = measured_m(df) + model.position_error(df)
     else:
@@ -100,21 +97,29 @@ def calibration_step(name: str, model, df: pd.DataFrame) -> LadderStep:
     return LadderStep(name, reading)
 
 
-def model_file_step(path: str | os.PathLike, df: pd.DataFrame) -> LadderStep:
-    """A ladder step named after the model file, from a saved calibration model (``.json``)."""
+def model_file_step(path: str | os.PathLike, df: pd.DataFrame, meta: dict | None) -> LadderStep:
+    """A ladder step named after the model file's stem.
+
+    ``.json``: a saved calibration model (``calibration_step``).  ``.toml``: a fitted physics
+    model (``deltatwin fit -o``), evaluated on the dataset's conditions (``meta['sensors']``
+    places the temperature sensors) with each (session, axis) zero re-estimated on the
+    dataset's calibration rows, as ``deltatwin compare`` does (``calibration.compare.
+    evaluate``): its residual field is the one ``compare`` reports."""
+    from calibration.compare import evaluate, load_model_file
+    from calibration.errors import CalibrationInputError
+    from calibration.models import load_model
     path = Path(path)
-    if path.suffix.lower() == ".json":
-        from calibration.errors import CalibrationInputError
-        from calibration.models import load_model
-        model = load_model(path)
-        try:
+    suffix = path.suffix.lower()
+    if suffix not in (".json", ".toml"):
+        raise ValueError(f"{path}: unknown model file type {path.suffix!r}; expected a "
+                         "calibration model (.json) or a fitted physics model (.toml)")
+    model = load_model(path) if suffix == ".json" else load_model_file(path)
+    try:
+        if suffix == ".json":
             return calibration_step(path.stem, model, df)
-        except CalibrationInputError as exc:
-            raise ValueError(f"{path}: cannot be evaluated on this dataset: {exc}") from exc
-    if path.suffix.lower() == ".toml":
-        raise ValueError(f"{path}: physics-fit model files (.toml) cannot be viewed yet; "
-                         "give a calibration model (.json from 'deltatwin calibrate -o')")
-    raise ValueError(f"{path}: unknown model file type {path.suffix!r}; expected .json")
+        return LadderStep(path.stem, evaluate(df, meta, model).reading_m)
+    except CalibrationInputError as exc:
+        raise ValueError(f"{path}: cannot be evaluated on this dataset: {exc}") from exc
 
 
 def measured_m(df: pd.DataFrame) -> np.ndarray:

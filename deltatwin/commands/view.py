@@ -1,10 +1,12 @@
 """``deltatwin view``: a Rerun recording of a campaign, its robot and its error fields.
 
-    deltatwin view DATA [--model MODEL.json ...] [-o run.rrd] [--spawn] [--max-poses N]
-                        [--arrow-scale NM_PER_MM] [--params PARAMS.toml]
+    deltatwin view DATA [--model MODEL.json|fitted.toml ...] [-o run.rrd] [--spawn]
+                        [--max-poses N] [--arrow-scale NM_PER_MM] [--params PARAMS.toml]
 
 Writes the recording (no viewer or display needed); ``--spawn`` then opens the Rerun viewer
-on it.  Each ``--model`` adds one step to the ladder, in the order given.  See docs/view.md.
+on it.  Each ``--model`` (a calibration model .json, or a fitted physics model .toml whose
+session zeros are re-estimated on DATA as ``deltatwin compare`` does) adds one step to the
+ladder, in the order given.  See docs/view.md.
 """
 from __future__ import annotations
 
@@ -22,8 +24,9 @@ def register(sub) -> None:
                     "docs/view.md.")
     p.add_argument("data", metavar="DATA", help="dataset file (.parquet, or .csv + .meta.json)")
     p.add_argument("--model", action="append", default=[], metavar="MODEL",
-                   help="a calibration model (.json from 'deltatwin calibrate -o') whose "
-                        "residual field to show; repeat to build the ladder, in order")
+                   help="a calibration model (.json from 'deltatwin calibrate -o') or a fitted "
+                        "physics model (.toml from 'deltatwin fit -o') whose residual field "
+                        "to show; repeat to build the ladder, in order")
     p.add_argument("-o", "--output", metavar="RUN.rrd",
                    help="recording to write (default: DATA with the suffix .rrd)")
     p.add_argument("--spawn", action="store_true",
@@ -45,7 +48,7 @@ def run(args) -> int:
     from deltatwin.view import model_file_step, write_recording
 
     df, meta = read_dataset(args.data)
-    ladder = [model_file_step(m, df) for m in args.model]
+    ladder = [model_file_step(m, df, meta) for m in args.model]
     out = Path(args.output) if args.output else Path(args.data).with_suffix(".rrd")
     params = load_params(args.params) if args.params else None
     s = write_recording(df, meta, ladder, out, params=params, max_poses=args.max_poses,

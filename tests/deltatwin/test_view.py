@@ -1,6 +1,7 @@
 """``deltatwin view``: real .rrd files written from a small synthetic campaign and a ladder of
 fitted DGMs, read back with rerun.chunk.RrdReader and compared with the data."""
 import os
+import re
 import subprocess
 from collections import defaultdict
 from pathlib import Path
@@ -12,6 +13,7 @@ from rerun.chunk import RrdReader
 
 from calibration.features import thermal_ladder
 from calibration.models import DGM, DirectIGM, thermal_sensors
+from calibration.physics import PhysicsFit, fitted_toml
 from calibration.synthetic import force_campaign, thermal_campaign
 from deltatwin import view
 from deltatwin.cli import main
@@ -21,6 +23,7 @@ from models.mjcf import INSTRUMENT_SITES, build_model
 from models.params import load_params
 from twin.dataset import write_dataset
 from twin.kinematics import forward
+from twin.scenario import Scenario
 from twin.workspace import hull
 
 REPO = Path(__file__).resolve().parents[2]
@@ -307,6 +310,48 @@ def test_cli_writes_a_recording_without_a_viewer(campaign, tmp_path, capsys, mon
                  "-o", str(tmp_path / "x.rrd")])
     assert code == 2 and "fitted.toml" in capsys.readouterr().err
     assert not (tmp_path / "x.rrd").exists()
+
+
+@pytest.fixture(scope="module")
+def fitted_model(tmp_path_factory):
+    """A physics model fitted to hidden/magnetic-force (reduced) and written as fitted.toml:
+    the geometric baseline, which leaves the hidden coil force in its residual."""
+    df, meta = Scenario.load("hidden/magnetic-force").simulate(0.15)
+    fit = PhysicsFit(["geometric_errors"]).fit(df, meta)
+    d = tmp_path_factory.mktemp("fitted")
+    write_dataset(df, meta, d / "magnetic.parquet")
+    (d / "fitted.toml").write_text(fitted_toml(fit, str(d / "magnetic.parquet")))
+    return df, fit, d
+
+
+def test_fitted_toml_arrows_are_its_residuals(fitted_model, capsys):
+    """``--model fitted.toml``: the ladder step is the physics model's residual field, model
+    minus measurement with the session zeros estimated on the calibration rows, i.e. the
+    fit's own residual (measurement minus model) negated; arrow x scale = that field in nm."""
+    df, fit, d = fitted_model
+    code = main(["view", str(d / "magnetic.parquet"), "--model", str(d / "fitted.toml"),
+                 "-o", str(d / "fit.rrd"), "--max-poses", "3"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    m = re.search(r"residual arrows: 1 mm = ([0-9.e+-]+) nm", out)
+    scale = float(m.group(1))
+    rrd = read_rrd(d / "fit.rrd")
+    steps, vecs = rows_of(rrd, "/world/error/residual", "Arrows3D:vectors", view.LADDER_TIMELINE)
+    assert steps.tolist() == [0]
+    res_nm = -fit.residual_ * 1e9                          # model minus measurement, nm
+    exp = pd.DataFrame(res_nm, columns=list("xyz")).groupby(df["pos_id"].to_numpy()).mean()
+    got = np.array(vecs[0], dtype=np.float64) * scale
+    assert got.shape == exp.shape == (df["pos_id"].nunique(), 3)
+    norm = np.linalg.norm(exp.to_numpy(), axis=1, keepdims=True)
+    assert np.all(np.abs(got - exp.to_numpy()) <= F32_REL * norm)
+    assert np.median(norm) > 20.0                           # the hidden force is left in it
+    for a, axis in enumerate("xyz"):
+        ts, vals = rows_of(rrd, f"/timeseries/residual_nm/{axis}/0_fitted", "Scalars:scalars",
+                           view.CAMPAIGN_TIMELINE)
+        np.testing.assert_allclose(np.array(vals)[:, 0], res_nm[:, a], rtol=0, atol=1e-6)
+    assert re.search(r"ladder 0: fitted: RMS residual cal [0-9.]+ nm, val "
+                     f"{np.sqrt(np.mean(res_nm[(df['split'] == 'val').to_numpy()] ** 2)):.3g} nm",
+                     out)
 
 
 def test_spawn_is_used_nowhere_in_tests_or_ci():
