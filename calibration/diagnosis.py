@@ -196,11 +196,13 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     diagnosis of every model, and the fits."""
     noise = ((meta or {}).get("truth") or {}).get("noise_floor_nm")
     effects = list(baseline)
-    ladder, diagnoses, fits, start = [], [], [], None
+    ladder, diagnoses, fits = [], [], []
     for round_ in range(max_added + 1):
         if progress:
             progress(f"fit {'+'.join(effects) or 'nominal robot'}")
-        fit = PhysicsFit(effects, start=start, **fit_options).fit(df, meta)
+        # each model starts from the effects' priors: a previous fit's values may lie outside
+        # a parameter's physical range where they stood in for the missing effect
+        fit = PhysicsFit(effects, **fit_options).fit(df, meta)
         fits.append(fit)
         ladder.append({"model": "baseline" if round_ == 0 else f"+ {effects[-1]}",
                        "effects": list(effects), "added": None if round_ == 0 else effects[-1],
@@ -216,6 +218,5 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
         diagnoses.append(d)
         if d["missing_effect"] is None or round_ == max_added:
             break
-        start = fit.model_.values()
         effects = effects + [d["missing_effect"]]
     return ladder, diagnoses, fits

@@ -245,7 +245,8 @@ class PhysicsModel:
             start = {p.name: np.broadcast_to(p.fit_start, np.shape(p.default)).copy()
                      for p in cls.free_parameters() if p.fit_start is not None}
             try:
-                e = make_effect(n, {**start, **given}, where=where)
+                # a fitted value may leave a parameter's physical range (reported, see fit)
+                e = make_effect(n, {**start, **given}, where=where, check_minimum=False)
             except EffectError as exc:
                 raise FitError(str(exc)) from exc
             for p in cls.free_parameters():
@@ -497,22 +498,26 @@ class PhysicsFit:
         keep = (s > sigma / self.identifiable_ratio) & (s > s.max(initial=0) * 1e-12)
         V = Vt[keep].T                                                   # (p, k)
         self.n_evaluations_ = p + 1
-        cache = {}
+        # directions the data cannot determine are held at the prior (the effects' starting
+        # values), not at a warm start's values: a previous fit may have pushed them anywhere
+        # while standing in for an effect it lacked
+        prior = PhysicsModel(self.effects, self.params).theta()
+        z_start = V.T @ ((theta0 - prior) / S) if p else np.zeros(0)
 
         def theta_of(z):
-            return theta0 + S * (V @ z)
+            return prior + S * (V @ z)
 
         def fun(z):
             A = model.predict_path(meas, theta_of(z))
-            cache["A"] = A
             self.n_evaluations_ += 1
             return _projected(meas, cal, meas.y - A) * NM
 
         def jac(z):
-            if not np.any(z):
+            th = theta_of(z)
+            if np.array_equal(th, theta0):
                 J = J0
             else:
-                _, J = model.jacobian(meas, theta_of(z))
+                _, J = model.jacobian(meas, th)
                 self.n_evaluations_ += p + 1
             return -_projected(meas, cal, J * S) @ V * NM
 
@@ -522,7 +527,7 @@ class PhysicsFit:
         # the problem is nearly linear in the parameters' small deviations, so it converges in
         # a few Jacobians.
         k = V.shape[1]
-        z = np.zeros(k)
+        z = z_start
         r = fun(z)
         Jz = jac(z)
         for _ in range(self.max_iterations if k else 0):
@@ -570,7 +575,7 @@ class PhysicsFit:
         self.val_ = figures_nm(self.residual_, meas.val)
         self.jacobian_ = J
         self.identified_directions_ = V
-        self._identifiability(model, Js, s, Vt, keep, J * S, meas, r, V, theta, theta0)
+        self._identifiability(model, Js, s, Vt, keep, J * S, meas, r, V, theta, prior)
         return self
 
     def _identifiability(self, model, Js0, s, Vt, keep, JS, meas, r, V, theta, theta0):
@@ -603,6 +608,10 @@ class PhysicsFit:
             "condition_number_identified": float(s[keep].max() / s[keep].min()) if k else None,
             "threshold_nm": float(self.noise_nm / self.identifiable_ratio),
             "not_identifiable": [labels[j] for j in range(p) if frac[j] < 0.5],
+            # fitted values outside a parameter's physical range: the effect is standing in
+            # for something else (often a missing effect)
+            "outside_physical_range": [f"{e.name}.{n}" for e in model.effects
+                                       for n in e.outside_range()],
             "unidentified_groups": groups,
             "residual_sigma_nm": sigma_r * 1e9,
         }

@@ -83,6 +83,9 @@ def run_fit(args) -> int:
         print(f"  not identifiable from these data (held at their start): "
               f"{len(ident['not_identifiable'])} parameters, e.g. "
               + ", ".join(ident["not_identifiable"][:6]))
+    if ident["outside_physical_range"]:
+        print("  fitted outside their physical range (standing in for a missing effect?): "
+              + ", ".join(ident["outside_physical_range"]))
     if args.output:
         print(f"  model written to {args.output}")
     return 0

@@ -23,13 +23,15 @@ LIBRARY: dict[str, type[Effect]] = {cls.name: cls for cls in (
     BeamMisalignment, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
 
 
-def make_effect(name: str, values: dict | None = None, where: str = "effects") -> Effect:
-    """The effect ``name`` with parameter ``values`` (validated); errors name ``where``."""
+def make_effect(name: str, values: dict | None = None, where: str = "effects",
+                check_minimum: bool = True) -> Effect:
+    """The effect ``name`` with parameter ``values`` (validated; a fitted model's values may be
+    below a parameter's physical minimum with ``check_minimum=False``); errors name ``where``."""
     if name not in LIBRARY:
         close = difflib.get_close_matches(name, LIBRARY, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise EffectError(f"{where}: unknown effect {name!r}{hint}; known: {sorted(LIBRARY)}")
-    return LIBRARY[name](where=f"{where}.{name}", **(values or {}))
+    return LIBRARY[name](where=f"{where}.{name}", check_minimum=check_minimum, **(values or {}))
 
 
 __all__ = ["LIBRARY", "Effect", "EffectError", "Parameter", "make_effect"]

@@ -55,7 +55,7 @@ class Effect:
     summary: ClassVar[str]
     parameters: ClassVar[tuple[Parameter, ...]] = ()
 
-    def __init__(self, where: str = "effect", **values):
+    def __init__(self, where: str = "effect", check_minimum: bool = True, **values):
         known = {p.name: p for p in self.parameters}
         for key in values:
             if key not in known:
@@ -75,7 +75,7 @@ class Effect:
                                   f"got {v.shape}")
             if not np.all(np.isfinite(v)):
                 raise EffectError(f"{where}.{p.name}: not a finite number: {raw!r}")
-            if p.minimum is not None and np.any(v < p.minimum):
+            if check_minimum and p.minimum is not None and np.any(v < p.minimum):
                 raise EffectError(f"{where}.{p.name} = {raw!r} {p.unit}: must be >= {p.minimum}")
             self.values[p.name] = float(v) if v.ndim == 0 else v
         for k, v in self.values.items():
@@ -116,6 +116,11 @@ class Effect:
 
     def optics(self, points, optics) -> None:
         """Change the instruments' optics in place (beam origins/directions, air index)."""
+
+    def outside_range(self) -> list[str]:
+        """Parameters below their physical minimum (a fitted value can be; a scenario's not)."""
+        return [p.name for p in self.parameters
+                if p.minimum is not None and np.any(np.asarray(self.values[p.name]) < p.minimum)]
 
     def describe(self) -> dict:
         return {"name": self.name, "summary": self.summary,

@@ -1,0 +1,163 @@
+"""The diagnosis loop on data with hidden effects (scenarios/hidden/, reduced scale): the true
+effect is ranked first, adding it lowers the validation error >= 3x to within 1.5x the noise
+floor; two hidden effects are found one after the other; an effect outside the library is not
+claimed, and the variable it depends on is named."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.diagnosis import diagnose, effect_ladder
+from calibration.physics import FitError, PhysicsFit, fitted_toml, load_fitted
+from twin.effects import Effect, Parameter
+from twin.scenario import SCENARIO_DIR, Scenario, ScenarioError
+
+HIDDEN = sorted(p.stem for p in (SCENARIO_DIR / "hidden").glob("*.toml"))
+SINGLE = [n for n in HIDDEN if len(Scenario.load(f"hidden/{n}").hidden["effects"]) == 1]
+
+
+def _floor(meta) -> float:
+    return max(meta["truth"]["noise_floor_nm"].values())
+
+
+def test_at_least_six_different_hidden_effects_are_shipped():
+    hidden = {Scenario.load(f"hidden/{n}").hidden["effects"][0] for n in SINGLE}
+    assert len(hidden) >= 6, hidden
+
+
+@pytest.mark.parametrize("name", SINGLE)
+def test_hidden_effect_is_ranked_first_and_adding_it_reaches_the_noise_floor(name):
+    sc = Scenario.load(f"hidden/{name}")
+    df, meta = sc.simulate(sc.reduced_scale)
+    hidden = sc.hidden["effects"][0]
+    base = PhysicsFit(sc.hidden["baseline"]).fit(df, meta)
+    d = diagnose(base)
+    assert d["ranking"][0]["effect"] == hidden, [(c["effect"], c["significant"]) for c in d["ranking"]]
+    assert d["ranking"][0]["significant"] and d["missing_effect"] == hidden
+    assert hidden in d["next_command"]
+    full = PhysicsFit(sc.hidden["baseline"] + [hidden], start=base.model_.values()).fit(df, meta)
+    before, after = base.val_["all"]["err_p90"], full.val_["all"]["err_p90"]
+    assert before >= 3 * after, (before, after)
+    assert after <= 1.5 * _floor(meta), (after, meta["truth"]["noise_floor_nm"])
+
+
+def test_two_hidden_effects_are_found_one_after_the_other():
+    sc = Scenario.load("hidden/thermal-and-loop")
+    df, meta = sc.simulate(sc.reduced_scale)
+    ladder, diagnoses, _ = effect_ladder(df, meta, sc.hidden["baseline"])
+    found = [d["missing_effect"] for d in diagnoses if d["missing_effect"]]
+    assert sorted(found) == sorted(sc.hidden["effects"]), found
+    assert diagnoses[-1]["missing_effect"] is None
+    errors = [row["val_err90_nm"] for row in ladder]
+    assert errors[0] > errors[1] > errors[2] and errors[2] <= 1.5 * _floor(meta), errors
+
+
+class DraughtOnTheBeams(Effect):
+    """Outside the library: a draught (a door, a duct) cycles the air along the beams where no
+    sensor sees it, so the air index of the whole path, dead path included, drifts with time."""
+    name = "draught_on_the_beams"
+    summary = "relative air index change A sin(2 pi t / P) along every beam"
+    parameters = (Parameter("amplitude", "-", 3e-7, "relative index amplitude (~0.3 K of air)"),
+                  Parameter("period_s", "s", 20000.0, "period of the draught"))
+
+    def optics(self, points, optics):
+        f = 1.0 + self.amplitude * np.sin(2 * np.pi * points.t_s / self.period_s)
+        for a in optics.n_air:
+            optics.n_air[a] = optics.n_air[a] * f
+
+
+def test_effect_outside_the_library_is_not_claimed_and_time_is_named():
+    sc = Scenario.load("hidden/gravity-sag")
+    sc.effects.append(DraughtOnTheBeams())
+    sc.hidden = None
+    df, meta = sc.simulate(sc.reduced_scale)
+    fit = PhysicsFit(["gravity_sag"]).fit(df, meta)
+    assert fit.val_["all"]["err_p90"] > 2 * _floor(meta)      # the drift is there to be found
+    d = diagnose(fit)
+    assert d["missing_effect"] is None
+    assert not any(c["significant"] for c in d["ranking"]), d["ranking"]
+    depends = [x["variable"] for x in d["unexplained"]["depends_on"]]
+    assert depends and depends[0] == "t_s", depends
+    assert "t_s" in d["unexplained"]["message"]
+
+
+def test_identifiability_names_what_the_data_cannot_separate():
+    sc = Scenario.load("hidden/geometric-errors")
+    df, meta = sc.simulate(sc.reduced_scale)
+    fit = PhysicsFit(["geometric_errors"]).fit(df, meta)
+    ident = fit.identifiability_
+    assert ident["n_parameters"] == 63
+    assert 15 < ident["n_identified_directions"] < 63
+    assert ident["not_identifiable"] and ident["unidentified_groups"]
+    # a rod pair's two lengths: only their mean moves the platform's position at first order
+    labels = {p["label"]: p for p in fit.parameters_}
+    assert labels["geometric_errors.rod_length_error_m[0,0]"]["identified_fraction"] < 0.9
+    for p in fit.parameters_:
+        if p["identified_fraction"] < 0.5:
+            assert p["label"] in ident["not_identifiable"]
+    assert fit.val_["all"]["err_p90"] <= 1.5 * _floor(meta)
+
+
+def test_fitted_model_file_round_trips(tmp_path):
+    sc = Scenario.load("hidden/gravity-sag")
+    df, meta = sc.simulate(sc.reduced_scale)
+    fit = PhysicsFit(["gravity_sag"]).fit(df, meta)
+    path = tmp_path / "fitted.toml"
+    path.write_text(fitted_toml(fit, "data.parquet"))
+    model, doc = load_fitted(path)
+    assert model.names == ["gravity_sag"]
+    np.testing.assert_array_equal(model.theta(), fit.model_.theta())
+    assert abs(doc["fit"]["val_err90_nm"] - fit.val_["all"]["err_p90"]) < 1e-9
+    # the fitted load factor is the hidden scenario's
+    truth = next(e for e in meta["truth"]["effects"] if e["name"] == "gravity_sag")
+    assert abs(model.theta()[0] - truth["parameters"]["load_factor"]["value"]) < 0.1
+
+
+def test_bad_input_is_named(tmp_path):
+    sc = Scenario.load("hidden/gravity-sag")
+    df, meta = sc.simulate(0.05)
+    with pytest.raises(ValueError, match="unknown effect 'gravity_sagg'.*did you mean 'gravity_sag'"):
+        PhysicsFit(["gravity_sagg"])
+    with pytest.raises(FitError, match="room_climate.*thermal network"):
+        PhysicsFit(["room_climate"])
+    with pytest.raises(ValueError, match="cannot identify"):
+        PhysicsFit(["geometric_errors"]).fit(df.iloc[:20], meta)
+    bad = dict(meta, sensors={**meta["sensors"], "ghost": "base"})
+    with pytest.raises(ValueError, match="'ghost'.*T_ghost_C"):
+        PhysicsFit(["thermal_expansion"]).fit(df, bad)
+    with pytest.raises(ValueError, match="missing column"):
+        PhysicsFit(["gravity_sag"]).fit(df.drop(columns=["q2_rad"]), meta)
+    with pytest.raises(ValueError, match="not a fitted physics model"):
+        (tmp_path / "x.toml").write_text("[scenario]\nname = 'x'\n")
+        load_fitted(tmp_path / "x.toml")
+    bad_scenario = tmp_path / "h.toml"
+    bad_scenario.write_text((SCENARIO_DIR / "hidden" / "gravity-sag.toml").read_text()
+                            .replace('effects = ["gravity_sag"]', 'effects = ["beam_misalignment"]'))
+    with pytest.raises(ScenarioError, match=r"\[hidden\].*not in \[effects\] on"):
+        Scenario.load(bad_scenario)
+
+
+def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
+    sc = Scenario.load("hidden/gravity-sag")
+    from twin.dataset import write_dataset
+    df, meta = sc.simulate(sc.reduced_scale)
+    data = tmp_path / "data.parquet"
+    write_dataset(df, meta, data)
+    run = lambda *a: subprocess.run([sys.executable, "-m", "deltatwin.cli", *map(str, a)],
+                                    capture_output=True, text=True, cwd=tmp_path)
+    r = run("fit", data, "--effects", "none", "--json", "-o", tmp_path / "base.toml")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["n_parameters"] == 0
+    r = run("diagnose", data, "--model", tmp_path / "base.toml", "--json")
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert d["ranking"][0]["effect"] == "gravity_sag" and d["ranking"][0]["significant"]
+    assert set(d) >= {"val_err90_nm", "ranking", "unexplained"}
+    assert set(d["ranking"][0]) >= {"effect", "explained_fraction", "val_err90_after_nm",
+                                    "significant"}
+    r = run("fit", data, "--effects", "geometric_errors,nope", "-o", tmp_path / "bad.toml")
+    assert r.returncode == 2 and "unknown effect 'nope'" in r.stderr
+    assert not (tmp_path / "bad.toml").exists()
