@@ -32,6 +32,7 @@ import pandas as pd
 from models.geometry import build_geometry
 from models.params import RobotParams, load_params
 from twin.dataset import AXES, temperature_columns
+from twin.effects import LIBRARY
 from twin.kinematics import forward
 
 from .errors import CalibrationInputError
@@ -59,7 +60,6 @@ class ModelEvaluation:
     ``meas.groups`` entry; ``zero_rows``: the rows each zero was estimated on (``"cal"``, or
     ``"own rows"`` for a session without calibration readings). ``position_m`` (N,3): the
     platform's nominal kinematic position (base frame) at each row's motor coordinates."""
-    kind: str
     description: dict
     meas: Measurements
     reading_m: np.ndarray
@@ -112,6 +112,13 @@ def evaluate(df: pd.DataFrame, meta: dict | None, model, params=None) -> ModelEv
     df = df.reset_index(drop=True)
     if isinstance(model, PhysicsModel):
         meas = measurements(df, meta, model.params)
+        thermal = [n for n in model.names if "part_temperatures" in LIBRARY[n].model_stages()]
+        if thermal and not meas.sensors:
+            raise CalibrationInputError(
+                f"the model's effect(s) {thermal} act through the part temperatures, but the "
+                "dataset's metadata names no temperature sensor ('sensors': sensor -> part; "
+                f"temperature columns present: {temperature_columns(df)}): map them in the "
+                "metadata (.meta.json beside a CSV)")
         pred = model.predict_path(meas)
         robot = model.params
         desc = {"kind": "physics", "effects": list(model.names), "n_parameters": model.n_free,
@@ -137,7 +144,7 @@ def evaluate(df: pd.DataFrame, meta: dict | None, model, params=None) -> ModelEv
     residual = -residuals(meas, pred, offsets)              # model minus measurement
     reading = meas.y + residual
     position = forward(build_geometry(robot), meas.points.q).p
-    return ModelEvaluation(kind=desc["kind"], description=desc, meas=meas, reading_m=reading,
+    return ModelEvaluation(description=desc, meas=meas, reading_m=reading,
                            residual_m=residual, offsets_m=offsets,
                            zero_rows=["cal" if c else "own rows" for c in cal_readings],
                            position_m=position)

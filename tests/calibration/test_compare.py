@@ -250,6 +250,7 @@ def test_cli_json_round_trip(magnetic, files, report, capsys):
     ("scenario_as_model", "not a fitted physics model"),
     ("json_not_a_model", "not a deltatwin-calibration-model file"),
     ("no_such_model", "no such model file"),
+    ("thermal_model_without_sensors", "names no temperature sensor"),
 ])
 def test_bad_input_exit_2_naming_the_problem(magnetic, files, tmp_path, capsys, case, needle):
     df, meta = magnetic
@@ -264,6 +265,10 @@ def test_bad_input_exit_2_naming_the_problem(magnetic, files, tmp_path, capsys, 
     elif case == "json_not_a_model":
         model = tmp_path / "model.json"
         model.write_text(json.dumps({"effects": ["geometric_errors"]}))
+    elif case == "thermal_model_without_sensors":
+        data = _write(df, {k: v for k, v in meta.items() if k != "sensors"}, tmp_path)
+        model = tmp_path / "thermal.toml"                  # a model at its starting values
+        model.write_text('[model]\neffects = ["thermal_expansion"]\n')
     else:
         model = tmp_path / "missing.toml"
     code = main(["compare", str(data), "--model", str(model), "--json"])
@@ -272,4 +277,13 @@ def test_bad_input_exit_2_naming_the_problem(magnetic, files, tmp_path, capsys, 
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("deltatwin compare: error: "), err
     assert needle in lines[0], lines[0]
-    assert (str(model) if case != "missing_sensor_column" else str(data)) in lines[0]
+    assert str(model) in lines[0]
+    if case in ("missing_sensor_column", "thermal_model_without_sensors"):
+        assert str(data) in lines[0]
+
+
+def test_direct_igm_is_refused(force_igm, tmp_path):
+    """A direct IGM predicts motor coordinates, not readings: named, not compared."""
+    force_igm.save(tmp_path / "igm.json")
+    with pytest.raises(ValueError, match=r"igm\.json: holds a DirectIGM, which predicts motor"):
+        load_model_file(tmp_path / "igm.json")
