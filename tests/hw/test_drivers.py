@@ -181,17 +181,23 @@ def test_emulated_lab_over_tcp(tmp_path):
 
 def test_realtime_pacing_follows_the_backing_clock(tmp_path):
     """--realtime: the twin's clock is paced by the wall clock (sleep 0.3 s + a 0.5 s move of
-    the toy robot take >= 0.8 s); without it the same calls take a few milliseconds."""
+    the toy robot take >= 0.8 s from the emulators' start); without it the same two calls take a
+    few milliseconds (bounded well below the 0.8 s that pacing would impose; the set-up before
+    them is not timed, so a loaded machine does not make this fail)."""
     import time
-    for realtime, lo, hi in ((True, 0.8, 2.0), (False, 0.0, 0.5)):
+    for realtime in (True, False):
         t0 = time.monotonic()           # pacing counts from the emulators' start
         with EmulatedLab(toy_lab(), tmp_path / str(realtime), realtime=realtime,
                          timeout_s=LINE_TIMEOUT_S, retry=FAST_RETRY) as lab:
             inst = open_lab(lab.ports())
             inst.connect()
+            t_calls = time.monotonic()
             inst.clock.sleep(0.3)
             inst.robot.move_to(np.array([0.01, 0.0, 0.0]))
-            elapsed = time.monotonic() - t0
+            t_end = time.monotonic()
             assert inst.clock.now() == pytest.approx(0.8)
             inst.close()
-        assert lo <= elapsed < hi, (realtime, elapsed)
+        if realtime:
+            assert 0.8 <= t_end - t0 < 10.0
+        else:
+            assert t_end - t_calls < 0.5, t_end - t_calls

@@ -11,6 +11,8 @@ from hw.protocol import ReplyError
 from hw.retry import RetryPolicy
 from twin.instruments.interface import InstrumentError, InstrumentTimeout
 
+from .conftest import LINE_TIMEOUT_S
+
 
 ONE_OFF = ("no_reply", "garbled", "truncated", "dropped_bytes", "error_code")
 
@@ -89,7 +91,7 @@ def test_stray_xoff_is_tolerated_without_retry(emulated, drivers, caplog, instru
 
 
 @pytest.mark.parametrize("fault,error,reason", [
-    ("no_reply", InstrumentTimeout, r"no complete reply within 0.25 s"),
+    ("no_reply", InstrumentTimeout, rf"no complete reply within {LINE_TIMEOUT_S:g} s"),
     ("garbled", InstrumentError, r"bad checksum in reply to '(encoders|identify)'"),
     ("truncated", InstrumentTimeout, r"partial line b'(ENC|IDN) "),
     ("dropped_bytes", InstrumentError, r"bad checksum"),
@@ -149,7 +151,7 @@ def test_port_vanishes_over_tcp(tmp_path, caplog):
     from hw.lab import open_lab
     from .conftest import toy_lab
     policy = RetryPolicy(attempts=10, first_delay_s=0.02, factor=2.0, max_delay_s=0.2)
-    with EmulatedLab(toy_lab(), link="tcp", timeout_s=0.25, retry=policy) as lab:
+    with EmulatedLab(toy_lab(), link="tcp", timeout_s=LINE_TIMEOUT_S, retry=policy) as lab:
         inst = open_lab(lab.ports())
         inst.robot.move_to(np.array([0.01, 0.0, 0.0]))
         lab.emulators["robot"].inject("vanish", down_s=0.3)

@@ -90,7 +90,7 @@ def test_serial_line_over_a_pty_xoff_partial_line_and_lost_port(pty_pair, tmp_pa
     with pytest.raises(InstrumentTimeout, match="no complete reply within 0.2 s.*partial line "
                                                 "b'half a li'"):
         line.read_line()
-    assert 0.19 < time.monotonic() - t0 < 0.5
+    assert 0.19 < time.monotonic() - t0 < 2.0      # upper bound generous: loaded machines
     os.write(master, b"stale\r\n")
     assert line.discard_input() == b"stale\r\n"
     # the port vanishes (pty closed): PortLost, then it cannot be reopened until it comes back
@@ -192,4 +192,4 @@ def test_retry_succeeds_after_transient_faults_and_never_retries_rejections():
         retry(lambda: (_ for _ in ()).throw(InstrumentError("dev", "e")), instrument="dev",
               what="x", policy=RetryPolicy(attempts=100, first_delay_s=0.02, factor=1.0),
               timeout_s=0.1)
-    assert time.monotonic() - t0 < 0.2
+    assert time.monotonic() - t0 < 1.0              # 100 attempts would take >= 2 s
