@@ -4,7 +4,8 @@ against ``deltatwin campaign --instruments sim``, both journaled (fsync per poin
 runs them. Target (issue 7): the paper-force campaign through the emulators "in minutes at most".
 
 Prints the points, both wall times, the serial overhead per point, the serial exchanges per
-point, and the largest difference per column family (they must be within the instruments'
+point, the cost of journaling one point (append + fsync, on the temporary folder's disk), and
+the largest difference per column family (they must be within the instruments'
 resolution: nm to 0.001, arcsec to 0.01, degC to 8 digits).
 
     python benchmarks/bench_emulated_campaign.py                      # paper-force, full
@@ -25,6 +26,7 @@ from hw.emulators.lab import EmulatedLab
 from hw.ports import write_ports
 from twin.dataset import read_dataset
 from twin.instruments.simulated import SimulatedLab
+from twin.journal import Journal, read_journal
 from twin.scenario import Scenario
 
 
@@ -56,6 +58,12 @@ def main() -> None:
             exchanges = sum(e.requests for e in lab.emulators.values())
         direct, _ = read_dataset(tmp / "sim.parquet")
         serial, _ = read_dataset(tmp / "serial.parquet")
+        header, points = read_journal(tmp / "sim.parquet.journal")
+        with Journal.open(tmp / "again.journal", header) as journal:
+            t0 = time.perf_counter()
+            for k, point in points.items():
+                journal.append(k, point)
+            t_journal = (time.perf_counter() - t0) / len(points)
     n = len(direct)
     print(f"{args.scenario} scale {scale or 1.0}: {n} points")
     print(f"  deltatwin campaign --instruments sim    : {t_direct:8.1f} s")
@@ -63,6 +71,8 @@ def main() -> None:
           f"({'within' if t_serial <= 300 else 'ABOVE'} the 5-minute target)")
     print(f"  serial overhead                         : {(t_serial - t_direct) / n * 1e3:8.1f} "
           f"ms/point, {exchanges / n:.1f} exchanges/point")
+    print(f"  journal append + fsync                  : {t_journal * 1e3:8.1f} ms/point "
+          f"({t_journal * n:.1f} s of each run)")
     for suffix in ("_nm", "_arcsec", "_C", "_rad", "_A", "t_s"):
         cols = [c for c in direct.columns if c.endswith(suffix)]
         d = max(float(np.nanmax(np.abs(serial[c].to_numpy(float) - direct[c].to_numpy(float)),
