@@ -47,9 +47,9 @@ def test_kill_9_then_resume_every_point_once_and_as_uninterrupted(tmp_path):
       re-zeroing of the resume); in the interrupted session every interferometer reading differs
       by one constant per axis (the home position's drift between the session's zero and the
       resume's zero), to one resolution step; in the next session (its own zero in both runs)
-      by at most one resolution step (plus up to 0.2 nm: the cosine correction uses the
-      autocollimator readings, whose noise draws differ); autocollimators and thermometers within their noise (the
-      resume's extra autocollimator reading shifts their noise draws)."""
+      by at most one resolution step (plus up to 0.2 nm in both: the cosine correction uses
+      the autocollimator readings, whose noise draws differ); autocollimators and thermometers
+      within their noise (the resume's extra autocollimator reading shifts their draws)."""
     scale = 0.004                                   # 114 points: 55 in session xy, 59 in z
     out = tmp_path / "run.parquet"
     journal = tmp_path / "run.parquet.journal"
