@@ -49,7 +49,7 @@ def test_kill_9_then_resume_every_point_once_and_as_uninterrupted(tmp_path):
       resume's zero), to one resolution step; in the next session (its own zero in both runs)
       by at most one resolution step (plus up to 0.2 nm in both: the cosine correction uses
       the autocollimator readings, whose noise draws differ); autocollimators and thermometers
-      within their noise (the resume's extra autocollimator reading shifts their draws)."""
+      within their noise (other draws: one more autocollimator reading, scans at other times)."""
     scale = 0.004                                   # 114 points: 55 in session xy, 59 in z
     out = tmp_path / "run.parquet"
     journal = tmp_path / "run.parquet.journal"
