@@ -49,7 +49,8 @@ def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
     return residuals(meas, pred, group_offsets(meas, pred, meas.cal))
 
 
-def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, rss0: float, n: int, k_m: int):
+def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0: float,
+               n: int, k_m: int):
     meas = fit.measurements_
     model = PhysicsModel(fit.effects + [name], fit.model_.params, fit.model_.values())
     theta = model.theta()
@@ -64,8 +65,7 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, rss0: float, n: int, 
     Pc = _projected(meas, cal, Jc)
     # the candidate's directions beyond the model's own, that the data determine
     if Jm.shape[1]:
-        Q, _ = np.linalg.qr(Jm)
-        Pc = Pc - Q @ (Q.T @ Pc)
+        Pc = Pc - Qm @ (Qm.T @ Pc)
     k_c = 0
     if Pc.shape[1]:
         _, s, Vt = np.linalg.svd(Pc, full_matrices=False)
@@ -154,12 +154,13 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     r0 = _projected(meas, cal, fit.residual_)
     rss0 = float(np.sum(r0 ** 2))
     n = r0.size
+    Qm = np.linalg.qr(Jm)[0]                        # the model's span, once for all candidates
     candidates = [e for e in model_effects() if e not in fit.effects]
     ranking = []
     for name in candidates:
         if progress:
             progress(name)
-        ranking.append(_candidate(fit, name, Jm, rss0, n, k_m))
+        ranking.append(_candidate(fit, name, Jm, Qm, rss0, n, k_m))
     ranking.sort(key=lambda c: (not c["significant"],
                                 c["delta_bic"] if c["significant"] else -c["explained_fraction"]))
     val_fig = fit.val_

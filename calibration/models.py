@@ -23,14 +23,14 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from deltatwin.files import atomic_write_text
 
 from .errors import (CalibrationInputError, DroppedRowsWarning, MissingColumnsError,
                      MissingMetadataWarning, ModelFileError, ModelMismatchError,
@@ -303,20 +303,6 @@ def _solve3(J: np.ndarray, r: np.ndarray):
 
 # ----- shared estimator machinery ------------------------------------------------------
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 class _StepwiseModel:
     """Shared by DGM and DirectIGM: features -> per-output stepwise fits."""
     kind = "?"
@@ -584,7 +570,7 @@ class _StepwiseModel:
         except ValueError as exc:
             raise CalibrationInputError(f"{self.kind}: the model holds a non-finite number "
                                         f"and cannot be exported ({exc})") from exc
-        _atomic_write_text(path, text)
+        atomic_write_text(path, text)
         return path
 
     @classmethod

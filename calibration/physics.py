@@ -34,8 +34,10 @@ from scipy.spatial.transform import Rotation
 
 from models.geometry import build_geometry
 from models.params import RobotParams, load_params
+from deltatwin.files import toml_value
+from twin.campaign import COSINE_ANGLES
 from twin.effects import LIBRARY, EffectError, make_effect
-from twin.instruments.optics import AC_CHANNELS, AXES, return_factor
+from twin.instruments.optics import AXES, return_factor
 from twin.kinematics import Pose, forward
 from twin.statics import Statics
 from twin.thermal import PART_NODES
@@ -45,8 +47,6 @@ from .features import causal_fit
 from .errors import CalibrationInputError, MissingColumnsError, TooFewPointsError
 from .validation import error_figures
 
-# autocollimator channels giving the tilts of each interferometer's mirror face (as the campaign)
-COSINE_ANGLES = {"x": ("ac1_ry", "ac1_rz"), "y": ("ac2_rx", "ac2_rz"), "z": ("ac2_rx", "ac1_ry")}
 SIBLINGS = {"arm": ("arm1", "arm2", "arm3"), "rod": ("rod1", "rod2", "rod3"),
             "motor": ("motor1", "motor2", "motor3"), "coil": ("coil1", "coil2", "coil3"),
             "air": ("air_x", "air_y", "air_z")}
@@ -489,7 +489,7 @@ class PhysicsFit:
         theta0 = model.theta()
         S = model.scales
         sigma = self.noise_nm * 1e-9
-        A0, J0 = model.jacobian(meas, theta0)
+        _, J0 = model.jacobian(meas, theta0)
         Js = _projected(meas, cal, J0 * S)
         if p:
             _, s, Vt = np.linalg.svd(Js, full_matrices=False)
@@ -575,10 +575,10 @@ class PhysicsFit:
         self.val_ = figures_nm(self.residual_, meas.val)
         self.jacobian_ = J
         self.identified_directions_ = V
-        self._identifiability(model, Js, s, Vt, keep, J * S, meas, r, V, theta, prior)
+        self._identifiability(model, s, Vt, keep, J * S, meas, r, V, theta, prior)
         return self
 
-    def _identifiability(self, model, Js0, s, Vt, keep, JS, meas, r, V, theta, theta0):
+    def _identifiability(self, model, s, Vt, keep, JS, meas, r, V, theta, theta0):
         p, k = model.n_free, int(keep.sum())
         labels = model.labels
         dof = max(r.size - k - len(meas.groups), 1)
@@ -636,31 +636,23 @@ def _axis_p90(fig: dict) -> dict:
 # ---------------------------------------------------------------------------------------------
 # fitted model files (TOML)
 
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if v is None:
-        return '"none"'
-    return repr(float(v)) if math.isfinite(float(v)) else ('"inf"' if v > 0 else '"-inf"')
+def _or_nan(x):
+    return math.nan if x is None else x
 
 
 def fitted_toml(fit: PhysicsFit, data: str) -> str:
     """The fitted model as TOML: effects and every parameter value (SI), the fit's figures."""
     lines = ["# deltatwin physics model (calibration/physics.py); load with "
              "`deltatwin compare DATA --model THIS`",
-             "[model]", f"effects = {_toml_value(fit.effects)}", f"data = {_toml_value(data)}",
+             "[model]", f"effects = {toml_value(fit.effects)}", f"data = {toml_value(data)}",
              f"noise_nm = {fit.noise_nm!r}", f"identifiable_ratio = {fit.identifiable_ratio!r}",
-             "", "[fit]", f"val_err90_nm = {_toml_value(fit.val_['all']['err_p90'])}",
-             f"cal_err90_nm = {_toml_value(fit.cal_['all']['err_p90'])}",
+             "", "[fit]", f"val_err90_nm = {toml_value(_or_nan(fit.val_['all']['err_p90']))}",
+             f"cal_err90_nm = {toml_value(_or_nan(fit.cal_['all']['err_p90']))}",
              f"n_parameters = {fit.model_.n_free}",
              f"n_identified_directions = {fit.identifiability_['n_identified_directions']}",
-             f"not_identifiable = {_toml_value(fit.identifiability_['not_identifiable'])}"]
+             f"not_identifiable = {toml_value(fit.identifiability_['not_identifiable'])}"]
     for name, vals in fit.model_.values().items():
-        lines += ["", f"[effects.{name}]"] + [f"{k} = {_toml_value(v)}" for k, v in vals.items()]
+        lines += ["", f"[effects.{name}]"] + [f"{k} = {toml_value(v)}" for k, v in vals.items()]
     return "\n".join(lines) + "\n"
 
 

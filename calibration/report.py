@@ -5,8 +5,6 @@ the workspace (baseline and final model), and the residual against time, force a
 temperature it correlates with most. Files are written to temporary names and renamed."""
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -15,6 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from deltatwin.files import atomic_write, atomic_write_text  # noqa: E402
 from models.geometry import build_geometry  # noqa: E402
 from models.params import load_params  # noqa: E402
 from twin.kinematics import forward  # noqa: E402
@@ -23,14 +22,11 @@ NM = 1e9
 
 
 def _save(fig, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-        os.replace(tmp, path)
+        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110,
+                                                   bbox_inches="tight"))
     finally:
         plt.close(fig)
-        Path(tmp).unlink(missing_ok=True)
 
 
 def _magnitude_nm(res: np.ndarray) -> np.ndarray:
@@ -141,14 +137,9 @@ def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
     lines += ["## Where it fails", "", "![residual map](residual_map.png)", "",
               "![error vs variables](error_vs.png)", ""]
     if floor:
-        lines += [f"Noise floor (the twin's truth: validation error 90 % of the readings against "
-                  f"a perfect instrument): " + ", ".join(f"{k} {v:.1f} nm" for k, v in floor.items())
+        lines += ["Noise floor (the twin's truth: validation error 90 % of the readings against "
+                  "a perfect instrument): " + ", ".join(f"{k} {v:.1f} nm" for k, v in floor.items())
                   + ".", ""]
     if recording:
         lines += [f"Rerun recording: `{recording.name}` (`rerun {recording.name}`).", ""]
-    path = out / "report.md"
-    fd, tmp = tempfile.mkstemp(dir=out, prefix=".report.", suffix=".md")
-    with os.fdopen(fd, "w") as f:
-        f.write("\n".join(lines))
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(out / "report.md", "\n".join(lines))

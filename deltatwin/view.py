@@ -30,13 +30,13 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from deltatwin.files import atomic_write
 from twin.dataset import AXES, temperature_columns, validate
 
 __all__ = ["LadderStep", "RecordingSummary", "calibration_step", "model_file_step",
@@ -342,34 +342,26 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     beams = _beams(model, data, params, cube, cube_home)
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    rec = rr.RecordingStream("deltatwin")
-    try:
-        rec.set_log_time_enabled(False)
-        has_effect = len(ladder) >= 2
-        rec.save(tmp, default_blueprint=_blueprint(df, scale, has_effect, bool(ladder)))
-        t_first = float(t_s.min())
-        _log_scene(rec, meshes, ws, origin, ids, pos_mm, split)
-        _log_robot(rec, names, gpos, gmat, beams, origin, t_s[rows])
-        summary = RecordingSummary(path=path, origin_m=origin, arrow_scale_nm_per_mm=scale,
-                                   pose_rows=rows, position_ids=ids)
-        summary.ladder = _log_ladder(rec, df, ladder, residuals, fields, pos_mm, scale, peak,
-                                     t_s, t_first)
-        _log_time_series(rec, df, t_s)
-        _log_info(rec, df, meta, summary, extent_mm, peak, len(df))
-        rec.flush()
-        rec.disconnect()
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)                  # mkstemp makes it private
-        os.replace(tmp, path)
-    except BaseException:
-        rec.disconnect()
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    summary = RecordingSummary(path=path, origin_m=origin, arrow_scale_nm_per_mm=scale,
+                               pose_rows=rows, position_ids=ids)
+
+    def write(tmp):
+        rec = rr.RecordingStream("deltatwin")
+        try:
+            rec.set_log_time_enabled(False)
+            has_effect = len(ladder) >= 2
+            rec.save(tmp, default_blueprint=_blueprint(df, scale, has_effect, bool(ladder)))
+            _log_scene(rec, meshes, ws, origin, ids, pos_mm, split)
+            _log_robot(rec, names, gpos, gmat, beams, origin, t_s[rows])
+            summary.ladder = _log_ladder(rec, df, ladder, residuals, fields, pos_mm, scale,
+                                         peak, t_s, float(t_s.min()))
+            _log_time_series(rec, df, t_s)
+            _log_info(rec, df, meta, summary, extent_mm, peak, len(df))
+            rec.flush()
+        finally:
+            rec.disconnect()
+
+    atomic_write(path, write)
     return summary
 
 

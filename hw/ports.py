@@ -37,11 +37,11 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from deltatwin.files import atomic_write_text, toml_value
 from hw.protocol import TERMINATORS
 from hw.retry import RetryPolicy
 
@@ -217,32 +217,18 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
         coils=coils, n_coils=n_coils, retry=retry)
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    raise TypeError(f"cannot write {v!r} to TOML")
-
-
 def _port_lines(port: Port, **extra) -> list[str]:
-    lines = [f"url = {_toml_value(port.url)}", f"baud = {port.baud}",
-             f"terminator = {_toml_value(port.terminator)}", f"timeout_s = {port.timeout_s!r}"]
+    lines = [f"url = {toml_value(port.url)}", f"baud = {port.baud}",
+             f"terminator = {toml_value(port.terminator)}", f"timeout_s = {port.timeout_s!r}"]
     if port.xonxoff:
         lines.append("xonxoff = true")
-    lines += [f"{k} = {_toml_value(v)}" for k, v in extra.items()]
+    lines += [f"{k} = {toml_value(v)}" for k, v in extra.items()]
     return lines
 
 
 def format_ports(ports: LabPorts, comment: str = "") -> str:
     out = [f"# {line}" for line in comment.splitlines()]
-    out.append(f"lab = {_toml_value(ports.lab)}")
+    out.append(f"lab = {toml_value(ports.lab)}")
     r = ports.retry
     out += ["", "[retry]", f"attempts = {r.attempts}", f"first_delay_s = {r.first_delay_s!r}",
             f"factor = {r.factor!r}", f"max_delay_s = {r.max_delay_s!r}"]
@@ -262,15 +248,4 @@ def format_ports(ports: LabPorts, comment: str = "") -> str:
 
 def write_ports(path: str | os.PathLike, ports: LabPorts, comment: str = "") -> Path:
     """Write ``ports`` as TOML, atomically (temporary file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(format_ports(ports, comment))
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return atomic_write_text(path, format_ports(ports, comment))

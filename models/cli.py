@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import mujoco
 import numpy as np
+
+from deltatwin.files import atomic_write
 
 from .geometry import build_geometry
 from .mjcf import build_spec
@@ -31,16 +31,12 @@ def run_export(args) -> int:
     params = load_params(args.params)
     xml = build_spec(params).to_xml()
     out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(xml)
+
+    def write(tmp):
+        Path(tmp).write_text(xml)
         mujoco.MjModel.from_xml_path(tmp)   # what we write, MuJoCo must load
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+
+    atomic_write(out, write)
     print(f"wrote {out} ({len(xml)} bytes)")
     return 0
 

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from deltatwin.files import toml_value
+
 DEFAULT_PARAMS_PATH = Path(__file__).with_name("delta_agietron") / "params.toml"
 
 
@@ -153,20 +155,11 @@ class RobotParams:
         for key, attr, _, rule in _SCHEMA:
             sec, name = key.split(".")
             value = getattr(self, attr)
-            sections.setdefault(sec, []).append(f"{name} = {_toml_value(value)}")
+            sections.setdefault(sec, []).append(f"{name} = {toml_value(value)}")
         for mname, mat in self.materials.items():
-            sections[f"materials.{mname}"] = [f"{k} = {_toml_value(getattr(mat, k))}"
+            sections[f"materials.{mname}"] = [f"{k} = {toml_value(getattr(mat, k))}"
                                               for k in _MATERIAL_KEYS]
         return "\n".join(f"[{s}]\n" + "\n".join(lines) + "\n" for s, lines in sections.items())
-
-
-def _toml_value(v) -> str:
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    a = np.asarray(v, dtype=float)
-    if a.ndim == 0:
-        return repr(float(a))
-    return "[" + ", ".join(_toml_value(x) for x in a) + "]"
 
 
 def _check(value, shape, rule, source, key):

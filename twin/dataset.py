@@ -9,13 +9,14 @@ from __future__ import annotations
 import json
 import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from deltatwin.files import atomic_write
 
 FORMAT_VERSION = 1
 METADATA_KEY = b"deltatwin"
@@ -71,35 +72,21 @@ def validate(df: pd.DataFrame, where: str = "dataset") -> None:
                            "the validation positions must be disjoint from calibration")
 
 
-def _atomic_write(path: Path, write) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def write_dataset(df: pd.DataFrame, meta: dict, path: str | os.PathLike) -> Path:
     """Write ``df`` with ``meta`` to Parquet (or CSV + sidecar by suffix), atomically."""
     path = Path(path)
     validate(df, str(path))
     meta = {"format_version": FORMAT_VERSION, "units": units_from_columns(df.columns), **meta}
     if path.suffix == ".csv":
-        _atomic_write(path, lambda tmp: df.to_csv(tmp, index=False, float_format="%.10g"))
-        _atomic_write(path.with_suffix(".meta.json"),
+        atomic_write(path, lambda tmp: df.to_csv(tmp, index=False, float_format="%.10g"))
+        atomic_write(path.with_suffix(".meta.json"),
                       lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=1, default=str)))
         return path
     table = pa.Table.from_pandas(df, preserve_index=False)
     schema_meta = dict(table.schema.metadata or {})
     schema_meta[METADATA_KEY] = json.dumps(meta, default=str).encode()
     table = table.replace_schema_metadata(schema_meta)
-    _atomic_write(path, lambda tmp: pq.write_table(table, tmp))
+    atomic_write(path, lambda tmp: pq.write_table(table, tmp))
     return path
 
 

@@ -28,7 +28,7 @@ from .effects import Effect
 from .instruments.optics import AXES, Optics, autocollimator_angles, optical_path
 from .kinematics import Pose, forward
 from .statics import Statics
-from .thermal import GRID_S, HEATED, SUPPORTS, Inputs, ThermalNetwork, sensor_set
+from .thermal import GRID_S, SUPPORTS, Inputs, ThermalNetwork, sensor_set
 
 STREAMS = ("robot", "environment", "interferometers", "autocollimators", "thermometers",
            "campaign")

@@ -32,7 +32,7 @@ def run(args) -> int:
     from calibration.diagnosis import effect_ladder
     from calibration.physics import fitted_toml
     from calibration.report import write_report
-    from deltatwin.commands.fit import _write_text
+    from deltatwin.files import atomic_write_text
     from deltatwin.view import LadderStep, write_recording
     from twin.dataset import write_dataset
     from twin.scenario import Scenario
@@ -40,12 +40,12 @@ def run(args) -> int:
     if not 0 < args.scale <= 1:
         raise ValueError(f"--scale must be in (0, 1], got {args.scale}")
     t0 = time.perf_counter()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     sc = Scenario.load(args.scenario, seed=args.seed)
     if not sc.hidden:
         raise ValueError(f"{sc.path}: no [hidden] table (effects = [...], baseline = [...]); "
                          "the demo needs a scenario of scenarios/hidden/")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     say = (lambda m: None) if args.json else (lambda m: tqdm.write(f"[{time.perf_counter() - t0:5.1f} s] {m}"))
     say(f"simulating {sc.name} (hidden from the model: {', '.join(sc.hidden['effects'])})")
     df, meta = sc.simulate(None if args.scale == 1 else args.scale)
@@ -57,7 +57,7 @@ def run(args) -> int:
     ladder, diagnoses, fits = effect_ladder(df, meta, sc.hidden["baseline"], data=str(data),
                                             progress=say)
     for k, (row, fit) in enumerate(zip(ladder, fits)):
-        _write_text(out / f"model{k}.toml", fitted_toml(fit, str(data)))
+        atomic_write_text(out / f"model{k}.toml", fitted_toml(fit, str(data)))
         d = diagnoses[k]
         say(f"model {k} ({', '.join(row['effects']) or 'nominal robot'}): validation error 90 % "
             f"{row['val_err90_nm']:.1f} nm")
@@ -97,6 +97,6 @@ def run(args) -> int:
     for r in ladder:
         print(f"  {r['model'] + ' (' + (', '.join(r['effects']) or 'nominal') + ')':<60.60} "
               f"{r['val_err90_nm']:10.1f}")
-    print(f"  noise floor: " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items()) + " nm")
+    print("  noise floor: " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items()) + " nm")
     print(f"report: {report}" + (f"; recording: {recording}" if recording else ""))
     return 0

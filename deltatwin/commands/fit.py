@@ -3,11 +3,10 @@ dataset, and which effect they miss (calibration/physics.py, calibration/diagnos
 from __future__ import annotations
 
 import json
-import os
-import tempfile
-from pathlib import Path
 
 import numpy as np
+
+from deltatwin.files import atomic_write_text
 
 
 def register(sub) -> None:
@@ -34,18 +33,6 @@ def _effects(text: str) -> list[str]:
     return [] if names == ["none"] else names
 
 
-def _write_text(path: str, text: str) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _json_default(x):
     if isinstance(x, np.generic):
         return x.item()
@@ -62,7 +49,7 @@ def run_fit(args) -> int:
     fit = PhysicsFit(_effects(args.effects), noise_nm=args.noise_nm,
                      progress=not args.json).fit(df, meta)
     if args.output:
-        _write_text(args.output, fitted_toml(fit, str(args.data)))
+        atomic_write_text(args.output, fitted_toml(fit, str(args.data)))
     s = fit.summary()
     if args.json:
         print(json.dumps(s, default=_json_default))
@@ -77,7 +64,7 @@ def run_fit(args) -> int:
             print(f"  {a:>4} {s['cal'].get(a, float('nan')):13.1f} {s['val'][a]:13.1f}")
     floor = (meta.get("truth") or {}).get("noise_floor_nm")
     if floor:
-        print(f"  noise floor (twin's truth): " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items())
+        print("  noise floor (twin's truth): " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items())
               + " nm")
     if ident["not_identifiable"]:
         print(f"  not identifiable from these data (held at their start): "
