@@ -158,6 +158,9 @@ def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
     assert set(d) >= {"val_err90_nm", "ranking", "unexplained"}
     assert set(d["ranking"][0]) >= {"effect", "explained_fraction", "val_err90_after_nm",
                                     "significant"}
+    (tmp_path / "not_a_model.toml").write_text("[scenario]\nname = 'x'\n")
+    r = run("diagnose", data, "--model", tmp_path / "not_a_model.toml")
+    assert r.returncode == 2 and "not a fitted physics model" in r.stderr
     r = run("fit", data, "--effects", "geometric_errors,nope", "-o", tmp_path / "bad.toml")
     assert r.returncode == 2 and "unknown effect 'nope'" in r.stderr
     assert not (tmp_path / "bad.toml").exists()
