@@ -93,7 +93,7 @@ class Measurements:
 
 
 def node_temperatures(df: pd.DataFrame, sensors: dict, T_ref_C: float,
-                      window_s: float = TEMPERATURE_WINDOW_S) -> dict:
+                      window_s: float = TEMPERATURE_WINDOW_S, where: str = "data") -> dict:
     """Part temperatures (degC, per row) from the sensors on each part; parts without a sensor
     take the mean of their sensed siblings, else the reference temperature. Each sensor's
     stream is smoothed causally (local linear fit over the past ``window_s``, as a controller
@@ -104,11 +104,11 @@ def node_temperatures(df: pd.DataFrame, sensors: dict, T_ref_C: float,
     for s, part in sensors.items():
         c = f"T_{s}_C"
         if c not in df:
-            raise MissingColumnsError(f"metadata 'sensors' names sensor {s!r} (on {part!r}) but "
+            raise MissingColumnsError(f"{where}: metadata 'sensors' names sensor {s!r} (on {part!r}) but "
                                       f"the data has no column {c!r}")
         raw = df[c].to_numpy(dtype=np.float64)
         if not np.all(np.isfinite(raw)):
-            raise CalibrationInputError(f"column {c!r}: row {int(np.flatnonzero(~np.isfinite(raw))[0])}"
+            raise CalibrationInputError(f"{where}: column {c!r}: row {int(np.flatnonzero(~np.isfinite(raw))[0])}"
                                         " is not a finite temperature")
         smooth = np.empty_like(raw)
         smooth[order] = causal_fit(t[order], raw[order], window_s, degree=1)[0]
@@ -181,7 +181,7 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
         if f"coil{i + 1}_A" in df:
             currents[:, i] = df[f"coil{i + 1}_A"].to_numpy(dtype=np.float64)
     T_ref = params.reference_temperature_C
-    node_T = node_temperatures(df, sensors, T_ref)
+    node_T = node_temperatures(df, sensors, T_ref, where=where)
     room = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
     pressure = df["p_Pa"].to_numpy(dtype=np.float64) if "p_Pa" in df else np.full(n, 101325.0)
     pts = Points(t_s=df["t_s"].to_numpy(dtype=np.float64), q=q, currents_A=currents,
@@ -474,9 +474,11 @@ class PhysicsFit:
         self.progress = progress
         PhysicsModel(self.effects, params, start)      # validate names and values once
 
-    def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None):
+    def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
+            where: str = "data"):
+        """Fit to the calibration rows of ``df`` (``where`` names the data in errors)."""
         model = PhysicsModel(self.effects, self.params, self.start)
-        meas = meas or measurements(df, meta, model.params)
+        meas = meas or measurements(df, meta, model.params, where)
         cal = meas.cal
         n_cal = int(np.sum((meas.group >= 0) & cal[:, None]))
         p = model.n_free

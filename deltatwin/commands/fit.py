@@ -47,7 +47,7 @@ def run_fit(args) -> int:
 
     df, meta = read_dataset(args.data)
     fit = PhysicsFit(_effects(args.effects), noise_nm=args.noise_nm,
-                     progress=not args.json).fit(df, meta)
+                     progress=not args.json).fit(df, meta, where=str(args.data))
     if args.output:
         atomic_write_text(args.output, fitted_toml(fit, str(args.data)))
     s = fit.summary()
@@ -87,7 +87,8 @@ def run_diagnose(args) -> int:
     model, doc = load_fitted(args.model)
     # refine from the file's values on this dataset's calibration rows (its zeros are new)
     fit = PhysicsFit(model.names, start=model.values(),
-                     noise_nm=float(doc["model"].get("noise_nm", 5.0))).fit(df, meta)
+                     noise_nm=float(doc["model"].get("noise_nm", 5.0))).fit(df, meta,
+                                                                            where=str(args.data))
     d = diagnose(fit, str(args.data))
     if args.json:
         print(json.dumps(d, default=_json_default))

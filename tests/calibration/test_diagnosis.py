@@ -158,6 +158,11 @@ def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
     assert set(d) >= {"val_err90_nm", "ranking", "unexplained"}
     assert set(d["ranking"][0]) >= {"effect", "explained_fraction", "val_err90_after_nm",
                                     "significant"}
+    ghost = tmp_path / "ghost.parquet"
+    write_dataset(df, dict(meta, sensors={**meta["sensors"], "ghost": "base"}), ghost)
+    r = run("fit", ghost, "--effects", "thermal_expansion", "-o", tmp_path / "g.toml")
+    assert r.returncode == 2 and str(ghost) in r.stderr and "T_ghost_C" in r.stderr
+    assert not (tmp_path / "g.toml").exists()
     (tmp_path / "not_a_model.toml").write_text("[scenario]\nname = 'x'\n")
     r = run("diagnose", data, "--model", tmp_path / "not_a_model.toml")
     assert r.returncode == 2 and "not a fitted physics model" in r.stderr
