@@ -34,7 +34,7 @@ from calibration.validation import evaluate
 from twin.scenario import Scenario
 
 PHYSICS_EFFECTS = ("geometric_errors", "thermal_expansion", "gravity_sag", "loop_drift",
-                   "air_refraction", "beam_misalignment")
+                   "air_refraction", "beam_misalignment", "sensor_contact")
 ERROR_RATIO = 2.0       # the physics fit's val err90 at least 2x lower ...
 PARAMETER_RATIO = 0.5   # ... with at most half as many parameters
 

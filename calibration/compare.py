@@ -143,7 +143,7 @@ def evaluate(df: pd.DataFrame, meta: dict | None, model, params=None) -> ModelEv
     offsets = np.where(cal_readings > 0, on_cal, on_own)
     residual = -residuals(meas, pred, offsets)              # model minus measurement
     reading = meas.y + residual
-    position = forward(build_geometry(robot), meas.points.q).p
+    position = forward(build_geometry(robot), meas.points.q[:meas.n]).p
     return ModelEvaluation(description=desc, meas=meas, reading_m=reading,
                            residual_m=residual, offsets_m=offsets,
                            zero_rows=["cal" if c else "own rows" for c in cal_readings],
@@ -301,7 +301,7 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
 
     codes, labels, centre = _octants(ev.position_m, rows)
     regions = _by_bin(long, codes, labels)
-    codes, labels = _time_windows(meas.points.t_s, rows, n_time_windows)
+    codes, labels = _time_windows(meas.points.t_s[:meas.n], rows, n_time_windows)
     windows = _by_bin(long, codes, labels)
     force = None
     if "F_N" in df.columns:

@@ -7,9 +7,13 @@ exact kinematics -> load through the compliance -> optics) on conditions taken f
 motor coordinates, coil currents and the temperature sensors (each sensor stands for the part it
 is glued on, ``metadata['sensors']``; a part without a sensor takes the mean of its sensed
 siblings — arm1..3, rod1..3, ... — or the reference temperature). Readings are relative to each
-session's zero, so every (session, axis) has an unknown offset: it is projected out of the fit
-(variable projection) and estimated on the calibration rows. Cosine-corrected data are compared
-with the model's optical path divided by the same correction factor from the measured angles.
+session's zero, as the interferometer counts it: (n s - n0 s0) / n_comp, where n0 s0 is the optical
+path at the zero (the robot at home, coils off, the conditions of the session's first row). The
+zero's path is a constant, but divided by the compensation index it is not: that is the dead-path
+error of an index change, hundreds of nm per kelvin on a 0.1 m dead path, so the model evaluates
+the zero too. What remains is an unknown offset per (session, axis): it is projected out of the
+fit (variable projection) and estimated on the calibration rows. Cosine-corrected data are
+compared with the model's reading divided by the same correction factor from the measured angles.
 
 The fit (``PhysicsFit``, scikit-learn style: ``fit`` then attributes ending in ``_``) works in
 parameter units scaled by each parameter's ``fit_scale`` (its typical size): the Jacobian is
@@ -73,12 +77,29 @@ class Measurements:
     groups: list                  # (session, axis) per group index
     cal: np.ndarray               # (N,) bool
     val: np.ndarray               # (N,) bool
-    points: Points                # conditions (params/home filled in per evaluation)
+    points: Points                # conditions of the N rows then of the session zeros (N + S
+                                  # rows; params/home filled in per evaluation)
+    zero_row: np.ndarray          # (N,) index in ``points`` of each row's session zero
+    T_ref_C: float
+    sensor_node_T: dict           # part temperatures taken at their sensors' readings
     _statics: tuple | None = field(default=None, repr=False)
 
     @property
     def n(self) -> int:
         return self.y.shape[0]
+
+    def part_temperatures(self, effects) -> dict:
+        """Part temperatures (N + S rows) under the model's ``effects``: those that say how a
+        sensor reads its part (``sensed_parts``) correct the readings, else each part is at its
+        sensors' reading."""
+        sensed = {}
+        for e in effects:
+            sensed.update(e.sensed_parts(self.points) or {})
+        if not sensed:
+            return self.sensor_node_T
+        readings = {k: v[1] for k, v in self.points.sensor_readings.items()}
+        return node_temperatures({**readings, **sensed}, self.sensors, self.T_ref_C,
+                                 self.points.t_s.shape[0])
 
     def statics(self, params: RobotParams):
         """Preload deflection (N,6) and compliance (N,6,6) at each row's position, computed
@@ -92,15 +113,14 @@ class Measurements:
         return self._statics
 
 
-def node_temperatures(df: pd.DataFrame, sensors: dict, T_ref_C: float,
-                      window_s: float = TEMPERATURE_WINDOW_S, where: str = "data") -> dict:
-    """Part temperatures (degC, per row) from the sensors on each part; parts without a sensor
-    take the mean of their sensed siblings, else the reference temperature. Each sensor's
-    stream is smoothed causally (local linear fit over the past ``window_s``, as a controller
-    could): a thermometer's mK noise times a CTE and a 0.35 m loop leg is tens of nm."""
+def sensor_streams(df: pd.DataFrame, sensors: dict, window_s: float = TEMPERATURE_WINDOW_S,
+                   where: str = "data") -> dict:
+    """Each sensor's stream smoothed causally (local linear fit over the past ``window_s``, as a
+    controller could: a thermometer's mK noise times a CTE and a 0.35 m loop leg is tens of
+    nm): {sensor name: (part, level degC (N,), rate K/s (N,))}."""
     t = df["t_s"].to_numpy(dtype=np.float64)
     order = np.argsort(t, kind="stable")
-    cols = {}
+    out = {}
     for s, part in sensors.items():
         c = f"T_{s}_C"
         if c not in df:
@@ -110,10 +130,19 @@ def node_temperatures(df: pd.DataFrame, sensors: dict, T_ref_C: float,
         if not np.all(np.isfinite(raw)):
             raise CalibrationInputError(f"{where}: column {c!r}: row {int(np.flatnonzero(~np.isfinite(raw))[0])}"
                                         " is not a finite temperature")
-        smooth = np.empty_like(raw)
-        smooth[order] = causal_fit(t[order], raw[order], window_s, degree=1)[0]
-        cols.setdefault(part, []).append(smooth)
-    n = len(df)
+        level, rate = np.empty_like(raw), np.empty_like(raw)
+        level[order], rate[order] = causal_fit(t[order], raw[order], window_s, degree=1)[:2]
+        out[s] = (part, level, rate)
+    return out
+
+
+def node_temperatures(sensor_T: dict, sensors: dict, T_ref_C: float, n: int) -> dict:
+    """Part temperatures (degC, (n,) each) from the temperature each sensor stands for
+    (``sensor_T``: sensor name -> (n,)): the mean of the sensors on a part; a part without a
+    sensor takes the mean of its sensed siblings (arm1..3, rod1..3, ...), else ``T_ref_C``."""
+    cols = {}
+    for s, part in sensors.items():
+        cols.setdefault(part, []).append(sensor_T[s])
     T = {p: np.mean(v, axis=0) for p, v in cols.items()}
     out = {}
     for node, _, _ in PART_NODES:
@@ -181,15 +210,28 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
         if f"coil{i + 1}_A" in df:
             currents[:, i] = df[f"coil{i + 1}_A"].to_numpy(dtype=np.float64)
     T_ref = params.reference_temperature_C
-    node_T = node_temperatures(df, sensors, T_ref, where=where)
+    streams = sensor_streams(df, sensors, where=where)
+    node_T = node_temperatures({k: v[1] for k, v in streams.items()}, sensors, T_ref, n)
     room = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
     pressure = df["p_Pa"].to_numpy(dtype=np.float64) if "p_Pa" in df else np.full(n, 101325.0)
-    pts = Points(t_s=df["t_s"].to_numpy(dtype=np.float64), q=q, currents_A=currents,
-                 node_T=node_T, room_C=room, pressure_Pa=pressure,
+    t_s = df["t_s"].to_numpy(dtype=np.float64)
+    # each session's zero: the robot at home with the coils off, in the conditions of the
+    # session's first row (the zero is taken just before it)
+    names = list(dict.fromkeys(session))
+    first = np.array([np.flatnonzero(session == s_)[np.argmin(t_s[session == s_])] for s_ in names])
+    zero_row = n + np.array([names.index(s_) for s_ in session], dtype=np.int64)
+    with_zeros = lambda v: np.concatenate([v, v[first]])
+    node_T = {k: with_zeros(v) for k, v in node_T.items()}
+    pts = Points(t_s=with_zeros(t_s), q=np.concatenate([q, np.zeros((first.size, 3))]),
+                 currents_A=np.concatenate([currents, np.zeros((first.size, 3))]),
+                 node_T=node_T, room_C=with_zeros(room), pressure_Pa=with_zeros(pressure),
                  support_C={a: node_T["table"] for a in AXES}, params=params,
-                 home_p=np.zeros(3))
+                 home_p=np.zeros(3),
+                 sensor_readings={k: (part, with_zeros(T), with_zeros(r))
+                                  for k, (part, T, r) in streams.items()})
     return Measurements(df=df, sensors=dict(sensors), y=y, cos_factor=cos, group=group,
-                        groups=groups, cal=split == "cal", val=split == "val", points=pts)
+                        groups=groups, cal=split == "cal", val=split == "val", points=pts,
+                        zero_row=zero_row, T_ref_C=T_ref, sensor_node_T=node_T)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -298,7 +340,7 @@ class PhysicsModel:
         out = {k: np.zeros(self.n_free, bool) for k in ("robot", "temperatures", "load_optics")}
         for f in self.free:
             stages = LIBRARY[f.effect].model_stages()
-            key = ("temperatures" if "part_temperatures" in stages else
+            key = ("temperatures" if {"sensed_parts", "part_temperatures"} & set(stages) else
                    "robot" if "robot" in stages else "load_optics")
             out[key][f.sl] = True
         return out
@@ -315,18 +357,36 @@ class PhysicsModel:
         params, geom0, home = self._robot()
         pts = meas.points
         pts.params, pts.home_p = params, home
+        pts.node_T = meas.part_temperatures(self.effects)
         geom, kin = kinematic_pose(params, geom0, self.effects, pts)
         return params, geom, kin, home + geom0.cube_offset
 
-    def _observe(self, meas: Measurements, stage) -> np.ndarray:
+    def _paths(self, meas: Measurements, stage) -> tuple[np.ndarray, np.ndarray]:
+        """Optical path n s (m) and the index the instrument divides by, (N + S, 3) each, at the
+        rows and at the session zeros."""
         params, geom, kin, cube_home = stage
         pts = meas.points
         pts.params = params
+        # at the current values: a stage re-used for a load or optics parameter may have been
+        # computed before a sensor parameter was stepped
+        pts.node_T = meas.part_temperatures(self.effects)
         preload, C = meas.statics(self.params)
         truth = observe(geom, kin, self.effects, pts, preload, C, cube_home,
                         params.mirror_cube_size_m)
-        A = np.stack([truth.optical_path_m[a] / truth.n_comp[a] for a in AXES], axis=1)
-        return A * meas.cos_factor
+        return (np.stack([truth.optical_path_m[a] for a in AXES], axis=1),
+                np.stack([truth.n_comp[a] for a in AXES], axis=1))
+
+    @staticmethod
+    def _counted(meas: Measurements, path: np.ndarray, n_comp: np.ndarray) -> np.ndarray:
+        """What the interferometers count from their session's zero, (n s - n0 s0) / n_comp, as
+        the data show it (cosine corrected or not): (N, 3, ...) from paths (N + S, 3, ...)."""
+        n = meas.n
+        d = path[:n] - path[meas.zero_row]
+        f = meas.cos_factor / n_comp[:n]
+        return d * f.reshape(f.shape + (1,) * (d.ndim - 2))
+
+    def _observe(self, meas: Measurements, stage) -> np.ndarray:
+        return self._counted(meas, *self._paths(meas, stage))
 
     def predict_path(self, meas: Measurements, theta: np.ndarray | None = None) -> np.ndarray:
         """(N,3) the reading each row would show up to its session's zero (m)."""
@@ -342,12 +402,13 @@ class PhysicsModel:
 
         Geometry parameters under per-point part temperatures go by the chain rule: the
         kinematic pose's derivative on the unique motor coordinates (at the reference
-        temperature: the parts' expansion changes it by ~1e-5 of itself) times the readings'
-        derivative with respect to the pose, so a fit costs a few exact evaluations, not one
-        per parameter and point."""
+        temperature: the parts' expansion changes it by ~1e-5 of itself) times the optical
+        paths' derivative with respect to the pose, so a fit costs a few exact evaluations, not
+        one per parameter and point."""
         self.set_theta(theta)
         stage = self._kinematics(meas)
-        A = self._observe(meas, stage)
+        path, n_comp = self._paths(meas, stage)
+        A = self._counted(meas, path, n_comp)
         J = np.zeros(A.shape + (theta.size,))
         by = self.free_by_stage()
         steps = rel_step * self.scales
@@ -360,11 +421,13 @@ class PhysicsModel:
             Aj = self._observe(meas, self._kinematics(meas) if not by["load_optics"][j] else stage)
             J[:, :, j] = (Aj - A) / steps[j]
         if chain.any():
-            J[:, :, chain] = self._pose_chain(meas, theta, stage, A, np.flatnonzero(chain), steps)
+            dpath = self._pose_chain(meas, theta, stage, path, np.flatnonzero(chain), steps)
+            J[:, :, chain] = self._counted(meas, dpath, n_comp)
         self.set_theta(theta)
         return A, J
 
-    def _pose_chain(self, meas, theta, stage, A, cols, steps):
+    def _pose_chain(self, meas, theta, stage, path, cols, steps):
+        """d path / d theta (N + S, 3, len(cols)) for geometry parameters ``cols``."""
         params, geom, kin, cube_home = stage
         qu, inv = np.unique(meas.points.q, axis=0, return_inverse=True)
         inv = inv.reshape(-1)
@@ -379,7 +442,7 @@ class PhysicsModel:
             dpose[:, :3, i] = (kj.p - ku.p) / steps[j]
             dpose[:, 3:, i] = Rotation.from_matrix(kj.R @ np.swapaxes(ku.R, 1, 2)).as_rotvec() / steps[j]
         self.set_theta(theta)
-        G = np.zeros(A.shape + (6,))                        # d reading / d pose, per row
+        G = np.zeros(path.shape + (6,))                     # d path / d pose, per row
         eps = (1e-9, 1e-9, 1e-9, 1e-8, 1e-8, 1e-8)
         for d in range(6):
             if d < 3:
@@ -390,7 +453,7 @@ class PhysicsModel:
                 w = np.zeros(3)
                 w[d - 3] = eps[d]
                 moved = Pose(kin.p, Rotation.from_rotvec(w).as_matrix() @ kin.R)
-            G[:, :, d] = (self._observe(meas, (params, geom, moved, cube_home)) - A) / eps[d]
+            G[:, :, d] = (self._paths(meas, (params, geom, moved, cube_home))[0] - path) / eps[d]
         return np.einsum("nad,ndj->naj", G, dpose[inv])
 
 

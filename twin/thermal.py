@@ -2,9 +2,9 @@
 
 Nodes are parts with a heat capacity (J/K) joined by conductances (W/K); the room air, the
 Peltier-stabilised interferometer supports and the heat sources (motors, coils) are inputs.
-Temperature sensors are nodes too: a small capacity glued to its part and leaking a little to
-the air, so a sensor lags its part and misses part of its gradient to the room (the reason the
-seeds' temperature derivatives help).  The network is linear, C dT/dt = -K T + F u, and is
+Temperature sensors with a real contact (effect ``sensor_contact``) are nodes too: a small
+capacity glued to its part and leaking a little to the air, so a sensor lags its part and misses
+part of its gradient to the room (the reason the seeds' temperature derivatives help).  The network is linear, C dT/dt = -K T + F u, and is
 integrated exactly (zero-order hold on a fixed grid) in its modal coordinates: with
 K V = C V diag(lam) and V^T C V = I every mode is a first-order filter (scipy.signal.lfilter),
 so three days at 1 s steps take milliseconds, and integrating in pieces (``ThermalState``,
@@ -51,28 +51,25 @@ SUPPORTS = ("support_x", "support_y", "support_z")
 SUPPORT_LINKS = (("support_x", "table", 3.5), ("support_y", "table", 3.5), ("support_z", "table", 3.5),
                  ("support_x", "air_x", 0.3), ("support_y", "air_y", 0.3), ("support_z", "air_z", 0.3))
 HEATED = ("motor1", "motor2", "motor3", "coil1", "coil2", "coil3")
-SENSOR_C_J_PER_K = 2.0  # PT100 in its clip: with the glue conductance, tens of seconds of lag
 
 
 @dataclass(frozen=True)
 class Sensor:
-    """A temperature sensor glued on ``part`` (or hanging in air), ``glue_W_per_K`` to it and
-    ``leak_W_per_K`` to the room air (what makes it miss part of the part's gradient)."""
+    """A temperature sensor on ``part`` (a part node or an air node). With ``glue_W_per_K``
+    None its contact is ideal and it reads its part exactly; otherwise it is a node of capacity
+    ``capacity_J_per_K`` joined to its part by ``glue_W_per_K`` and to the room air by
+    ``leak_W_per_K``, so it lags its part and misses part of its gradient to the room (the
+    effect ``sensor_contact`` sets these)."""
     name: str
     part: str
-    glue_W_per_K: float = 0.04
-    leak_W_per_K: float = 0.002
+    glue_W_per_K: float | None = None
+    leak_W_per_K: float = 0.0
+    capacity_J_per_K: float = 2.0
 
 
 def sensor_set(names_parts: dict[str, str]) -> tuple[Sensor, ...]:
-    """Sensors from ``{sensor name: part}``; air sensors follow their air node quickly."""
-    out = []
-    for name, part in names_parts.items():
-        if part.startswith("air"):
-            out.append(Sensor(name, part, glue_W_per_K=0.2, leak_W_per_K=0.0))
-        else:
-            out.append(Sensor(name, part))
-    return tuple(out)
+    """Sensors with ideal contact from ``{sensor name: part}``."""
+    return tuple(Sensor(name, part) for name, part in names_parts.items())
 
 
 @dataclass
@@ -90,12 +87,19 @@ class ThermalNetwork:
     """The linear network and its modal decomposition (built once per scenario)."""
 
     def __init__(self, sensors: tuple[Sensor, ...] = (), supports_on: bool = True):
-        names = [n for n, _, _ in PART_NODES] + [f"sensor:{s.name}" for s in sensors]
+        parts = [p for p, _, _ in PART_NODES]
+        for s in sensors:
+            if s.part not in parts:
+                raise ValueError(f"sensor {s.name!r}: unknown part {s.part!r}; parts: {parts}")
+        glued = [s for s in sensors if s.glue_W_per_K is not None]
+        names = parts + [f"sensor:{s.name}" for s in glued]
         self.nodes = tuple(names)
         self.index = {n: i for i, n in enumerate(names)}
         self.sensors = sensors
+        # a sensor with ideal contact is its part's temperature, not a node of its own
+        self.aliases = {f"sensor:{s.name}": s.part for s in sensors if s.glue_W_per_K is None}
         n = len(names)
-        C = np.array([c for _, c, _ in PART_NODES] + [SENSOR_C_J_PER_K] * len(sensors))
+        C = np.array([c for _, c, _ in PART_NODES] + [s.capacity_J_per_K for s in glued])
         K = np.zeros((n, n))
         self.inputs = ("room",) + SUPPORTS + HEATED
         F = np.zeros((n, len(self.inputs)))
@@ -116,10 +120,7 @@ class ThermalNetwork:
             if supports_on:
                 K[self.index[node], self.index[node]] += g
                 F[self.index[node], self.inputs.index(sup)] += g
-        for s in sensors:
-            if s.part not in self.index:
-                raise ValueError(f"sensor {s.name!r}: unknown part {s.part!r}; parts: "
-                                 f"{[p for p, _, _ in PART_NODES]}")
+        for s in glued:
             link(f"sensor:{s.name}", s.part, s.glue_W_per_K)
             i = self.index[f"sensor:{s.name}"]
             K[i, i] += s.leak_W_per_K

@@ -5,7 +5,8 @@ Stages, in the order data flows (each effect joins the stages it overrides, twin
    errors drawn from the seeded stream);
 2. environment: room air, pressure, support temperatures on the thermal grid (``environment``);
 3. heat: motor and coil powers from what the campaign did (``heat_sources`` over the Schedule);
-4. thermal network (twin/thermal.py): node and sensor temperatures, integrated up to any time;
+4. thermal network (twin/thermal.py): the sensors' contact with their parts (``thermometers``),
+   node and sensor temperatures, integrated up to any time;
 5. geometry: per-point part temperatures (``part_temperatures``) -> exact kinematics;
 6. load: the wrench (``wrench``: gravity, coils) through the statics -> the platform's pose;
 7. optics: beams, fold mirror and air index (``optics``) -> optical paths and the index the
@@ -90,6 +91,8 @@ class Points:
     params: RobotParams
     home_p: np.ndarray
     pose: Pose | None = None     # kinematic pose, set by the twin before the load stage
+    # a model fitted to measurements: sensor name -> (part, smoothed reading degC, rate K/s)
+    sensor_readings: dict | None = None
 
 
 @dataclass
@@ -120,8 +123,10 @@ class Twin:
         self.home_p = forward(self.geom, np.zeros((1, 3))).p[0]
         self.cube_home = self.home_p + self.geom.cube_offset
         self.sensors = dict(sensors)
-        all_sensors = {**self.sensors, **COMPENSATION_SENSORS}
-        self.network = ThermalNetwork(sensor_set(all_sensors),
+        thermometers = sensor_set({**self.sensors, **COMPENSATION_SENSORS})
+        for e in self.effects:
+            thermometers = e.thermometers(thermometers)
+        self.network = ThermalNetwork(thermometers,
                                       supports_on="peltier_supports" in self.names)
         # campaign-independent environment on the whole grid
         t_grid = -warmup_s + GRID_S * np.arange(int(np.ceil((horizon_s + warmup_s) / GRID_S)) + 2)
@@ -167,7 +172,9 @@ class Twin:
         i = np.clip(np.floor(x).astype(int), 0, self.t_grid.size - 2)
         f = (x - i)[:, None]
         T = self._T[i] * (1 - f) + self._T[i + 1] * f
-        return {name: T[:, j] for j, name in enumerate(self.network.nodes)}
+        out = {name: T[:, j] for j, name in enumerate(self.network.nodes)}
+        out.update({alias: out[part] for alias, part in self.network.aliases.items()})
+        return out
 
     def points(self, t_s, q, currents_A) -> Points:
         t_s = np.atleast_1d(np.asarray(t_s, dtype=np.float64))

@@ -16,11 +16,12 @@ from .magnetic_force import MagneticForce
 from .motor_heating import MotorHeating
 from .peltier_supports import PeltierSupports
 from .room_climate import RoomClimate
+from .sensor_contact import SensorContact
 from .thermal_expansion import ThermalExpansion
 
 LIBRARY: dict[str, type[Effect]] = {cls.name: cls for cls in (
     GeometricErrors, ThermalExpansion, GravitySag, MagneticForce, LoopDrift, AirRefraction,
-    BeamMisalignment, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
+    BeamMisalignment, SensorContact, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
 
 
 def make_effect(name: str, values: dict | None = None, where: str = "effects",

@@ -1,7 +1,6 @@
 """The air's refractive index along each beam and the interferometer's own compensation."""
 from __future__ import annotations
 
-import numpy as np
 
 from twin.instruments.optics import air_index
 

@@ -10,7 +10,8 @@ index constant). Adding an effect = one module in twin/effects/ + one line in LI
 
 The same effect is also a term of a physics model fitted to measurements (calibration/physics.py):
 there the stages that act on the robot (``robot``, ``part_temperatures``, ``wrench``, ``optics``)
-are evaluated on conditions taken from the data (sensor temperatures, motor coordinates, coil
+and the sensors' reading of the parts (``sensed_parts``) are evaluated on conditions taken from
+the data (sensor temperatures, motor coordinates, coil
 currents) with ``rng=None`` (nothing random), and the parameters declared with a ``fit_scale``
 are the ones a fit adjusts, starting from ``fit_start`` (the effect's "not yet known" value, e.g.
 zero misalignment) or the default. Effects that only act through the thermal network
@@ -45,7 +46,7 @@ class Parameter:
         return np.shape(self.default)
 
 
-MODEL_STAGES = ("robot", "part_temperatures", "wrench", "optics")
+MODEL_STAGES = ("robot", "sensed_parts", "part_temperatures", "wrench", "optics")
 
 
 class Effect:
@@ -105,6 +106,17 @@ class Effect:
         """Heat powers (W) by network node on the grid times, from what the campaign did
         (``schedule``: moves and coil currents, twin/world.py)."""
         return {}
+
+    def thermometers(self, sensors: tuple) -> tuple:
+        """The thermal network's sensors (twin.thermal.Sensor: how each is coupled to its part
+        and to the air; ideal without an effect) -> changed sensors."""
+        return sensors
+
+    def sensed_parts(self, points) -> dict | None:
+        """Model side only: the temperature (degC) of the part under each sensor, by sensor
+        name, from the sensors' smoothed readings and rates (``points.sensor_readings``), or
+        None (the part is taken at its sensor's reading)."""
+        return None
 
     def part_temperatures(self, points) -> dict | None:
         """Per-point part temperatures (degC) that scale the geometry, or None."""

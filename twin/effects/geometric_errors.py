@@ -2,7 +2,6 @@
 identifies) plus, in the twin, a seeded random draw once per robot."""
 from __future__ import annotations
 
-import numpy as np
 
 from .base import Effect, Parameter
 
