@@ -221,3 +221,100 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             break
         effects = effects + [d["missing_effect"]]
     return ladder, diagnoses, fits
+
+
+def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "DATA") -> dict:
+    """The black-box view of a stepwise model (a DGM): which feature family of the calibration
+    library its validation residual still correlates with.
+
+    The candidate families are those of the complete thermal preset on the data's structure
+    sensors (geometric, temperatures, geometric x temperature, temperature rates and
+    accelerations) and, when the force varies, force and geometric x force. For each family
+    and axis the residual (measurement minus model, zeros re-estimated on the calibration rows)
+    is regressed on the family's terms over the calibration rows (session means removed); the
+    pooled F test, the change of BIC and the explained fraction of the validation residual's
+    power decide as in ``diagnose`` (p < ALPHA, BIC falls, explains >= MIN_EXPLAINED). A family
+    with terms in the model can still be significant: stepwise left some of its terms out.
+    ``unexplained`` lists the recorded variables the residual depends on, as for a physics
+    model."""
+    from .compare import evaluate
+    from .errors import MissingColumnsError
+    from .features import (JOINT_INPUTS, FeatureSet, Product, force_powers, geometric,
+                           thermal_preset)
+    from .models import base_variables, thermal_sensors
+
+    ev = evaluate(df, meta, model)
+    meas = ev.meas
+    res = -ev.residual_m                                   # measurement minus model (m)
+    sensors = list(model.sensors_)
+    if not sensors:
+        try:
+            sensors = thermal_sensors(meas.df, meta)
+        except MissingColumnsError:
+            sensors = []
+    families = list(thermal_preset(sensors).families) if sensors else [geometric(JOINT_INPUTS)]
+    if "F_N" in meas.df and np.ptp(meas.df["F_N"].to_numpy(dtype=np.float64)) > 0:
+        force = force_powers(3)
+        families += [force, Product(geometric(JOINT_INPUTS), force, name="geometric x force")]
+    needed = [v for f in families for t in f.terms() for v in t.variables]
+    values = base_variables(meas.df, dict.fromkeys(needed), sensors, model.T_ref_K,
+                            model.window_s)
+    kept = {t.name for o in model.outputs_ for t in o.terms}
+    family_of = dict(zip(model.features_.names, model.features_.family_of()))
+    in_model = {family_of[n] for n in kept if n in family_of}
+    n_model_terms = len(kept)
+    ranking = []
+    for fam in families:
+        X = FeatureSet([fam], name=fam.name).matrix(values)
+        rss0 = rss1 = 0.0
+        rank = n = 0
+        after = res.copy()
+        for k in range(3):
+            for g in np.unique(meas.group[:, k][meas.group[:, k] >= 0]):
+                rows = (meas.group[:, k] == g) & np.isfinite(res[:, k]) & np.all(np.isfinite(X), axis=1)
+                cal = rows & meas.cal
+                if cal.sum() <= X.shape[1] + 1:
+                    continue
+                Xbar, rbar = X[cal].mean(axis=0), res[cal, k].mean()
+                scale = X[cal].std(axis=0)
+                scale[scale == 0] = 1.0
+                Xc = (X[cal] - Xbar) / scale
+                rc = res[cal, k] - rbar
+                coef, _, rk, _ = np.linalg.lstsq(Xc, rc, rcond=None)
+                rss0 += float(rc @ rc)
+                rss1 += float(np.sum((rc - Xc @ coef) ** 2))
+                rank += int(rk)
+                n += int(cal.sum()) - 1
+                after[rows, k] = res[rows, k] - ((X[rows] - Xbar) / scale) @ coef
+        val = meas.val[:, None] & np.isfinite(res)
+        p_before, p_after = float(np.sum(res[val] ** 2)), float(np.sum(after[val] ** 2))
+        df2 = max(n - rank - n_model_terms, 1)
+        if rank and rss1 > 0 and rss0 > rss1:
+            p_value = float(stats.f.sf(((rss0 - rss1) / rank) / (rss1 / df2), rank, df2))
+        else:
+            p_value = 1.0
+        d_bic = (n * math.log(max(rss1, 1e-300) / max(rss0, 1e-300)) + rank * math.log(max(n, 1))
+                 if n else 0.0)
+        explained = 1.0 - p_after / p_before if p_before > 0 else 0.0
+        fig = figures_nm(after, meas.val)
+        ranking.append({"family": fam.name, "n_terms": len(fam), "in_model": fam.name in in_model,
+                        "explained_fraction": explained,
+                        "val_err90_after_nm": fig["all"]["err_p90"],
+                        "p_value": p_value, "delta_bic": d_bic,
+                        "significant": bool(p_value < ALPHA and d_bic < 0
+                                            and explained >= MIN_EXPLAINED)})
+    ranking.sort(key=lambda c: (not c["significant"], -c["explained_fraction"]))
+    fig = figures_nm(res, meas.val)
+    best = next((c for c in ranking if c["significant"]), None)
+    dependence = residual_dependence(meas.df, np.where(meas.val[:, None], res, np.nan))
+    names = sorted({d["variable"] for d in dependence})
+    message = (f"the residual correlates with the {best['family']!r} family (explains "
+               f"{100 * best['explained_fraction']:.0f} % of the validation residual)"
+               if best else "no feature family explains the residual significantly")
+    message += (f"; it depends on: {', '.join(names[:8])}" if names else
+                "; it does not depend on any recorded variable (noise-like)")
+    return {"model": "DGM", "features": ev.description["features"],
+            "val_err90_nm": fig["all"]["err_p90"],
+            "val_err90_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
+            "ranking": ranking, "correlated_family": best["family"] if best else None,
+            "unexplained": {"depends_on": dependence[:10], "message": message}}

@@ -21,9 +21,12 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("-o", "--output", help="write the fitted model (TOML) here")
     p.set_defaults(func=run_fit)
-    d = sub.add_parser("diagnose", help="rank the library effects a fitted model lacks")
+    d = sub.add_parser("diagnose", help="rank the library effects a fitted model lacks (or, for "
+                       "a stepwise DGM, the feature families its residual correlates with)")
     d.add_argument("data", help="dataset (.parquet, or .csv with its .meta.json)")
-    d.add_argument("--model", required=True, help="fitted model (TOML from `deltatwin fit -o`)")
+    d.add_argument("--model", required=True,
+                   help="fitted physics model (TOML from `deltatwin fit -o`) or stepwise DGM "
+                        "(JSON from `deltatwin calibrate -o`)")
     d.add_argument("--json", action="store_true", help="print one JSON object")
     d.set_defaults(func=run_diagnose)
 
@@ -84,6 +87,8 @@ def run_diagnose(args) -> int:
     from twin.dataset import read_dataset
 
     df, meta = read_dataset(args.data)
+    if str(args.model).lower().endswith(".json"):
+        return _diagnose_stepwise(args, df, meta)
     model, doc = load_fitted(args.model)
     # refine from the file's values on this dataset's calibration rows (its zeros are new)
     fit = PhysicsFit(model.names, start=model.values(),
@@ -105,4 +110,24 @@ def run_diagnose(args) -> int:
         print(f"\nmissing effect: {d['missing_effect']}; add it with:\n  {d['next_command']}")
     else:
         print("\n" + d["unexplained"]["message"])
+    return 0
+
+
+def _diagnose_stepwise(args, df, meta) -> int:
+    """The black-box view: a DGM's residual against the feature families."""
+    from calibration.compare import load_model_file
+    from calibration.diagnosis import diagnose_families
+
+    d = diagnose_families(df, meta, load_model_file(args.model), str(args.data))
+    if args.json:
+        print(json.dumps(d, default=_json_default))
+        return 0
+    print(f"stepwise DGM ({d['features']}): validation error (90 %) {d['val_err90_nm']:.1f} nm")
+    print(f"  {'feature family':<28} {'terms':>5} {'in model':>9} {'explains':>9} "
+          f"{'val err90 after':>16} {'p-value':>9}  significant")
+    for c in d["ranking"]:
+        print(f"  {c['family']:<28} {c['n_terms']:5d} {'yes' if c['in_model'] else 'no':>9} "
+              f"{100 * c['explained_fraction']:8.1f}% {c['val_err90_after_nm']:13.1f} nm "
+              f"{c['p_value']:9.2g}  {'yes' if c['significant'] else 'no'}")
+    print("\n" + d["unexplained"]["message"])
     return 0

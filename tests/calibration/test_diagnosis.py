@@ -169,3 +169,35 @@ def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
     r = run("fit", data, "--effects", "geometric_errors,nope", "-o", tmp_path / "bad.toml")
     assert r.returncode == 2 and "unknown effect 'nope'" in r.stderr
     assert not (tmp_path / "bad.toml").exists()
+
+
+def test_stepwise_residual_is_traced_to_its_feature_family(tmp_path):
+    """The black-box view: a geometric-only DGM on thermal data misses the temperatures; the
+    complete DGM leaves no family to blame; the CLI gives the same on a model.json."""
+    from calibration.diagnosis import diagnose_families
+    from calibration.features import thermal_ladder
+    from calibration.models import DGM, thermal_sensors
+    from twin.dataset import write_dataset
+
+    sc = Scenario.load("paper-thermal")
+    df, meta = sc.simulate(0.1)
+    rungs = dict(thermal_ladder(thermal_sensors(df, meta)))
+    geometric = DGM(features=rungs["geometric only"]).fit(df, meta)
+    d = diagnose_families(df, meta, geometric)
+    top = d["ranking"][0]
+    assert d["correlated_family"] == "temperatures" == top["family"]
+    assert top["significant"] and not top["in_model"] and top["explained_fraction"] > 0.9, top
+    assert top["val_err90_after_nm"] < 0.2 * d["val_err90_nm"]
+    geometric_row = next(c for c in d["ranking"] if c["family"] == "geometric")
+    assert geometric_row["in_model"] and not geometric_row["significant"]
+
+    complete = DGM(features=rungs["C: complete (+ derivatives)"]).fit(df, meta)
+    data, model = tmp_path / "th.parquet", tmp_path / "dgm.json"
+    write_dataset(df, meta, data)
+    complete.save(model)
+    out = subprocess.run([sys.executable, "-m", "deltatwin.cli", "diagnose", str(data), "--model",
+                          str(model), "--json"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout)
+    assert d["model"] == "DGM" and d["correlated_family"] is None
+    assert all(c["in_model"] and not c["significant"] for c in d["ranking"])
