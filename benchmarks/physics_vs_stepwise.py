@@ -15,7 +15,9 @@ rows), then on the same table:
   kept, summed over the axes.
 
 Both also fit one constant per axis (physics: the session zero; stepwise: the intercept), not
-counted on either side. Prints val err90 per axis, the ratio and the two criteria, and the
+counted on either side. The physics model is given the scenario's values of the parameters a
+fit does not adjust (loop geometry, wavelength, sensor glue: what a laboratory measures).
+Prints val err90 per axis, the ratio and the two criteria, and the
 recorded variables the physics fit's validation residual still depends on
 (calibration.diagnosis.residual_dependence), which says where a shortfall comes from:
 
@@ -55,8 +57,12 @@ def main(argv=None) -> int:
           f"{time.perf_counter() - t0:.1f} s; noise floor (val err90 of the true model) "
           + ", ".join(f"{a} {v:.1f}" for a, v in floor.items()) + " nm")
 
+    # the laboratory's known constants (loop geometry, wavelength, ...): the scenario's values
+    # of the parameters a fit does not adjust, as a researcher would measure them
+    known = {e.name: {p.name: e.values[p.name] for p in e.parameters if p.fit_scale is None}
+             for e in sc.effects if e.name in effects}
     t0 = time.perf_counter()
-    fit = PhysicsFit(effects).fit(df, meta)
+    fit = PhysicsFit(effects, start=known).fit(df, meta)
     t_phys = time.perf_counter() - t0
     ident = fit.identifiability_
     n_phys = ident["n_identified_directions"]

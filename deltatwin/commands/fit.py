@@ -18,6 +18,10 @@ def register(sub) -> None:
     p.add_argument("--noise-nm", type=float, default=5.0,
                    help="the readings' noise (nm): directions the data determine to better than "
                         "a third of their parameters' typical size are fitted (default 5)")
+    p.add_argument("--set", action="append", default=[], metavar="EFFECT.PARAM=VALUE",
+                   help="a known constant of the laboratory, SI units, comma-separated for a "
+                        "vector, e.g. loop_drift.frame_arm_m=-0.6,0 (repeatable; a free "
+                        "parameter set this way is the fit's start)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("-o", "--output", help="write the fitted model (TOML) here")
     p.set_defaults(func=run_fit)
@@ -44,12 +48,33 @@ def _json_default(x):
     raise TypeError(type(x).__name__)
 
 
+def _known_values(settings: list[str]) -> dict:
+    """{effect: {parameter: value}} from ``--set EFFECT.PARAM=VALUE`` options."""
+    from calibration.physics import FitError
+
+    out: dict = {}
+    for item in settings:
+        key, sep, text = item.partition("=")
+        effect, dot, param = key.strip().partition(".")
+        if not (sep and dot and effect and param and text.strip()):
+            raise FitError(f"--set {item!r}: expected EFFECT.PARAM=VALUE, e.g. "
+                           "loop_drift.frame_arm_m=-0.6,0")
+        try:
+            numbers = [float(x) for x in text.split(",")]
+        except ValueError:
+            raise FitError(f"--set {item!r}: {text!r} is not a number or a comma-separated "
+                           "list of numbers (SI units)") from None
+        out.setdefault(effect, {})[param] = numbers[0] if len(numbers) == 1 else numbers
+    return out
+
+
 def run_fit(args) -> int:
     from calibration.physics import PhysicsFit, fitted_toml
     from twin.dataset import read_dataset
 
+    known = _known_values(args.set)
     df, meta = read_dataset(args.data)
-    fit = PhysicsFit(_effects(args.effects), noise_nm=args.noise_nm,
+    fit = PhysicsFit(_effects(args.effects), start=known or None, noise_nm=args.noise_nm,
                      progress=not args.json).fit(df, meta, where=str(args.data))
     if args.output:
         atomic_write_text(args.output, fitted_toml(fit, str(args.data)))

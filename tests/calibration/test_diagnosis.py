@@ -169,6 +169,14 @@ def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
     r = run("fit", data, "--effects", "geometric_errors,nope", "-o", tmp_path / "bad.toml")
     assert r.returncode == 2 and "unknown effect 'nope'" in r.stderr
     assert not (tmp_path / "bad.toml").exists()
+    # known constants of the laboratory: --set EFFECT.PARAM=VALUE
+    r = run("fit", data, "--effects", "gravity_sag", "--set", "gravity_sag.load_factor=2",
+            "--set", "gravity_sag.load_factor=abc", "-o", tmp_path / "bad.toml")
+    assert r.returncode == 2 and "'abc' is not a number" in r.stderr
+    r = run("fit", data, "--effects", "gravity_sag", "--set", "loop_drift.frame_arm_m=-0.6,0",
+            "-o", tmp_path / "bad.toml")
+    assert r.returncode == 2 and "loop_drift" in r.stderr and "not in the model" in r.stderr
+    assert not (tmp_path / "bad.toml").exists()
 
 
 def test_stepwise_residual_is_traced_to_its_feature_family(tmp_path):

@@ -154,3 +154,21 @@ def test_cli_simulate_writes_atomically(tmp_path):
 def test_effect_parameters_validated():
     with pytest.raises(ValueError, match="coil_offset_m"):
         make_effect("magnetic_force", {"coil_offset_m": [0.0, 0.0]})
+
+
+def test_frame_arm_moves_the_robot_by_table_minus_frame_expansion_over_the_arm():
+    """A robot hanging from a frame arm: the loop (heads, fold mirror) moves relative to the
+    base by -(table CTE dT_table - frame CTE dT_frame) * arm, on top of the portal's drift."""
+    n = 3
+    dT = np.array([0.0, 1.0, 2.0])
+    node_T = {"table": 20.0 + dT, "frame": 20.0 + 0.5 * dT}
+    pts = type("P", (), {"node_T": node_T, "support_C": {a: np.full(n, 25.0) for a in "xyz"}})()
+    moved = {}
+    for arm in ((0.0, 0.0), (-0.6, 0.0)):
+        optics = Optics.nominal(np.zeros(3), n)
+        make_effect("loop_drift", {"frame_arm_m": arm}).optics(pts, optics)
+        moved[arm] = optics.head["x"]
+    shift = moved[(-0.6, 0.0)] - moved[(0.0, 0.0)]
+    expected_x = -(11.7e-6 * dT - 11.7e-6 * 0.5 * dT) * -0.6
+    np.testing.assert_allclose(shift[:, 0], expected_x, rtol=1e-9, atol=1e-15)   # 1 fm
+    np.testing.assert_array_equal(shift[:, 1:], 0.0)

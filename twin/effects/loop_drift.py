@@ -10,10 +10,16 @@ from .base import Effect, Parameter
 class LoopDrift(Effect):
     name = "loop_drift"
     summary = ("The table expands in its plane about the robot's axis, the frame lifts the robot's "
-               "base, each support lifts its head; heads and the Z fold mirror move relative to "
-               "the base by CTE * dT * length of every leg of the loop.")
+               "base (and, when the robot hangs from an arm of the frame, moves it sideways by "
+               "table minus frame expansion over the arm), each support lifts its head; heads and "
+               "the Z fold mirror move relative to the base by CTE * dT * length of every leg of "
+               "the loop.")
     parameters = (
         Parameter("frame_height_m", "m", 0.35, "table top to the robot's base plane", 0.0),
+        Parameter("frame_arm_m", "m", (0.0, 0.0),
+                  "horizontal (x, y) position of the frame's column relative to the robot's axis, "
+                  "the robot hanging from a horizontal arm of the frame; (0, 0): a symmetric "
+                  "portal, no sideways drift"),
         Parameter("table_cte_per_K", "1/K", 11.7e-6, "table (steel)", 0.0, fit_scale=2e-6),
         Parameter("frame_cte_per_K", "1/K", 11.7e-6, "metrology frame (steel)", 0.0,
                   fit_scale=2e-6),
@@ -28,7 +34,11 @@ class LoopDrift(Effect):
         dT_frame = points.node_T["frame"] - self.reference_C
         height = self.frame_height_m + position[:, 2]            # support height above the table
         d = np.zeros_like(position)
-        d[:, :2] = self.table_cte_per_K * dT_table[:, None] * position[:, :2]
+        # the column's foot moves with the table, the arm from the column to the robot expands
+        # with the frame: the base moves by (table - frame expansion) * arm, the loop the other way
+        base_shift = ((self.table_cte_per_K * dT_table - self.frame_cte_per_K * dT_frame)[:, None]
+                      * np.asarray(self.frame_arm_m))
+        d[:, :2] = self.table_cte_per_K * dT_table[:, None] * position[:, :2] - base_shift
         d[:, 2] = (self.support_cte_per_K * (support_C - self.reference_C) * height
                    - self.frame_cte_per_K * dT_frame * self.frame_height_m)
         return d
