@@ -32,13 +32,12 @@ import pandas as pd
 from models.geometry import build_geometry
 from models.params import RobotParams, load_params
 from twin.dataset import AXES, temperature_columns
-from twin.effects import LIBRARY
 from twin.kinematics import forward
 
 from .errors import CalibrationInputError
 from .features import DEFAULT_WINDOW_S, temperature_variables
-from .physics import (Measurements, PhysicsModel, figures_nm, group_offsets, load_fitted,
-                      measurements, residuals)
+from .physics import (Measurements, PhysicsModel, check_sensors, figures_nm, group_offsets,
+                      load_fitted, measurements, residuals)
 
 __all__ = ["ModelEvaluation", "evaluate", "compare", "load_model_file", "dgm_reading_m",
            "RESIDUAL_SIGN"]
@@ -112,13 +111,7 @@ def evaluate(df: pd.DataFrame, meta: dict | None, model, params=None) -> ModelEv
     df = df.reset_index(drop=True)
     if isinstance(model, PhysicsModel):
         meas = measurements(df, meta, model.params)
-        thermal = [n for n in model.names if "part_temperatures" in LIBRARY[n].model_stages()]
-        if thermal and not meas.sensors:
-            raise CalibrationInputError(
-                f"the model's effect(s) {thermal} act through the part temperatures, but the "
-                "dataset's metadata names no temperature sensor ('sensors': sensor -> part; "
-                f"temperature columns present: {temperature_columns(df)}): map them in the "
-                "metadata (.meta.json beside a CSV)")
+        check_sensors(model.names, meas)
         pred = model.predict_path(meas)
         robot = model.params
         desc = {"kind": "physics", "effects": list(model.names), "n_parameters": model.n_free,

@@ -40,6 +40,7 @@ from models.geometry import build_geometry
 from models.params import RobotParams, load_params
 from deltatwin.files import toml_value
 from twin.campaign import COSINE_ANGLES
+from twin.dataset import temperature_columns
 from twin.effects import LIBRARY, EffectError, make_effect
 from twin.instruments.optics import AXES, return_factor
 from twin.kinematics import Pose, forward
@@ -155,6 +156,20 @@ def node_temperatures(sensor_T: dict, sensors: dict, T_ref_C: float, n: int) -> 
     for a in AXES:   # the interferometer's own air sensor sits in its beam's air
         out[f"sensor:comp_{a}"] = out[f"air_{a}"]
     return out
+
+
+def check_sensors(effects, meas: "Measurements", where: str = "data") -> None:
+    """A model whose effects read temperatures needs the data's sensors mapped to parts: without
+    the map every part would sit at the reference temperature and the effect would silently do
+    nothing."""
+    thermal = [n for n in effects if LIBRARY[n].reads_temperatures]
+    if thermal and not meas.sensors:
+        present = temperature_columns(meas.df)
+        raise CalibrationInputError(
+            f"{where}: the model's effect(s) {thermal} read part temperatures, but the dataset's "
+            f"metadata names no temperature sensor ('sensors': sensor -> part; temperature "
+            f"columns present: {present}): map them in the metadata (the .meta.json beside a "
+            "CSV, docs/data-format.md)")
 
 
 def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
@@ -542,6 +557,7 @@ class PhysicsFit:
         """Fit to the calibration rows of ``df`` (``where`` names the data in errors)."""
         model = PhysicsModel(self.effects, self.params, self.start)
         meas = meas or measurements(df, meta, model.params, where)
+        check_sensors(model.names, meas, where)
         cal = meas.cal
         n_cal = int(np.sum((meas.group >= 0) & cal[:, None]))
         p = model.n_free
@@ -711,6 +727,9 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
              "`deltatwin compare DATA --model THIS`",
              "[model]", f"effects = {toml_value(fit.effects)}", f"data = {toml_value(data)}",
              f"noise_nm = {fit.noise_nm!r}", f"identifiable_ratio = {fit.identifiable_ratio!r}",
+             # the sensor -> part map the temperatures were taken from (the data's metadata)
+             "sensors = { " + ", ".join(f"{toml_value(s)} = {toml_value(p)}" for s, p in
+                                        fit.measurements_.sensors.items()) + " }",
              "", "[fit]", f"val_err90_nm = {toml_value(_or_nan(fit.val_['all']['err_p90']))}",
              f"cal_err90_nm = {toml_value(_or_nan(fit.cal_['all']['err_p90']))}",
              f"n_parameters = {fit.model_.n_free}",

@@ -111,6 +111,7 @@ def test_fitted_model_file_round_trips(tmp_path):
     assert model.names == ["gravity_sag"]
     np.testing.assert_array_equal(model.theta(), fit.model_.theta())
     assert abs(doc["fit"]["val_err90_nm"] - fit.val_["all"]["err_p90"]) < 1e-9
+    assert doc["model"]["sensors"] == meta["sensors"]          # where the temperatures came from
     # the fitted load factor is the hidden scenario's
     truth = next(e for e in meta["truth"]["effects"] if e["name"] == "gravity_sag")
     assert abs(model.theta()[0] - truth["parameters"]["load_factor"]["value"]) < 0.1
@@ -163,6 +164,11 @@ def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
     r = run("fit", ghost, "--effects", "thermal_expansion", "-o", tmp_path / "g.toml")
     assert r.returncode == 2 and str(ghost) in r.stderr and "T_ghost_C" in r.stderr
     assert not (tmp_path / "g.toml").exists()
+    unmapped = tmp_path / "unmapped.csv"        # a lab CSV whose sidecar maps no sensor
+    write_dataset(df, dict(meta, sensors={}), unmapped)
+    r = run("fit", unmapped, "--effects", "loop_drift", "-o", tmp_path / "u.toml")
+    assert r.returncode == 2 and "names no temperature sensor" in r.stderr, r.stderr
+    assert ".meta.json" in r.stderr and not (tmp_path / "u.toml").exists()
     (tmp_path / "not_a_model.toml").write_text("[scenario]\nname = 'x'\n")
     r = run("diagnose", data, "--model", tmp_path / "not_a_model.toml")
     assert r.returncode == 2 and "not a fitted physics model" in r.stderr

@@ -9,6 +9,7 @@ from .base import Effect, Parameter
 
 class AirRefraction(Effect):
     name = "air_refraction"
+    reads_temperatures = True
     summary = ("The beam's air index (Edlén/Birch-Downs) follows its air temperature, the "
                "barometric pressure and humidity; the instrument divides by an index computed "
                "from its own air sensor and a fixed pressure, so sensor lag and offset, the air "

@@ -55,6 +55,8 @@ class Effect:
     name: ClassVar[str]
     summary: ClassVar[str]
     parameters: ClassVar[tuple[Parameter, ...]] = ()
+    # its model form reads part or air temperatures (in measurements: the data's sensors)
+    reads_temperatures: ClassVar[bool] = False
 
     def __init__(self, where: str = "effect", check_minimum: bool = True, **values):
         known = {p.name: p for p in self.parameters}

@@ -9,6 +9,7 @@ from .base import Effect, Parameter
 
 class LoopDrift(Effect):
     name = "loop_drift"
+    reads_temperatures = True
     summary = ("The table expands in its plane about the robot's axis, the frame lifts the robot's "
                "base (and, when the robot hangs from an arm of the frame, moves it sideways by "
                "table minus frame expansion over the arm), each support lifts its head; heads and "

@@ -9,6 +9,7 @@ from .base import Effect, Parameter
 
 class SensorContact(Effect):
     name = "sensor_contact"
+    reads_temperatures = True
     summary = ("Each thermometer is a small mass glued on its part and open to the room air: "
                "it lags the part by capacity / glue and reads leak / (glue + leak) of the way "
                "from the part to the room (an air sensor follows its air within seconds). A "

@@ -10,6 +10,7 @@ PARTS = ("base", "arms", "rods", "platform")
 
 class ThermalExpansion(Effect):
     name = "thermal_expansion"
+    reads_temperatures = True
     summary = ("Base, each arm, each rod pair and the platform take their node temperature from "
                "the thermal network and scale their joint geometry by 1 + CTE (T - T_ref); the "
                "kinematics are solved exactly with the per-point geometry.")
