@@ -287,10 +287,11 @@ class PhysicsModel:
             if n not in LIBRARY:
                 make_effect(n, where=where)          # raises with a suggestion
             if not LIBRARY[n].model_stages():
-                raise FitError(f"{where}: effect {n!r} acts only through the thermal network "
-                               "(heat or environment); in measurements its consequences arrive "
-                               "through the temperature sensors, so model what it drives "
-                               f"instead; model effects: {model_effects()}")
+                raise FitError(f"{where}: effect {n!r} has no model form: it acts through "
+                               "the thermal network (heat or environment; in measurements its "
+                               "consequences arrive through the temperature sensors, so model "
+                               "what it drives instead) or at random (servo settling: part of "
+                               f"the noise floor); model effects: {model_effects()}")
         unknown = sorted(set(values) - set(names))
         if unknown:
             raise FitError(f"{where}: values given for effect(s) {unknown} not in the model")

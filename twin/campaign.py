@@ -241,8 +241,9 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
                       dead_path: dict, noise_free: bool = False):
     """The same campaign as ``run_campaign`` over the simulated instruments, vectorised.
     With ``noise_free`` also the dataset a perfect instrument would have given on the same
-    timeline (no noise, no quantisation, exact angles): ``(df, df_noise_free)``. The
-    difference is the measurement noise, from which the dataset's noise floor follows."""
+    timeline (no noise, no quantisation, exact angles; motors at their commanded angles):
+    ``(df, df_noise_free)``. The difference is what no model can predict, from which the
+    dataset's noise floor follows."""
     s = settings
     lab = SimulatedLab(twin, s)                 # for its noise banks (same streams, same layout)
     n, R = len(plan), plan.readings
@@ -321,10 +322,13 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
     # zeros: truth at home with the currents then in force (zero)
     zero_ac = np.zeros((n, 4))
     zero_ac_exact = np.zeros((n, 4))
-    zero_path = {}
+    zero_path, zero_path_still = {}, {}
     for tz, k_sess, ac_row, idx in zero_events:
         truth = twin.truth(twin.points([tz], np.zeros((1, 3)), np.zeros((1, 3))))
         zero_path[k_sess] = {a: float(truth.optical_path_m[a][0]) for a in AXES}
+        if noise_free and twin.settling is not None:
+            still = twin.truth(twin.points([tz], np.zeros((1, 3)), np.zeros((1, 3)), settled=False))
+            zero_path_still[k_sess] = {a: float(still.optical_path_m[a][0]) for a in AXES}
         ang, _ = autocollimator_values(truth, lab.ac_bank.take(ac_row, ac_row + 1), s)
         zero_ac[idx] = ang[0]
         zero_ac_exact[idx] = [truth.angles_rad[c][0] for c in AC_CHANNELS]
@@ -338,7 +342,7 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
     scan_k = np.floor(t_s / s.scan_period_s).astype(int)
     T = scan_temperatures(twin, s, lab.T_bank, lab.sensors, scan_k)
 
-    def dataset(noise, ac_noise, zero_ac, s):
+    def dataset(noise, ac_noise, zero_ac, s, truth_mid=truth_mid, zero_path=zero_path):
         ifm = np.full((n, R, 3), np.nan)
         ifm_std = np.full((n, R, 3), np.nan)
         flat, flat_std = ifm.reshape(-1, 3), ifm_std.reshape(-1, 3)   # views: rows = readings
@@ -362,5 +366,11 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
         return df
     perfect = dataclasses.replace(s, resolution_m=0.0, ac_resolution_rad=0.0,
                                   ac_range_rad=np.inf)
-    clean = dataset(np.zeros_like(noise), np.zeros_like(ac_noise), zero_ac_exact, perfect)
+    if twin.settling is None:
+        clean = dataset(np.zeros_like(noise), np.zeros_like(ac_noise), zero_ac_exact, perfect)
+    else:
+        # the true model cannot know where the controllers settled: the noise floor counts it
+        still = twin.truth(twin.points(t_mid.reshape(-1), qr, Ir, settled=False))
+        clean = dataset(np.zeros_like(noise), np.zeros_like(ac_noise), zero_ac_exact, perfect,
+                        still, zero_path_still)
     return df, clean

@@ -28,11 +28,13 @@ from models.params import RobotParams
 from .effects import Effect
 from .instruments.optics import AXES, Optics, autocollimator_angles, optical_path
 from .kinematics import Pose, forward
+from .noise import NoiseBank
 from .statics import Statics
 from .thermal import GRID_S, SUPPORTS, Inputs, ThermalNetwork, sensor_set
 
+# a new stream goes at the end: a child's draws depend only on its position
 STREAMS = ("robot", "environment", "interferometers", "autocollimators", "thermometers",
-           "campaign")
+           "campaign", "servo")
 COMPENSATION_SENSORS = {f"comp_{a}": f"air_{a}" for a in AXES}
 
 
@@ -71,6 +73,14 @@ class Schedule:
         inside = (k >= 0) & (t < end[np.maximum(k, 0)])
         out[inside] = share[k[inside]]
         return out
+
+    def settling_events(self, t: np.ndarray) -> np.ndarray:
+        """(n,) how many times the position controller has settled by times t: at the end of
+        every move and at every change of the coil currents (the load)."""
+        ends = np.sort([m[1] for m in self.moves])
+        changes = np.sort(self.current_t[1:])
+        return (np.searchsorted(ends, t, side="right")
+                + np.searchsorted(changes, t, side="right")).astype(np.int64)
 
     def currents(self, t: np.ndarray) -> np.ndarray:
         """(n,3) coil currents (A) in force at times t."""
@@ -122,6 +132,12 @@ class Twin:
         self.statics = Statics(params, self.geom)
         self.home_p = forward(self.geom, np.zeros((1, 3))).p[0]
         self.cube_home = self.home_p + self.geom.cube_offset
+        settling = [e for e in self.effects
+                    if type(e).motor_settling is not Effect.motor_settling]
+        # the motors' settled angle errors, row k after the k-th settling event
+        self.settling = NoiseBank(self.rng["servo"], lambda g, n: sum(
+            e.motor_settling(g, n) for e in settling)) if settling else None
+        self.schedule = Schedule()                         # what the campaign did so far
         self.sensors = dict(sensors)
         thermometers = sensor_set({**self.sensors, **COMPENSATION_SENSORS})
         for e in self.effects:
@@ -152,6 +168,7 @@ class Twin:
         if k >= self.t_grid.size:
             raise ValueError(f"time {t_s:.0f} s is beyond the scenario's horizon "
                              f"({self.t_grid[-1]:.0f} s): raise campaign.horizon_s")
+        self.schedule = schedule
         if k <= self._done:
             return
         steps = slice(self._done, k)
@@ -176,14 +193,21 @@ class Twin:
         out.update({alias: out[part] for alias, part in self.network.aliases.items()})
         return out
 
-    def points(self, t_s, q, currents_A) -> Points:
+    def points(self, t_s, q, currents_A, settled: bool = True) -> Points:
+        """Conditions at times ``t_s`` with the motors commanded to ``q`` (n,3) rad and the
+        coils at ``currents_A``; with a settling effect the motors sit where their controller
+        settled after the schedule's last event (``settled=False``: at ``q`` exactly)."""
         t_s = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+        if self.settling is not None and settled:
+            k = self.schedule.settling_events(t_s)
+            q = q + self.settling.take(0, int(k.max()) + 1)[k]
         node_T = self.node_temperatures(t_s)
         env = lambda arr: np.interp(t_s, self.t_grid, arr)
         peltier = "peltier_supports" in self.names
         support_C = {a: env(self.env.supports_C[f"support_{a}"]) if peltier else node_T["table"]
                      for a in AXES}
-        return Points(t_s=t_s, q=np.atleast_2d(q).astype(np.float64),
+        return Points(t_s=t_s, q=q,
                       currents_A=np.atleast_2d(currents_A).astype(np.float64), node_T=node_T,
                       room_C=env(self.env.room_C), pressure_Pa=env(self.env.pressure_Pa),
                       support_C=support_C, params=self.params, home_p=self.home_p)

@@ -43,11 +43,16 @@ def test_force_campaign_layout_and_force_response():
     assert len([c for c in df.columns if c.startswith("T_")]) == 13
     sigma_nm = Scenario.load("paper-force").settings.noise_floor_m * 1e9
     assert meta["truth"]["reading_noise_std_nm"] == pytest.approx(sigma_nm)
-    # 4 readings averaged per point: the true model's validation error (90 %) is ~1.645 sigma / 2
-    # plus the window-mean white noise
+    # the noise floor counts what no model can predict: the readings' noise (4 readings averaged
+    # per point: ~1.645 sigma / 2 plus the window-mean white noise) and where the motors'
+    # controllers settled (servo_settling, tens of nm at the platform)
     floor = meta["truth"]["noise_floor_nm"]
     assert set(floor) == {"x", "y", "z"}
-    assert all(0.6 * sigma_nm < v < 1.6 * sigma_nm for v in floor.values()), (floor, sigma_nm)
+    still = Scenario.load("paper-force")
+    still.effects = [e for e in still.effects if e.name != "servo_settling"]
+    floor_still = still.simulate(1.0)[1]["truth"]["noise_floor_nm"]
+    assert all(0.6 * sigma_nm < v < 1.6 * sigma_nm for v in floor_still.values()), floor_still
+    assert all(floor[a] > 3 * floor_still[a] for a in floor), (floor, floor_still)
     # repulsive, stronger low: 2 N vs 0 N at each position, Y displacement grows as the platform
     # goes down (all q up = arms down)
     g = df.pivot_table(index="pos_id", columns="F_N", values="y_nm")
@@ -172,3 +177,33 @@ def test_frame_arm_moves_the_robot_by_table_minus_frame_expansion_over_the_arm()
     expected_x = -(11.7e-6 * dT - 11.7e-6 * 0.5 * dT) * -0.6
     np.testing.assert_allclose(shift[:, 0], expected_x, rtol=1e-9, atol=1e-15)   # 1 fm
     np.testing.assert_array_equal(shift[:, 1:], 0.0)
+
+
+def test_servo_settling_moves_the_motors_at_each_settling_but_not_the_encoders():
+    """paper-force's controllers settle at a random angle after every move and load change:
+    the platform moves between two settlings at the same target; the encoders read the target."""
+    from twin.instruments.simulated import SimulatedLab
+
+    sc = Scenario.load("paper-force")
+    std = next(e for e in sc.effects if e.name == "servo_settling").angle_std_rad
+    twin, _ = sc.build(0.01)
+    lab = SimulatedLab(twin, sc.settings)
+    inst = lab.instrument_set()
+    q = np.array([0.01, -0.02, 0.015])
+    inst.robot.move_to(q)
+    positions, angles = [], []
+    for I in (0.0, 0.0, 1.0, 0.0) * 50:
+        inst.coils.set_currents(np.full(3, I))
+        inst.clock.sleep(sc.settings.wait_s)
+        twin.advance(lab.t, lab.schedule)
+        pts = twin.points([lab.t], q[None], lab.currents[None])
+        angles.append(pts.q[0] - q)
+        positions.append(twin.truth(twin.points([lab.t], q[None], np.zeros((1, 3)))).pose.p[0])
+        np.testing.assert_array_equal(inst.robot.read_encoders(), q)
+    angles = np.array(angles)
+    assert np.all(np.abs(np.diff(angles, axis=0)) > 0)          # a new angle at each settling
+    assert 0.8 * std < angles.std() < 1.2 * std, (angles.std(), std)
+    spread = np.array(positions).std(axis=0)
+    assert np.all(spread > 5e-9), spread                          # tens of nm at the platform
+    still = twin.points([lab.t], q[None], np.zeros((1, 3)), settled=False)
+    np.testing.assert_array_equal(still.q[0], q)

@@ -17,11 +17,12 @@ from .motor_heating import MotorHeating
 from .peltier_supports import PeltierSupports
 from .room_climate import RoomClimate
 from .sensor_contact import SensorContact
+from .servo_settling import ServoSettling
 from .thermal_expansion import ThermalExpansion
 
 LIBRARY: dict[str, type[Effect]] = {cls.name: cls for cls in (
     GeometricErrors, ThermalExpansion, GravitySag, MagneticForce, LoopDrift, AirRefraction,
-    BeamMisalignment, SensorContact, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
+    BeamMisalignment, SensorContact, ServoSettling, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
 
 
 def make_effect(name: str, values: dict | None = None, where: str = "effects",

@@ -109,6 +109,12 @@ class Effect:
         (``schedule``: moves and coil currents, twin/world.py)."""
         return {}
 
+    def motor_settling(self, rng, n: int) -> np.ndarray | None:
+        """Motor angle errors (n,3) rad where the position controller settles after each of n
+        settling events (a move, a change of the load), drawn from ``rng``; the encoders still
+        read the commanded angles. None: the motors sit at their commanded angles."""
+        return None
+
     def thermometers(self, sensors: tuple) -> tuple:
         """The thermal network's sensors (twin.thermal.Sensor: how each is coupled to its part
         and to the air; ideal without an effect) -> changed sensors."""

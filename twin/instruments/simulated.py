@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twin.noise import NoiseBank
 from twin.world import Schedule, Twin
 
 from .interface import (AngleReading, Autocollimators, Clock, CoilSupply, InstrumentError,
@@ -56,21 +57,6 @@ class InstrumentSettings:
 
     def move_time(self, dq) -> float:
         return self.move_base_s + float(np.max(np.abs(dq))) / self.speed_rad_s
-
-
-class NoiseBank:
-    """Draws of one instrument, row k for its k-th event, produced in fixed blocks from a
-    stream so that rows do not depend on how many are asked at a time."""
-    BLOCK = 4096
-
-    def __init__(self, rng: np.random.Generator, draw):
-        self.rng, self.draw, self.rows = rng, draw, None
-
-    def take(self, start: int, stop: int) -> np.ndarray:
-        while self.rows is None or self.rows.shape[0] < stop:
-            block = self.draw(self.rng, self.BLOCK)
-            self.rows = block if self.rows is None else np.concatenate([self.rows, block])
-        return self.rows[start:stop]
 
 
 def interferometer_bank(rng, s: InstrumentSettings) -> NoiseBank:
