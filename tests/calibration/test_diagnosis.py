@@ -5,7 +5,6 @@ claimed, and the variable it depends on is named."""
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -20,7 +20,7 @@ def williams_fk(geom, q):
     for th in theta:
         c = []
         for i in range(3):
-            e_r, u = geom.radial[i], geom.axis[i]
+            u = geom.axis[i]
             a = geom.elbow_vec[i]
             arm = a * np.cos(th[i]) + np.cross(u, a) * np.sin(th[i])   # u is perpendicular to a
             c.append(geom.B[i] + arm - geom.P0[i].mean(axis=0))
