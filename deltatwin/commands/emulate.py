@@ -75,7 +75,8 @@ def serve(instruments, *, name: str, directory: Path | None, ports_out: Path | N
                 print(f"  ports file: {ports_out}")
             print("ready (Ctrl-C to stop)")
         sys.stdout.flush()
-        stop.wait()
+        while not stop.wait(0.5):      # wakes for the signal handlers twice a second
+            pass
     return 0
 
 
@@ -84,7 +85,10 @@ def run(args) -> int:
         raise ValueError(f"--timeout-s must be > 0, got {args.timeout_s}")
     sc, instruments = simulated_instruments(args.scenario, args.seed, args.reduced, args.scale)
     stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    # SIGINT is handled explicitly too: a process started in the background by a shell (`&`)
+    # inherits SIGINT ignored, and Ctrl-C / kill -INT would then never stop the emulator
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         return serve(instruments, name=f"{sc.name} (seed {sc.seed})", directory=args.dir,
                      ports_out=args.ports_out, tcp=args.tcp, realtime=args.realtime,
@@ -92,4 +96,5 @@ def run(args) -> int:
     except KeyboardInterrupt:
         return 0
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

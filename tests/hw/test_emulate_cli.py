@@ -19,12 +19,18 @@ SCALE = 0.002        # paper-thermal: 57 points in two sessions (x/y, then z)
 TOLERANCE = {"_nm": 0.5e-3, "_arcsec": 0.5e-2, "_C": 0.5e-6, "_rad": 0.5e-13}
 
 
+def _ignore_sigint():
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def test_campaign_through_emulate_matches_the_simulated_instruments(tmp_path):
+    """The emulator starts with SIGINT ignored, as a shell's background job (`&`) does, and
+    must still stop on SIGINT (it handles the signal itself)."""
     ports_file = tmp_path / "ports.toml"
     proc = subprocess.Popen(
         [sys.executable, "-m", "deltatwin.cli", "emulate", "paper-thermal", "--scale",
          str(SCALE), "--ports-out", str(ports_file), "--dir", str(tmp_path / "dev"), "--json"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_ignore_sigint)
     try:
         first = proc.stdout.readline()
         assert first, proc.stderr.read()
