@@ -34,7 +34,11 @@ from scipy import stats
 
 from twin.instruments.optics import AC_CHANNELS, AXES
 
-from .features import causal_derivatives
+from .compare import evaluate
+from .errors import MissingColumnsError
+from .features import (JOINT_INPUTS, FeatureSet, Product, causal_derivatives, force_powers,
+                       geometric, thermal_preset)
+from .models import base_variables, thermal_sensors
 from .physics import (PhysicsFit, PhysicsModel, _projected, figures_nm, group_offsets,
                       model_effects, residuals)
 
@@ -81,23 +85,33 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
         full.append(Jc @ Vc)
     change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
     after = _val_after(meas, fit, change)
-    before = fit.residual_
-    val = meas.val[:, None] & np.isfinite(before)
-    p_before, p_after = float(np.sum(before[val] ** 2)), float(np.sum(after[val] ** 2))
-    df1 = max(k_c, 1)
-    df2 = max(n - k_m - k_c - len(meas.groups), 1)
-    if rss1 > 0 and rss0 > rss1:
-        F = ((rss0 - rss1) / df1) / (rss1 / df2)
-        p_value = float(stats.f.sf(F, df1, df2))
-    else:
-        p_value = 1.0
-    d_bic = (n * math.log(max(rss1, 1e-300) / max(rss0, 1e-300)) + k_c * math.log(n))
-    explained = 1.0 - p_after / p_before if p_before > 0 else 0.0
+    verdict = _verdict(rss0, rss1, k_c, n, max(n - k_m - k_c - len(meas.groups), 1),
+                       fit.residual_, after, meas.val)
     fig = figures_nm(after, meas.val)
-    return {"effect": name, "explained_fraction": explained,
+    return {"effect": name, "explained_fraction": verdict["explained_fraction"],
             "val_err90_after_nm": fig["all"]["err_p90"],
             "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
-            "new_directions": k_c, "p_value": p_value, "delta_bic": d_bic,
+            "new_directions": k_c, "p_value": verdict["p_value"],
+            "delta_bic": verdict["delta_bic"], "significant": verdict["significant"]}
+
+
+def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndarray,
+             after: np.ndarray, val: np.ndarray) -> dict:
+    """Whether ``k`` added directions explain the residual: the nested F test and the BIC
+    change on the calibration residual sums of squares (``n`` readings, ``df2`` residual
+    degrees of freedom), the explained fraction of the validation residual's power (``before``
+    / ``after`` (N,3) residuals, ``val`` (N,) rows), and the decision (module docstring)."""
+    rows = val[:, None] & np.isfinite(before)
+    p_before, p_after = float(np.sum(before[rows] ** 2)), float(np.sum(after[rows] ** 2))
+    df1 = max(k, 1)        # k = 0: a candidate's fixed change at its starting values
+    if rss1 > 0 and rss0 > rss1:
+        p_value = float(stats.f.sf(((rss0 - rss1) / df1) / (rss1 / df2), df1, df2))
+    else:
+        p_value = 1.0
+    d_bic = n * math.log(max(rss1, 1e-300) / max(rss0, 1e-300)) + k * math.log(max(n, 1)) \
+        if n else 0.0
+    explained = 1.0 - p_after / p_before if p_before > 0 else 0.0
+    return {"p_value": p_value, "delta_bic": d_bic, "explained_fraction": explained,
             "significant": bool(p_value < ALPHA and d_bic < 0 and explained >= MIN_EXPLAINED)}
 
 
@@ -237,12 +251,6 @@ def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "D
     with terms in the model can still be significant: stepwise left some of its terms out.
     ``unexplained`` lists the recorded variables the residual depends on, as for a physics
     model."""
-    from .compare import evaluate
-    from .errors import MissingColumnsError
-    from .features import (JOINT_INPUTS, FeatureSet, Product, force_powers, geometric,
-                           thermal_preset)
-    from .models import base_variables, thermal_sensors
-
     ev = evaluate(df, meta, model)
     meas = ev.meas
     res = -ev.residual_m                                   # measurement minus model (m)
@@ -286,23 +294,11 @@ def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "D
                 rank += int(rk)
                 n += int(cal.sum()) - 1
                 after[rows, k] = res[rows, k] - ((X[rows] - Xbar) / scale) @ coef
-        val = meas.val[:, None] & np.isfinite(res)
-        p_before, p_after = float(np.sum(res[val] ** 2)), float(np.sum(after[val] ** 2))
-        df2 = max(n - rank - n_model_terms, 1)
-        if rank and rss1 > 0 and rss0 > rss1:
-            p_value = float(stats.f.sf(((rss0 - rss1) / rank) / (rss1 / df2), rank, df2))
-        else:
-            p_value = 1.0
-        d_bic = (n * math.log(max(rss1, 1e-300) / max(rss0, 1e-300)) + rank * math.log(max(n, 1))
-                 if n else 0.0)
-        explained = 1.0 - p_after / p_before if p_before > 0 else 0.0
+        verdict = _verdict(rss0, rss1, rank, n, max(n - rank - n_model_terms, 1), res, after,
+                           meas.val)
         fig = figures_nm(after, meas.val)
         ranking.append({"family": fam.name, "n_terms": len(fam), "in_model": fam.name in in_model,
-                        "explained_fraction": explained,
-                        "val_err90_after_nm": fig["all"]["err_p90"],
-                        "p_value": p_value, "delta_bic": d_bic,
-                        "significant": bool(p_value < ALPHA and d_bic < 0
-                                            and explained >= MIN_EXPLAINED)})
+                        "val_err90_after_nm": fig["all"]["err_p90"], **verdict})
     ranking.sort(key=lambda c: (not c["significant"], -c["explained_fraction"]))
     fig = figures_nm(res, meas.val)
     best = next((c for c in ranking if c["significant"]), None)

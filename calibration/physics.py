@@ -370,22 +370,23 @@ class PhysicsModel:
         return params, geom0, forward(geom0, np.zeros((1, 3))).p[0]
 
     def _kinematics(self, meas: Measurements):
+        """The stage the load and optics are evaluated on: (robot parameters, geometry,
+        kinematic pose, cube home, part temperatures), at the current values."""
         params, geom0, home = self._robot()
         pts = meas.points
         pts.params, pts.home_p = params, home
         pts.node_T = meas.part_temperatures(self.effects)
         geom, kin = kinematic_pose(params, geom0, self.effects, pts)
-        return params, geom, kin, home + geom0.cube_offset
+        return params, geom, kin, home + geom0.cube_offset, pts.node_T
 
     def _paths(self, meas: Measurements, stage) -> tuple[np.ndarray, np.ndarray]:
         """Optical path n s (m) and the index the instrument divides by, (N + S, 3) each, at the
         rows and at the session zeros."""
-        params, geom, kin, cube_home = stage
+        params, geom, kin, cube_home, node_T = stage
         pts = meas.points
-        pts.params = params
-        # at the current values: a stage re-used for a load or optics parameter may have been
-        # computed before a sensor parameter was stepped
-        pts.node_T = meas.part_temperatures(self.effects)
+        # the stage's own temperatures: a stage re-used for a load or optics parameter was
+        # computed before a later sensor parameter was stepped
+        pts.params, pts.node_T = params, node_T
         preload, C = meas.statics(self.params)
         truth = observe(geom, kin, self.effects, pts, preload, C, cube_home,
                         params.mirror_cube_size_m)
@@ -444,7 +445,7 @@ class PhysicsModel:
 
     def _pose_chain(self, meas, theta, stage, path, cols, steps):
         """d path / d theta (N + S, 3, len(cols)) for geometry parameters ``cols``."""
-        params, geom, kin, cube_home = stage
+        params, geom, kin, cube_home, node_T = stage
         qu, inv = np.unique(meas.points.q, axis=0, return_inverse=True)
         inv = inv.reshape(-1)
         _, geom0, _ = self._robot()
@@ -469,7 +470,8 @@ class PhysicsModel:
                 w = np.zeros(3)
                 w[d - 3] = eps[d]
                 moved = Pose(kin.p, Rotation.from_rotvec(w).as_matrix() @ kin.R)
-            G[:, :, d] = (self._paths(meas, (params, geom, moved, cube_home))[0] - path) / eps[d]
+            moved_path = self._paths(meas, (params, geom, moved, cube_home, node_T))[0]
+            G[:, :, d] = (moved_path - path) / eps[d]
         return np.einsum("nad,ndj->naj", G, dpose[inv])
 
 
