@@ -22,12 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from deltatwin.cli import main as deltatwin
-from hw.emulators.lab import EmulatedLab
-from hw.ports import write_ports
-from twin.dataset import read_dataset
-from twin.instruments.simulated import SimulatedLab
-from twin.journal import Journal, read_journal
-from twin.scenario import Scenario
+from deltatwin.hw.emulators.lab import EmulatedLab
+from deltatwin.hw.ports import write_ports
+from deltatwin.twin.dataset import read_dataset
+from deltatwin.twin.instruments.simulated import SimulatedLab
+from deltatwin.twin.journal import Journal, read_journal
+from deltatwin.twin.scenario import Scenario
 
 
 def main() -> None:

@@ -29,8 +29,9 @@ import time
 
 import numpy as np
 
-from calibration.physics import PhysicsFit, PhysicsModel
-from twin.scenario import Scenario
+from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.model import PhysicsModel
+from deltatwin.twin.scenario import Scenario
 
 TARGET_S = 30.0
 MIN_ROWS = 10_000

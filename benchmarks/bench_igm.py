@@ -24,8 +24,9 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from calibration.models import DGM, IGM  # noqa: E402
-from calibration.synthetic import thermal_campaign  # noqa: E402
+from deltatwin.calibration.blackbox.dgm import DGM  # noqa: E402
+from deltatwin.calibration.blackbox.igm import IGM  # noqa: E402
+from tests.calibration.synthetic import thermal_campaign  # noqa: E402
 
 
 def main(argv=None) -> int:

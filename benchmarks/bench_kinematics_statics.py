@@ -13,11 +13,11 @@ import time
 
 import numpy as np
 
-from models.geometry import build_geometry
-from models.params import load_params
-from twin import statics as statics_module
-from twin.kinematics import elbow_points, forward
-from twin.statics import Statics
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import elbow_points, forward
+from deltatwin.models.params import load_params
+from deltatwin.twin import statics as statics_module
+from deltatwin.twin.statics import Statics
 
 TARGET_POSES_PER_S = 50_000
 REPEATS = 7

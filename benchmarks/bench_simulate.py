@@ -2,7 +2,7 @@
 and wall time against the issue's target (<= 15 s)."""
 import time
 
-from twin.scenario import Scenario
+from deltatwin.twin.scenario import Scenario
 
 TARGET_S = 15.0
 

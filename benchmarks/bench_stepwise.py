@@ -31,11 +31,11 @@ import warnings  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from calibration import stepwisefit  # noqa: E402
-from calibration.features import thermal_preset  # noqa: E402
-from calibration.models import base_variables  # noqa: E402
-from calibration.stepwise import stepwise_refit_loop  # noqa: E402
-from calibration.synthetic import STRUCTURE_SENSORS, thermal_campaign  # noqa: E402
+from deltatwin.calibration import stepwisefit  # noqa: E402
+from deltatwin.calibration.blackbox.estimator import base_variables  # noqa: E402
+from deltatwin.calibration.blackbox.features import thermal_preset  # noqa: E402
+from deltatwin.calibration.blackbox.stepwise import stepwise_refit_loop  # noqa: E402
+from tests.calibration.synthetic import STRUCTURE_SENSORS, thermal_campaign  # noqa: E402
 
 
 def paper_scale_problem(seed: int = 2024, n_rows: int = 9701):

@@ -4,8 +4,8 @@ cycles), the std of each force-campaign point's 4 readings.
 Run: python benchmarks/fidelity_papers.py"""
 import numpy as np
 
-from twin.instruments.simulated import SimulatedLab
-from twin.scenario import Scenario
+from deltatwin.twin.instruments.simulated import SimulatedLab
+from deltatwin.twin.scenario import Scenario
 
 sc = Scenario.load("paper-thermal")
 twin, _ = sc.build(None)

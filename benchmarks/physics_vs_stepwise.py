@@ -29,11 +29,11 @@ from __future__ import annotations
 import argparse
 import time
 
-from calibration.diagnosis import residual_dependence
-from calibration.models import DGM
-from calibration.physics import PhysicsFit
-from calibration.validation import evaluate
-from twin.scenario import Scenario
+from deltatwin.calibration.blackbox.dgm import DGM
+from deltatwin.calibration.blackbox.validation import evaluate
+from deltatwin.calibration.diagnosis.diagnose import residual_dependence
+from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.twin.scenario import Scenario
 
 PHYSICS_EFFECTS = ("geometric_errors", "thermal_expansion", "gravity_sag", "loop_drift",
                    "air_refraction", "beam_misalignment", "sensor_contact")

@@ -50,3 +50,11 @@ class NoValidationWarning(CalibrationWarning):
 class DegenerateColumnWarning(CalibrationWarning):
     """Candidate columns that are constant (fitted exactly by the intercept) or exact
     duplicates of an earlier column: never eligible to enter."""
+
+
+class FitError(CalibrationInputError):
+    """A physics fit that cannot be done as asked (effects, data) or did not converge."""
+
+
+# ---------------------------------------------------------------------------------------------
+# the data as a model sees it

@@ -13,8 +13,8 @@ import sys
 # module path of each command group, in the order shown by --help
 COMMAND_MODULES = (
     "deltatwin.commands.demo",
-    "models.cli",
-    "calibration.cli",
+    "deltatwin.commands.model",
+    "deltatwin.commands.calibrate",
     "deltatwin.commands.fit",
     "deltatwin.commands.compare",
     "deltatwin.commands.simulate",

@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 
 from deltatwin.files import atomic_write
-from twin.dataset import AXES, temperature_columns, validate
+from deltatwin.twin.dataset import AXES, temperature_columns, validate
 
 __all__ = ["LadderStep", "RecordingSummary", "calibration_step", "model_file_step",
            "residuals_m", "position_field", "robot_meshes", "arrow_scale_nm_per_mm",
@@ -85,8 +85,9 @@ def calibration_step(name: str, model, df: pd.DataFrame) -> LadderStep:
     DGM: its per-axis predictions.  DirectIGM (q = f(X, Y, Z, F)): the measured readings plus
     its end-effector error ``J^-1 (q_pred - q_meas)``, the reading its motor-coordinate error
     amounts to (first order)."""
-    from calibration.models import DGM, DirectIGM
-    from calibration.compare import dgm_reading_m
+    from deltatwin.calibration.blackbox.dgm import DGM
+    from deltatwin.calibration.blackbox.direct_igm import DirectIGM
+    from deltatwin.calibration.diagnosis.compare import dgm_reading_m
     if isinstance(model, DGM):
         reading = dgm_reading_m(model, df)
     elif isinstance(model, DirectIGM):
@@ -105,9 +106,9 @@ def model_file_step(path: str | os.PathLike, df: pd.DataFrame, meta: dict | None
     places the temperature sensors) with each (session, axis) zero re-estimated on the
     dataset's calibration rows, as ``deltatwin compare`` does (``calibration.compare.
     evaluate``): its residual field is the one ``compare`` reports."""
-    from calibration.compare import evaluate, load_model_file
-    from calibration.errors import CalibrationInputError
-    from calibration.models import load_model
+    from deltatwin.calibration.blackbox.model_file import load_model
+    from deltatwin.calibration.diagnosis.compare import evaluate, load_model_file
+    from deltatwin.calibration.errors import CalibrationInputError
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".json", ".toml"):
@@ -154,7 +155,7 @@ def position_field(pos_id: np.ndarray, residual: np.ndarray):
 
 # ----- geometry -----------------------------------------------------------------------------
 
-def robot_meshes(model) -> list[tuple[str, "object", np.ndarray]]:
+def robot_meshes(model) -> list[tuple[str, object, np.ndarray]]:
     """Every visible geom of a compiled MuJoCo model as ``(name, trimesh in the geom frame (m),
     rgba 0..1)``; the table under the robot is left out."""
     import mujoco
@@ -210,8 +211,8 @@ def _pose_robot(geom, model, q: np.ndarray, names: list[str], progress: bool):
     import mujoco
     from tqdm import tqdm
 
-    from models.mjcf import pose_model
-    from twin.kinematics import forward
+    from deltatwin.models.kinematics import forward
+    from deltatwin.models.mjcf import pose_model
     data = mujoco.MjData(model)
     pose = forward(geom, q)
     gid = np.array([model.geom(n).id for n in names])
@@ -231,7 +232,7 @@ def _beams(model, data, params, cube_centre: np.ndarray, cube_home: np.ndarray) 
     it looks at.  A beam that passes above or below the cube (the Z interferometer) turns at a
     fixed 45 deg fold mirror under (or over) the cube's home and runs vertically to the cube's
     bottom (or top) face."""
-    from models.mjcf import INSTRUMENT_SITES
+    from deltatwin.models.mjcf import INSTRUMENT_SITES
     half = params.mirror_cube_size_m / 2.0
     out = {}
     for name in INSTRUMENT_SITES:
@@ -295,11 +296,11 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     """
     import rerun as rr
 
-    from models.geometry import build_geometry
-    from models.mjcf import build_model
-    from models.params import load_params
-    from twin.kinematics import check_stroke, forward
-    from twin.workspace import hull
+    from deltatwin.models.geometry import build_geometry
+    from deltatwin.models.kinematics import check_stroke, forward
+    from deltatwin.models.mjcf import build_model
+    from deltatwin.models.params import load_params
+    from deltatwin.twin.workspace import hull
 
     validate(df, "view: dataset")
     ladder = _check_ladder(df, ladder)
@@ -448,7 +449,8 @@ def _log_robot(rec, names, gpos, gmat, beams, origin, t_rows) -> None:
 
 def _log_ladder(rec, df, ladder, residuals, fields, pos_mm, scale, peak, t_s, t_first):
     import rerun as rr
-    from twin.dataset import SPLITS
+
+    from deltatwin.twin.dataset import SPLITS
     split = df["split"].astype(str).to_numpy()
     rows = []
     prev = None

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import time
 
-from hw.driver import LineInstrument
-from hw.protocol import Command, generic_protocol, real
-from twin.instruments.interface import DEFAULT_TIMEOUT_S, Clock
+from deltatwin.hw.driver import LineInstrument
+from deltatwin.hw.protocol import Command, generic_protocol, real
+from deltatwin.twin.instruments.interface import DEFAULT_TIMEOUT_S, Clock
 
 PROTOCOL = generic_protocol("deltatwin emulated clock", {
     "now": Command("TIME?", "TIME {t_s}", {"t_s": real()}),

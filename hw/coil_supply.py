@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from hw.driver import LineInstrument
-from hw.protocol import Command, ReplyError, generic_protocol, integer, reals
-from twin.instruments.interface import DEFAULT_TIMEOUT_S, CoilSupply, InstrumentTimeout
+from deltatwin.hw.driver import LineInstrument
+from deltatwin.hw.protocol import Command, ReplyError, generic_protocol, integer, reals
+from deltatwin.twin.instruments.interface import DEFAULT_TIMEOUT_S, CoilSupply, InstrumentTimeout
 
 PROTOCOL = generic_protocol("deltatwin coil supply", {
     "set": Command("CURR {currents}", "CURR OK", {"currents": reals()}),

@@ -10,11 +10,12 @@ the instrument's own code and text). Each interface method runs its exchanges in
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable, TypeVar
+from collections.abc import Callable
+from typing import Any, TypeVar
 
-from hw.protocol import InstrumentRejected, PortLost, Protocol, ReplyError, SerialLine
-from hw.retry import RetryPolicy, retry
-from twin.instruments.interface import InstrumentError, InstrumentTimeout
+from deltatwin.hw.protocol import InstrumentRejected, PortLost, Protocol, ReplyError, SerialLine
+from deltatwin.hw.retry import RetryPolicy, retry
+from deltatwin.twin.instruments.interface import InstrumentError, InstrumentTimeout
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")

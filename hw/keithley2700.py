@@ -18,10 +18,23 @@ from __future__ import annotations
 
 import re
 
-from hw.driver import LineInstrument
-from hw.protocol import Command, Field, InstrumentRejected, Protocol, ReplyError, integer, text
-from twin.instruments.interface import (DEFAULT_TIMEOUT_S, Clock, InstrumentError,
-                                        TemperatureScan, ThermometerScanner)
+from deltatwin.hw.driver import LineInstrument
+from deltatwin.hw.protocol import (
+    Command,
+    Field,
+    InstrumentRejected,
+    Protocol,
+    ReplyError,
+    integer,
+    text,
+)
+from deltatwin.twin.instruments.interface import (
+    DEFAULT_TIMEOUT_S,
+    Clock,
+    InstrumentError,
+    TemperatureScan,
+    ThermometerScanner,
+)
 
 OVERFLOW = 9.9e37
 

@@ -2,7 +2,7 @@
 
 This is what ``deltatwin campaign --instruments serial --ports FILE`` uses::
 
-    from hw.lab import open_lab
+    from deltatwin.hw.lab import open_lab
     instruments = open_lab("ports.toml")      # or a LabPorts
     ...                                       # the campaign talks to the interface only
     instruments.close()
@@ -12,15 +12,15 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from hw.clock import SerialClock, WallClock
-from hw.coil_supply import CoilSupplyDriver
-from hw.keithley2700 import Keithley2700Scanner
-from hw.lds1000 import LDS1000, NewportAutocollimators
-from hw.ports import LabPorts, Port, load_ports
-from hw.protocol import SerialLine, terminator_bytes
-from hw.robot_controller import RobotController
-from hw.sp2000 import SP2000Interferometers
-from twin.instruments.interface import DEFAULT_TIMEOUT_S, InstrumentSet
+from deltatwin.hw.clock import SerialClock, WallClock
+from deltatwin.hw.coil_supply import CoilSupplyDriver
+from deltatwin.hw.keithley2700 import Keithley2700Scanner
+from deltatwin.hw.lds1000 import LDS1000, NewportAutocollimators
+from deltatwin.hw.ports import LabPorts, Port, load_ports
+from deltatwin.hw.protocol import SerialLine, terminator_bytes
+from deltatwin.hw.robot_controller import RobotController
+from deltatwin.hw.sp2000 import SP2000Interferometers
+from deltatwin.twin.instruments.interface import DEFAULT_TIMEOUT_S, InstrumentSet
 
 
 def serial_line(port: Port, instrument: str) -> SerialLine:

@@ -20,10 +20,15 @@ from __future__ import annotations
 
 import math
 
-from hw.driver import LineInstrument
-from hw.protocol import Command, InstrumentRejected, Protocol, integer, real, text
-from twin.instruments.interface import (DEFAULT_TIMEOUT_S, AngleReading, Autocollimators, Clock,
-                                        InstrumentError)
+from deltatwin.hw.driver import LineInstrument
+from deltatwin.hw.protocol import Command, InstrumentRejected, Protocol, integer, real, text
+from deltatwin.twin.instruments.interface import (
+    DEFAULT_TIMEOUT_S,
+    AngleReading,
+    Autocollimators,
+    Clock,
+    InstrumentError,
+)
 
 ERROR_CODES = {"@": "no error", "A": "unknown command", "B": "bad axis", "C": "out of limits",
                "D": "not allowed", "O": "out of range", "S": "timeout"}

@@ -42,8 +42,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from deltatwin.files import atomic_write_text, toml_value
-from hw.protocol import TERMINATORS
-from hw.retry import RetryPolicy
+from deltatwin.hw.protocol import TERMINATORS
+from deltatwin.hw.retry import RetryPolicy
 
 # per instrument: (default baud, default terminator, default timeout_s)
 DEFAULTS = {

@@ -30,12 +30,13 @@ import re
 import string
 import termios
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import serial
 
-from twin.instruments.interface import InstrumentError, InstrumentTimeout
+from deltatwin.twin.instruments.interface import InstrumentError, InstrumentTimeout
 
 log = logging.getLogger(__name__)
 

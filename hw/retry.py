@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, TypeVar
+from typing import TypeVar
 
-from hw.protocol import InstrumentRejected
-from twin.instruments.interface import InstrumentError, InstrumentTimeout
+from deltatwin.hw.protocol import InstrumentRejected
+from deltatwin.twin.instruments.interface import InstrumentError, InstrumentTimeout
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")

@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
-from hw.driver import LineInstrument
-from hw.protocol import Command, generic_protocol, integer, reals
-from twin.instruments.interface import DEFAULT_TIMEOUT_S, InstrumentTimeout, Robot
+from deltatwin.hw.driver import LineInstrument
+from deltatwin.hw.protocol import Command, generic_protocol, integer, reals
+from deltatwin.twin.instruments.interface import DEFAULT_TIMEOUT_S, InstrumentTimeout, Robot
 
 PROTOCOL = generic_protocol("deltatwin robot controller", {
     "move": Command("MOVE {q}", "MOVE OK", {"q": reals(3)}),

@@ -16,10 +16,21 @@ from __future__ import annotations
 
 import re
 
-from hw.driver import LineInstrument
-from hw.protocol import Command, Field, InstrumentRejected, generic_protocol, integer, real
-from twin.instruments.interface import (DEFAULT_TIMEOUT_S, Clock, InterferometerReading,
-                                        Interferometers)
+from deltatwin.hw.driver import LineInstrument
+from deltatwin.hw.protocol import (
+    Command,
+    Field,
+    InstrumentRejected,
+    generic_protocol,
+    integer,
+    real,
+)
+from deltatwin.twin.instruments.interface import (
+    DEFAULT_TIMEOUT_S,
+    Clock,
+    InterferometerReading,
+    Interferometers,
+)
 
 NM = 1e-9
 _AXIS_VALUE = r"[a-z]\w*:[+-]?\d+\.\d{3}:\d+\.\d{3}|[a-z]\w*:nan:nan"

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .params import RobotParams
+from deltatwin.models.params import RobotParams
 
 ROD_SIDES = np.array([+1.0, -1.0])  # rod j sits at +/- half width along the actuator axis
 

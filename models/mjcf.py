@@ -17,10 +17,10 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .geometry import Geometry, build_geometry
-from .meshes import platform_plate
-from .params import RobotParams
-from .stiffness import element_stiffness
+from deltatwin.models.geometry import Geometry, build_geometry
+from deltatwin.models.meshes import platform_plate
+from deltatwin.models.params import RobotParams
+from deltatwin.models.stiffness import element_stiffness
 
 INSTRUMENT_SITES = {
     # name: (origin offset from the cube centre in the world frame at home, beam direction).
@@ -50,7 +50,7 @@ def _quat(rot: Rotation) -> np.ndarray:
 
 def rod_frames(geom: Geometry) -> np.ndarray:
     """Rotation (3,2,3,3) of each rod body in its arm body frame: z along the rod at home."""
-    from twin.kinematics import elbow_points, forward
+    from deltatwin.models.kinematics import elbow_points, forward
     home = forward(geom, np.zeros((1, 3)), check=False)
     A = elbow_points(geom, geom.theta(np.zeros((1, 3))))[0]
     P = home.p[0] + np.einsum("ab,ijb->ija", home.R[0], geom.P0)
@@ -65,7 +65,7 @@ def rod_frames(geom: Geometry) -> np.ndarray:
 
 def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSpec:
     """The MjSpec of the robot, its metrology frame and its force simulator coils."""
-    from twin.kinematics import forward
+    from deltatwin.models.kinematics import forward
     geom = geom or build_geometry(params)
     k = element_stiffness(params, geom)
     spec = mujoco.MjSpec()
@@ -203,7 +203,7 @@ def update_model(model: mujoco.MjModel, params: RobotParams) -> None:
             model.site_pos[model.site(f"rod{i + 1}{j + 1}_end").id] = [0.0, 0.0, geom.L[i, j]]
             model.site_pos[model.site(f"plat{i + 1}{j + 1}").id] = geom.P0[i, j]
     model.site_pos[model.site("mirror_cube_centre").id] = geom.cube_offset
-    from twin.kinematics import forward
+    from deltatwin.models.kinematics import forward
     home = forward(geom, np.zeros((1, 3)), check=False)
     plat = model.body("platform").id
     model.body_pos[plat] = home.p[0]

@@ -142,7 +142,7 @@ class RobotParams:
         """Material of a part: base, arms, rods, platform, mirror_cube."""
         return self.materials[getattr(self, f"material_{part}")]
 
-    def replace(self, **changes) -> "RobotParams":
+    def replace(self, **changes) -> RobotParams:
         """A validated copy with some attributes changed (arrays are copied)."""
         unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
         if unknown:

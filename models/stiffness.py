@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import Geometry
-from .params import RobotParams
+from deltatwin.models.geometry import Geometry
+from deltatwin.models.params import RobotParams
 
 
 @dataclass(frozen=True)

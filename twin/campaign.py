@@ -18,11 +18,16 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from .instruments.interface import InstrumentError, InstrumentSet
-from .instruments.optics import AC_CHANNELS, AXES, cosine_correction
-from .instruments.simulated import (InstrumentSettings, SimulatedLab, autocollimator_values,
-                                    interferometer_values, scan_temperatures)
-from .world import Schedule, Twin
+from deltatwin.twin.instruments.interface import InstrumentError, InstrumentSet
+from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES, cosine_correction
+from deltatwin.twin.instruments.simulated import (
+    InstrumentSettings,
+    SimulatedLab,
+    autocollimator_values,
+    interferometer_values,
+    scan_temperatures,
+)
+from deltatwin.twin.world import Schedule, Twin
 
 # autocollimator channels giving the tilts of each interferometer's mirror face
 COSINE_ANGLES = {"x": ("ac1_ry", "ac1_rz"), "y": ("ac2_rx", "ac2_rz"), "z": ("ac2_rx", "ac1_ry")}
@@ -142,7 +147,7 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
     import json
     import logging
 
-    from .journal import JournalError, canonical_json
+    from deltatwin.twin.journal import JournalError, canonical_json
 
     log = logging.getLogger(__name__)
     n, R = len(plan), plan.readings

@@ -123,7 +123,7 @@ class Journal:
         self._done = set(points)
 
     @classmethod
-    def open(cls, path: str | os.PathLike, header: dict) -> "Journal":
+    def open(cls, path: str | os.PathLike, header: dict) -> Journal:
         """Create the journal with ``header``, or resume an existing one: its header must equal
         ``header`` (else ``JournalError`` naming the differing keys); an incomplete last line
         (crash mid-write) is cut off."""
@@ -210,7 +210,7 @@ class Journal:
             self._file.close()
             self._file = None
 
-    def __enter__(self) -> "Journal":
+    def __enter__(self) -> Journal:
         return self
 
     def __exit__(self, *exc) -> None:

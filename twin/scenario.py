@@ -13,21 +13,30 @@ import dataclasses
 import difflib
 import tomllib
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from models.mjcf import FOLD_MIRROR_Z, INSTRUMENT_SITES
-from models.params import ParameterError, load_params
+from deltatwin.models.mjcf import FOLD_MIRROR_Z, INSTRUMENT_SITES
+from deltatwin.models.params import ParameterError, load_params
+from deltatwin.twin.campaign import Plan, force_plan, run_campaign, simulate_campaign, thermal_plan
+from deltatwin.twin.effects import LIBRARY, EffectError, make_effect
+from deltatwin.twin.instruments.simulated import InstrumentSettings, SimulatedLab
+from deltatwin.twin.thermal import PART_NODES
+from deltatwin.twin.world import Twin, random_streams
 
-from .campaign import Plan, force_plan, run_campaign, simulate_campaign, thermal_plan
-from .effects import LIBRARY, EffectError, make_effect
-from .instruments.simulated import InstrumentSettings, SimulatedLab
-from .thermal import PART_NODES
-from .world import Twin, random_streams
+# Shipped scenarios are package data (deltatwin.scenarios), found the same way in a source tree,
+# an editable install and a wheel.
+SCENARIO_DIR = Path(str(resources.files("deltatwin.scenarios")))
 
-SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+
+def shipped_scenarios() -> list[str]:
+    """Names of the shipped scenarios, as ``Scenario.load`` accepts them (``paper-thermal``,
+    ``hidden/gravity-sag``, ...)."""
+    return sorted(p.relative_to(SCENARIO_DIR).with_suffix("").as_posix()
+                  for p in SCENARIO_DIR.rglob("*.toml"))
 TABLES = {"scenario": {"name", "description", "seed"}, "robot": {"file"},
           "effects": None, "sensors": None, "instruments": None, "campaign": None,
           "reduced": {"scale"}, "hidden": {"effects", "baseline"}}
@@ -93,15 +102,20 @@ class Scenario:
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
-    def load(cls, path, seed: int | None = None, scale: float | None = None) -> "Scenario":
+    def load(cls, path, seed: int | None = None, scale: float | None = None) -> Scenario:
         """Read and validate a scenario (a path, or a name in scenarios/)."""
         path = Path(path)
         if not path.exists() and (SCENARIO_DIR / f"{path}.toml").exists():
             path = SCENARIO_DIR / f"{path}.toml"
         if not path.exists():
             raise ScenarioError(f"{path}: no such scenario file (shipped: "
-                                f"{sorted(p.stem for p in SCENARIO_DIR.glob('*.toml'))})")
-        text = path.read_text()
+                                f"{', '.join(shipped_scenarios())})")
+        if not path.is_file():
+            raise ScenarioError(f"{path}: is a directory, not a scenario file")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise ScenarioError(f"{path}: not a UTF-8 text file ({exc})") from exc
         try:
             doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:

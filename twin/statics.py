@@ -45,11 +45,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from models.geometry import Geometry
-from models.params import RobotParams
-from models.stiffness import Stiffness, element_stiffness
-
-from .kinematics import Pose, forward, home_rod_directions
+from deltatwin.models.geometry import Geometry
+from deltatwin.models.kinematics import Pose, forward, home_rod_directions
+from deltatwin.models.params import RobotParams
+from deltatwin.models.stiffness import Stiffness, element_stiffness
 
 GRAVITY_M_S2 = 9.80665
 N_COORD = 18  # dp(3) dr(3) dtheta(3) phi(3 chains x 3)

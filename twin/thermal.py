@@ -150,7 +150,7 @@ class ThermalNetwork:
     def steady_state(self, u: np.ndarray) -> np.ndarray:
         return np.linalg.solve(self.K, self.F @ u)
 
-    def start(self, u0: np.ndarray) -> "ThermalState":
+    def start(self, u0: np.ndarray) -> ThermalState:
         """State in equilibrium with constant inputs ``u0`` (n_inputs,)."""
         z = self.V.T @ (self.C * self.steady_state(u0))   # modal coordinates: z = V^T C T
         return ThermalState(self, z)

@@ -12,10 +12,13 @@ import itertools
 import numpy as np
 import trimesh
 
-from models.geometry import Geometry
-
-from .kinematics import (flexure_rest_directions, forward, home_rod_directions,
-                         rod_directions)
+from deltatwin.models.geometry import Geometry
+from deltatwin.models.kinematics import (
+    flexure_rest_directions,
+    forward,
+    home_rod_directions,
+    rod_directions,
+)
 
 
 def position_jacobian(geom: Geometry, q: np.ndarray, h: float = 1e-6) -> np.ndarray:

@@ -22,15 +22,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from models.geometry import build_geometry
-from models.params import RobotParams
-
-from .effects import Effect
-from .instruments.optics import AXES, Optics, autocollimator_angles, optical_path
-from .kinematics import Pose, forward
-from .noise import NoiseBank
-from .statics import Statics
-from .thermal import GRID_S, SUPPORTS, Inputs, ThermalNetwork, sensor_set
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import Pose, forward
+from deltatwin.models.params import RobotParams
+from deltatwin.twin.effects import Effect
+from deltatwin.twin.instruments.optics import AXES, Optics, autocollimator_angles, optical_path
+from deltatwin.twin.noise import NoiseBank
+from deltatwin.twin.statics import Statics
+from deltatwin.twin.thermal import GRID_S, SUPPORTS, Inputs, ThermalNetwork, sensor_set
 
 # a new stream goes at the end: a child's draws depend only on its position
 STREAMS = ("robot", "environment", "interferometers", "autocollimators", "thermometers",

@@ -76,12 +76,12 @@ def resumed_wall_clock_s(journal) -> float:
 
 
 def run(args) -> int:
-    from twin.campaign import run_campaign
-    from twin.dataset import write_dataset
-    from twin.instruments.interface import InstrumentError
-    from twin.instruments.simulated import SimulatedLab
-    from twin.journal import Journal
-    from twin.scenario import Scenario
+    from deltatwin.twin.campaign import run_campaign
+    from deltatwin.twin.dataset import write_dataset
+    from deltatwin.twin.instruments.interface import InstrumentError
+    from deltatwin.twin.instruments.simulated import SimulatedLab
+    from deltatwin.twin.journal import Journal
+    from deltatwin.twin.scenario import Scenario
 
     if args.instruments == "serial" and args.ports is None:
         raise ValueError("--instruments serial needs --ports FILE (a laboratory's ports file, or "
@@ -102,7 +102,7 @@ def run(args) -> int:
         raise ValueError(f"{journal_path} exists: continue that campaign with --resume, or "
                         "remove the journal (or choose another output) to start anew")
     if args.instruments == "serial":
-        from hw.ports import load_ports
+        from deltatwin.hw.ports import load_ports
         ports = load_ports(args.ports)
     if not args.quiet:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -116,7 +116,7 @@ def run(args) -> int:
             instruments = SimulatedLab(twin, sc.settings).instrument_set()
             described = {"kind": "sim", "world": "the scenario's twin (simulated instruments)"}
         else:
-            from hw.lab import open_lab
+            from deltatwin.hw.lab import open_lab
             instruments = open_lab(ports, wall_clock_start_s=resumed_wall_clock_s(journal))
             described = {"kind": "serial", "ports_file": str(args.ports), "lab": ports.lab,
                          "clock": "wall" if ports.clock is None else "clock port",

@@ -85,9 +85,9 @@ def format_report(rep: dict) -> str:
 
 
 def run(args) -> int:
-    from calibration.compare import compare, load_model_file
-    from calibration.errors import CalibrationInputError
-    from twin.dataset import read_dataset
+    from deltatwin.calibration.diagnosis.compare import compare, load_model_file
+    from deltatwin.calibration.errors import CalibrationInputError
+    from deltatwin.twin.dataset import read_dataset
 
     df, meta = read_dataset(args.data)
     model = load_model_file(args.model)

@@ -29,13 +29,13 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from calibration.diagnosis import effect_ladder
-    from calibration.physics import fitted_toml
-    from calibration.report import write_report
+    from deltatwin.calibration.diagnosis.diagnose import effect_ladder
+    from deltatwin.calibration.diagnosis.report import write_report
+    from deltatwin.calibration.physics.model_file import fitted_toml
     from deltatwin.files import atomic_write_text
+    from deltatwin.twin.dataset import write_dataset
+    from deltatwin.twin.scenario import Scenario
     from deltatwin.view import LadderStep, write_recording
-    from twin.dataset import write_dataset
-    from twin.scenario import Scenario
 
     if not 0 < args.scale <= 1:
         raise ValueError(f"--scale must be in (0, 1], got {args.scale}")

@@ -42,8 +42,8 @@ def register(sub) -> None:
 
 def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None):
     """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it."""
-    from twin.instruments.simulated import SimulatedLab
-    from twin.scenario import Scenario
+    from deltatwin.twin.instruments.simulated import SimulatedLab
+    from deltatwin.twin.scenario import Scenario
 
     sc = Scenario.load(scenario, seed=seed)
     twin, _ = sc.build(sc.reduced_scale if reduced else scale)
@@ -54,8 +54,8 @@ def serve(instruments, *, name: str, directory: Path | None, ports_out: Path | N
           tcp: bool, realtime: bool, timeout_s: float | None, as_json: bool,
           stop: threading.Event) -> int:
     """Run the emulated laboratory until ``stop`` is set; prints the devices, then ``ready``."""
-    from hw.emulators.lab import EmulatedLab
-    from hw.ports import write_ports
+    from deltatwin.hw.emulators.lab import EmulatedLab
+    from deltatwin.hw.ports import write_ports
 
     with EmulatedLab(instruments, directory, link="tcp" if tcp else "pty", realtime=realtime,
                      timeout_s=timeout_s, name=name) as lab:

@@ -50,7 +50,7 @@ def _json_default(x):
 
 def _known_values(settings: list[str]) -> dict:
     """{effect: {parameter: value}} from ``--set EFFECT.PARAM=VALUE`` options."""
-    from calibration.physics import FitError
+    from deltatwin.calibration.errors import FitError
 
     out: dict = {}
     for item in settings:
@@ -69,8 +69,9 @@ def _known_values(settings: list[str]) -> dict:
 
 
 def run_fit(args) -> int:
-    from calibration.physics import PhysicsFit, fitted_toml
-    from twin.dataset import read_dataset
+    from deltatwin.calibration.physics.fit import PhysicsFit
+    from deltatwin.calibration.physics.model_file import fitted_toml
+    from deltatwin.twin.dataset import read_dataset
 
     known = _known_values(args.set)
     df, meta = read_dataset(args.data)
@@ -107,9 +108,10 @@ def run_fit(args) -> int:
 
 
 def run_diagnose(args) -> int:
-    from calibration.diagnosis import diagnose
-    from calibration.physics import PhysicsFit, load_fitted
-    from twin.dataset import read_dataset
+    from deltatwin.calibration.diagnosis.diagnose import diagnose
+    from deltatwin.calibration.physics.fit import PhysicsFit
+    from deltatwin.calibration.physics.model_file import load_fitted
+    from deltatwin.twin.dataset import read_dataset
 
     df, meta = read_dataset(args.data)
     if str(args.model).lower().endswith(".json"):
@@ -140,8 +142,8 @@ def run_diagnose(args) -> int:
 
 def _diagnose_stepwise(args, df, meta) -> int:
     """The black-box view: a DGM's residual against the feature families."""
-    from calibration.compare import load_model_file
-    from calibration.diagnosis import diagnose_families
+    from deltatwin.calibration.diagnosis.compare import load_model_file
+    from deltatwin.calibration.diagnosis.diagnose import diagnose_families
 
     d = diagnose_families(df, meta, load_model_file(args.model), str(args.data))
     if args.json:

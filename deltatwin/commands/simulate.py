@@ -7,9 +7,9 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from twin.dataset import write_dataset
-from twin.effects import LIBRARY
-from twin.scenario import Scenario
+from deltatwin.twin.dataset import write_dataset
+from deltatwin.twin.effects import LIBRARY
+from deltatwin.twin.scenario import Scenario
 
 
 def run_simulate(args) -> int:

@@ -42,9 +42,8 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from models.params import load_params
-    from twin.dataset import read_dataset
-
+    from deltatwin.models.params import load_params
+    from deltatwin.twin.dataset import read_dataset
     from deltatwin.view import model_file_step, write_recording
 
     df, meta = read_dataset(args.data)

@@ -44,8 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hw.protocol import Protocol, terminator_bytes
-from twin.instruments.interface import InstrumentError, InstrumentSet
+from deltatwin.hw.protocol import Protocol, terminator_bytes
+from deltatwin.twin.instruments.interface import InstrumentError, InstrumentSet
 
 log = logging.getLogger(__name__)
 
@@ -247,7 +247,7 @@ class LineEmulator:
     def url(self) -> str:
         return self.link.url
 
-    def start(self) -> "LineEmulator":
+    def start(self) -> LineEmulator:
         self._thread.start()
         return self
 

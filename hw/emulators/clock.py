@@ -2,8 +2,8 @@
 so that drivers follow the twin's simulated time."""
 from __future__ import annotations
 
-from hw.clock import PROTOCOL
-from hw.emulators.generic import GenericEmulator
+from deltatwin.hw.clock import PROTOCOL
+from deltatwin.hw.emulators.generic import GenericEmulator
 
 
 class ClockEmulator(GenericEmulator):

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from hw.coil_supply import PROTOCOL
-from hw.emulators.base import BackgroundAction
-from hw.emulators.generic import GenericEmulator
+from deltatwin.hw.coil_supply import PROTOCOL
+from deltatwin.hw.emulators.base import BackgroundAction
+from deltatwin.hw.emulators.generic import GenericEmulator
 
 
 class CoilSupplyEmulator(GenericEmulator):

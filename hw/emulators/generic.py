@@ -3,9 +3,9 @@ supply, SP-2000 as defined in hw/sp2000.py, clock): errors are replies ``ERR <co
 an unknown or checksum-failing request gets ``ERR 1``/``ERR 3``; a backing failure ``ERR 5``."""
 from __future__ import annotations
 
-from hw.emulators.base import LineEmulator
-from hw.protocol import GENERIC_ERRORS
-from twin.instruments.interface import InstrumentError
+from deltatwin.hw.emulators.base import LineEmulator
+from deltatwin.hw.protocol import GENERIC_ERRORS
+from deltatwin.twin.instruments.interface import InstrumentError
 
 
 class GenericEmulator(LineEmulator):

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 from collections import deque
 
-from hw.emulators.base import LineEmulator
-from hw.keithley2700 import PROTOCOL, format_reading
-from twin.instruments.interface import InstrumentError
+from deltatwin.hw.emulators.base import LineEmulator
+from deltatwin.hw.keithley2700 import PROTOCOL, format_reading
+from deltatwin.twin.instruments.interface import InstrumentError
 
 QUEUE_SIZE = 10
 REQUIRED_SETUP = ("function", "transducer", "rtd_type", "scan_list", "continuous_off",

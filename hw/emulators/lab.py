@@ -15,16 +15,16 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from hw.emulators.base import BackingLab, PtyLink, TcpLink
-from hw.emulators.clock import ClockEmulator
-from hw.emulators.coil_supply import CoilSupplyEmulator
-from hw.emulators.keithley2700 import Keithley2700Emulator
-from hw.emulators.lds1000 import AngleSource, LDS1000Emulator
-from hw.emulators.robot_controller import RobotControllerEmulator
-from hw.emulators.sp2000 import SP2000Emulator
-from hw.ports import DEFAULTS, LabPorts, Port
-from hw.retry import RetryPolicy
-from twin.instruments.interface import InstrumentSet
+from deltatwin.hw.emulators.base import BackingLab, PtyLink, TcpLink
+from deltatwin.hw.emulators.clock import ClockEmulator
+from deltatwin.hw.emulators.coil_supply import CoilSupplyEmulator
+from deltatwin.hw.emulators.keithley2700 import Keithley2700Emulator
+from deltatwin.hw.emulators.lds1000 import AngleSource, LDS1000Emulator
+from deltatwin.hw.emulators.robot_controller import RobotControllerEmulator
+from deltatwin.hw.emulators.sp2000 import SP2000Emulator
+from deltatwin.hw.ports import DEFAULTS, LabPorts, Port
+from deltatwin.hw.retry import RetryPolicy
+from deltatwin.twin.instruments.interface import InstrumentSet
 
 
 class EmulatedLab:
@@ -105,7 +105,7 @@ class EmulatedLab:
         """name -> (URL for the ports file, device behind it)."""
         return {n: (e.url, e.link.device) for n, e in self.emulators.items()}
 
-    def start(self) -> "EmulatedLab":
+    def start(self) -> EmulatedLab:
         for e in self.emulators.values():
             e.start()
         return self
@@ -116,7 +116,7 @@ class EmulatedLab:
         if self._tmp is not None:
             self._tmp.cleanup()
 
-    def __enter__(self) -> "EmulatedLab":
+    def __enter__(self) -> EmulatedLab:
         return self.start()
 
     def __exit__(self, *exc) -> None:

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import math
 
-from hw.emulators.base import LineEmulator
-from hw.lds1000 import ERROR_CODES, PROTOCOL, UNIT_DECIMALS, UNIT_RAD
-from twin.instruments.interface import InstrumentError
+from deltatwin.hw.emulators.base import LineEmulator
+from deltatwin.hw.lds1000 import ERROR_CODES, PROTOCOL, UNIT_DECIMALS, UNIT_RAD
+from deltatwin.twin.instruments.interface import InstrumentError
 
 RANGE_ARCSEC = 400.0   # the LDS-1000 measures +-400 arcsec
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from hw.emulators.base import BackgroundAction
-from hw.emulators.generic import GenericEmulator
-from hw.robot_controller import PROTOCOL
+from deltatwin.hw.emulators.base import BackgroundAction
+from deltatwin.hw.emulators.generic import GenericEmulator
+from deltatwin.hw.robot_controller import PROTOCOL
 
 
 class RobotControllerEmulator(GenericEmulator):

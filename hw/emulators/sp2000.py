@@ -8,8 +8,8 @@ after=...)``, applied to ``READ?`` requests). The reply is well formed: rejectin
 the campaign's acceptance rule (std limit), which reads again."""
 from __future__ import annotations
 
-from hw.emulators.generic import GenericEmulator
-from hw.sp2000 import NM, PROTOCOL
+from deltatwin.hw.emulators.generic import GenericEmulator
+from deltatwin.hw.sp2000 import NM, PROTOCOL
 
 TURBULENCE_FACTOR = 10.0
 

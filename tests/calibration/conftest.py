@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from calibration.models import DGM, DirectIGM
-from calibration.synthetic import force_campaign, thermal_campaign
+from deltatwin.calibration.blackbox.dgm import DGM
+from deltatwin.calibration.blackbox.direct_igm import DirectIGM
+from tests.calibration.synthetic import force_campaign, thermal_campaign
 
 
 @pytest.fixture(scope="session")

@@ -4,10 +4,10 @@ import json
 import numpy as np
 import pytest
 
-from calibration.models import load_model
-from calibration.synthetic import force_campaign, thermal_campaign
+from deltatwin.calibration.blackbox.model_file import load_model
 from deltatwin.cli import main
-from twin.dataset import write_dataset
+from deltatwin.twin.dataset import write_dataset
+from tests.calibration.synthetic import force_campaign, thermal_campaign
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +52,7 @@ def test_thermal_json_schema_and_model_file(files, capsys):
 
 
 def test_thermal_ladder_json_and_text(files, capsys):
-    from calibration.cli import format_report
+    from deltatwin.commands.calibrate import format_report
     d, _, _ = files
     code, out, err = run(capsys, "calibrate", d / "thermal.parquet", "--features", "thermal",
                          "--ladder", "--json", "--sensors", "base,arm1,rod1")

@@ -8,16 +8,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calibration.compare import compare, evaluate, load_model_file
-from calibration.models import DGM
-from calibration.physics import PhysicsFit, fitted_toml, load_fitted
-from calibration.synthetic import thermal_campaign
+from deltatwin.calibration.blackbox.dgm import DGM
+from deltatwin.calibration.diagnosis.compare import compare, evaluate, load_model_file
+from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 from deltatwin.cli import main
-from models.geometry import build_geometry
-from models.params import load_params
-from twin.dataset import write_dataset
-from twin.kinematics import forward
-from twin.scenario import Scenario
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import forward
+from deltatwin.models.params import load_params
+from deltatwin.twin.dataset import write_dataset
+from deltatwin.twin.scenario import Scenario
+from tests.calibration.synthetic import thermal_campaign
 
 REPO = Path(__file__).resolve().parents[2]
 SCALE = 0.15          # 270 readings: 27 calibration and 27 validation positions x 5 forces

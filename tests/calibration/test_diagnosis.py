@@ -9,10 +9,12 @@ import sys
 import numpy as np
 import pytest
 
-from calibration.diagnosis import diagnose, effect_ladder
-from calibration.physics import FitError, PhysicsFit, fitted_toml, load_fitted
-from twin.effects import Effect, Parameter
-from twin.scenario import SCENARIO_DIR, Scenario, ScenarioError
+from deltatwin.calibration.diagnosis.diagnose import diagnose, effect_ladder
+from deltatwin.calibration.errors import FitError
+from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
+from deltatwin.twin.effects import Effect, Parameter
+from deltatwin.twin.scenario import SCENARIO_DIR, Scenario, ScenarioError
 
 HIDDEN = sorted(p.stem for p in (SCENARIO_DIR / "hidden").glob("*.toml"))
 SINGLE = [n for n in HIDDEN if len(Scenario.load(f"hidden/{n}").hidden["effects"]) == 1]
@@ -142,7 +144,7 @@ def test_bad_input_is_named(tmp_path):
 
 def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
     sc = Scenario.load("hidden/gravity-sag")
-    from twin.dataset import write_dataset
+    from deltatwin.twin.dataset import write_dataset
     df, meta = sc.simulate(sc.reduced_scale)
     data = tmp_path / "data.parquet"
     write_dataset(df, meta, data)
@@ -187,10 +189,11 @@ def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
 def test_stepwise_residual_is_traced_to_its_feature_family(tmp_path):
     """The black-box view: a geometric-only DGM on thermal data misses the temperatures; the
     complete DGM leaves no family to blame; the CLI gives the same on a model.json."""
-    from calibration.diagnosis import diagnose_families
-    from calibration.features import thermal_ladder
-    from calibration.models import DGM, thermal_sensors
-    from twin.dataset import write_dataset
+    from deltatwin.calibration.blackbox.dgm import DGM
+    from deltatwin.calibration.blackbox.estimator import thermal_sensors
+    from deltatwin.calibration.blackbox.features import thermal_ladder
+    from deltatwin.calibration.diagnosis.diagnose import diagnose_families
+    from deltatwin.twin.dataset import write_dataset
 
     sc = Scenario.load("paper-thermal")
     df, meta = sc.simulate(0.1)

@@ -3,10 +3,24 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calibration.errors import CalibrationInputError, MissingColumnsError, MissingMetadataWarning
-from calibration.features import (FeatureSet, Monomials, Product, causal_derivatives,
-                                  force_ladder, force_preset, geometric, temperature_variables,
-                                  temperatures, thermal_ladder, thermal_preset)
+from deltatwin.calibration.blackbox.features import (
+    FeatureSet,
+    Monomials,
+    Product,
+    causal_derivatives,
+    force_ladder,
+    force_preset,
+    geometric,
+    temperature_variables,
+    temperatures,
+    thermal_ladder,
+    thermal_preset,
+)
+from deltatwin.calibration.errors import (
+    CalibrationInputError,
+    MissingColumnsError,
+    MissingMetadataWarning,
+)
 
 SENSORS9 = [f"s{i}" for i in range(9)]
 

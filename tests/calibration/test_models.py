@@ -5,12 +5,24 @@ import warnings
 import numpy as np
 import pytest
 
-from calibration.errors import (DroppedRowsWarning, MissingColumnsError,
-                                MissingMetadataWarning, ModelFileError, ModelMismatchError,
-                                NoValidationWarning, TooFewPointsError, ValidationOverlapError)
-from calibration.features import FeatureSet, Term, geometric, thermal_preset
-from calibration.models import DGM, IGM, DirectIGM, OutputModel, load_model
-from calibration.validation import error_figures, evaluate, ladder
+from deltatwin.calibration.blackbox.dgm import DGM
+from deltatwin.calibration.blackbox.direct_igm import DirectIGM
+from deltatwin.calibration.blackbox.estimator import OutputModel
+from deltatwin.calibration.blackbox.features import FeatureSet, Term, geometric, thermal_preset
+from deltatwin.calibration.blackbox.igm import IGM
+from deltatwin.calibration.blackbox.model_file import load_model
+from deltatwin.calibration.blackbox.validation import evaluate, ladder
+from deltatwin.calibration.errors import (
+    DroppedRowsWarning,
+    MissingColumnsError,
+    MissingMetadataWarning,
+    ModelFileError,
+    ModelMismatchError,
+    NoValidationWarning,
+    TooFewPointsError,
+    ValidationOverlapError,
+)
+from deltatwin.calibration.metrics import error_figures
 
 
 def test_error_figures_label_both_90_percent_figures():
@@ -41,7 +53,7 @@ def test_dgm_fits_synthetic_thermal_data(thermal_data, thermal_dgm):
 def test_dgm_predict_matches_the_regression_it_came_from(thermal_data, thermal_dgm):
     df, _ = thermal_data
     m = thermal_dgm
-    from calibration.models import base_variables
+    from deltatwin.calibration.blackbox.estimator import base_variables
     vals = base_variables(df, m.features_.variables, m.sensors_, m.T_ref_K, m.window_s)
     X = m.features_.matrix(vals)
     P = m.predict(df)
@@ -244,7 +256,7 @@ def test_model_file_from_another_feature_set_or_edited(tmp_path, thermal_data, t
 
 
 def test_estimator_parameters_are_checked_once():
-    from calibration.errors import CalibrationInputError
+    from deltatwin.calibration.errors import CalibrationInputError
     with pytest.raises(CalibrationInputError, match="features"):
         DGM(features="force")
     with pytest.raises(CalibrationInputError, match="axis"):

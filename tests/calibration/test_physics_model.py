@@ -5,9 +5,10 @@ sensors."""
 import numpy as np
 import pytest
 
-from calibration.physics import PhysicsModel, figures_nm, group_offsets, measurements, residuals
-from twin.campaign import simulate_campaign
-from twin.scenario import Scenario
+from deltatwin.calibration.physics.measurements import measurements
+from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
+from deltatwin.twin.campaign import simulate_campaign
+from deltatwin.twin.scenario import Scenario
 
 PARTS = ["base", "arm1", "arm2", "arm3", "rod1", "rod2", "rod3", "platform", "frame", "table"]
 SCENARIO = """
@@ -112,6 +113,6 @@ def test_without_sensor_contact_a_sensor_reads_its_part_exactly(tmp_path):
 
 @pytest.mark.parametrize("bad", [{"glue_W_per_K": 0.0}, {"leak_W_per_K": -0.001}])
 def test_sensor_contact_refuses_impossible_contacts(bad):
-    from twin.effects import EffectError, make_effect
+    from deltatwin.twin.effects import EffectError, make_effect
     with pytest.raises(EffectError, match=next(iter(bad))):
         make_effect("sensor_contact", bad)

@@ -5,11 +5,14 @@ import warnings
 import numpy as np
 import pytest
 
-from calibration import stepwisefit
-from calibration.errors import (CalibrationInputError, DegenerateColumnWarning,
-                                DroppedRowsWarning)
-from calibration.features import thermal_preset
-from calibration.stepwise import resolve_thresholds, stepwise_refit_loop
+from deltatwin.calibration import stepwisefit
+from deltatwin.calibration.blackbox.features import thermal_preset
+from deltatwin.calibration.blackbox.stepwise import resolve_thresholds, stepwise_refit_loop
+from deltatwin.calibration.errors import (
+    CalibrationInputError,
+    DegenerateColumnWarning,
+    DroppedRowsWarning,
+)
 
 HALD_X = np.array([[7, 26, 6, 60], [1, 29, 15, 52], [11, 56, 8, 20], [11, 31, 8, 47],
                    [7, 52, 6, 33], [11, 55, 9, 22], [3, 71, 17, 6], [1, 31, 22, 44],
@@ -134,7 +137,7 @@ def test_rank_deficient_initial_model_removes_nan_p_first():
 
 def _cubic_temperature_problem(rng, n=400, k=3):
     """Cubic monomials of q (±0.06 rad) times temperatures near 22 degC: ill-conditioned."""
-    from calibration.features import FeatureSet, Product, geometric, temperatures
+    from deltatwin.calibration.blackbox.features import FeatureSet, Product, geometric, temperatures
     sensors = [f"s{i}" for i in range(k)]
     geo = geometric()
     temps = temperatures(sensors)

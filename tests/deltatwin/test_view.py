@@ -11,20 +11,23 @@ import pandas as pd
 import pytest
 from rerun.chunk import RrdReader
 
-from calibration.features import thermal_ladder
-from calibration.models import DGM, DirectIGM, thermal_sensors
-from calibration.physics import PhysicsFit, fitted_toml
-from calibration.synthetic import force_campaign, thermal_campaign
 from deltatwin import view
+from deltatwin.calibration.blackbox.dgm import DGM
+from deltatwin.calibration.blackbox.direct_igm import DirectIGM
+from deltatwin.calibration.blackbox.estimator import thermal_sensors
+from deltatwin.calibration.blackbox.features import thermal_ladder
+from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.model_file import fitted_toml
 from deltatwin.cli import main
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import forward
+from deltatwin.models.mjcf import INSTRUMENT_SITES, build_model
+from deltatwin.models.params import load_params
+from deltatwin.twin.dataset import write_dataset
+from deltatwin.twin.scenario import Scenario
+from deltatwin.twin.workspace import hull
 from deltatwin.view import LadderStep, calibration_step, write_recording
-from models.geometry import build_geometry
-from models.mjcf import INSTRUMENT_SITES, build_model
-from models.params import load_params
-from twin.dataset import write_dataset
-from twin.kinematics import forward
-from twin.scenario import Scenario
-from twin.workspace import hull
+from tests.calibration.synthetic import force_campaign, thermal_campaign
 
 REPO = Path(__file__).resolve().parents[2]
 MAX_POSES = 30

@@ -10,13 +10,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hw.emulators.lab import EmulatedLab
-from hw.lab import open_lab
-from hw.retry import RetryPolicy
-from twin.instruments.interface import (AngleReading, Autocollimators, Clock, CoilSupply,
-                                        InstrumentError, InstrumentSet, InterferometerReading,
-                                        Interferometers, Robot, TemperatureScan,
-                                        ThermometerScanner)
+from deltatwin.hw.emulators.lab import EmulatedLab
+from deltatwin.hw.lab import open_lab
+from deltatwin.hw.retry import RetryPolicy
+from deltatwin.twin.instruments.interface import (
+    AngleReading,
+    Autocollimators,
+    Clock,
+    CoilSupply,
+    InstrumentError,
+    InstrumentSet,
+    InterferometerReading,
+    Interferometers,
+    Robot,
+    TemperatureScan,
+    ThermometerScanner,
+)
 
 STROKE_RAD = 0.2
 ARCSEC = np.pi / 648000.0

@@ -12,14 +12,13 @@ import numpy as np
 import pytest
 
 from deltatwin.cli import main
-from hw.emulators.lab import EmulatedLab
-from hw.ports import write_ports
-from twin.dataset import read_dataset
-from twin.instruments.simulated import SimulatedLab
-from twin.journal import read_journal
-from twin.scenario import SCENARIO_DIR, Scenario
-
-from hw.retry import RetryPolicy
+from deltatwin.hw.emulators.lab import EmulatedLab
+from deltatwin.hw.ports import write_ports
+from deltatwin.hw.retry import RetryPolicy
+from deltatwin.twin.dataset import read_dataset
+from deltatwin.twin.instruments.simulated import SimulatedLab
+from deltatwin.twin.journal import read_journal
+from deltatwin.twin.scenario import SCENARIO_DIR, Scenario
 
 RESOLUTION_NM = 1.24          # the simulated interferometers' resolution (InstrumentSettings)
 FAULT_SCALE = 0.0003          # paper-thermal: 8 points, sessions xy (4) then z (4)
@@ -179,7 +178,7 @@ def test_turbulent_window_is_taken_again(tmp_path, lab, reference, caplog):
     """A window whose sample std fails the acceptance rule is rejected and read again."""
     emulated, ports = lab
     emulated.emulators["interferometers"].inject("turbulence", count=2, after=3)
-    with caplog.at_level(logging.INFO, logger="twin.campaign"):
+    with caplog.at_level(logging.INFO, logger="deltatwin.twin.campaign"):
         assert serial_campaign(tmp_path, ports) == 0
     assert emulated.emulators["interferometers"].faults_applied["turbulence"] == 2
     assert caplog.text.count("window rejected") == 2 and "taking it again" in caplog.text
@@ -249,8 +248,8 @@ def test_wall_clock_continues_after_a_resume(tmp_path):
     import os
 
     from deltatwin.commands.campaign import resumed_wall_clock_s
-    from hw.clock import WallClock
-    from twin.journal import Journal
+    from deltatwin.hw.clock import WallClock
+    from deltatwin.twin.journal import Journal
 
     with Journal.open(tmp_path / "j", {"scenario": "s"}) as journal:
         assert resumed_wall_clock_s(journal) == 0.0

@@ -7,12 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from hw.emulators.lab import EmulatedLab
-from hw.lab import open_lab
-from hw.protocol import InstrumentRejected, SerialLine
-from twin.instruments.interface import InstrumentError
-
-from .conftest import ARCSEC, FAST_RETRY, LINE_TIMEOUT_S, toy_lab
+from deltatwin.hw.emulators.lab import EmulatedLab
+from deltatwin.hw.lab import open_lab
+from deltatwin.hw.protocol import InstrumentRejected, SerialLine
+from deltatwin.twin.instruments.interface import InstrumentError
+from tests.hw.conftest import ARCSEC, FAST_RETRY, LINE_TIMEOUT_S, toy_lab
 
 POINTS = [np.array([0.01, -0.02, 0.03]), np.array([0.19, 0.19, 0.0]),   # ac2_rz out of range
           np.array([-0.05, 0.1, -0.15])]
@@ -159,7 +158,7 @@ def test_generic_protocol_answers_bad_checksum_and_unknown_command(emulated):
     line = SerialLine(lab.emulators["coils"].url, instrument="raw", timeout_s=LINE_TIMEOUT_S)
     line.write_line("CURR?*0000")
     assert line.read_line().startswith("ERR 3 checksum mismatch*")
-    from hw.coil_supply import PROTOCOL
+    from deltatwin.hw.coil_supply import PROTOCOL
     line.write_line(PROTOCOL.framing.encode("FLY 1"))
     with pytest.raises(InstrumentRejected, match=r"unknown command: FLY 1 \[1\]"):
         PROTOCOL.parse_reply("read", line.read_line(), {}, "coils")

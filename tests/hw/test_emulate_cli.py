@@ -10,8 +10,8 @@ import sys
 import numpy as np
 
 from deltatwin.cli import main
-from hw.ports import load_ports
-from twin.dataset import read_dataset
+from deltatwin.hw.ports import load_ports
+from deltatwin.twin.dataset import read_dataset
 
 SCALE = 0.002        # paper-thermal: 57 points in two sessions (x/y, then z)
 # half the last digit each instrument writes (docs/hardware.md): nm to 0.001, arcsec to 0.01,

@@ -6,13 +6,11 @@ import logging
 import numpy as np
 import pytest
 
-from hw.lds1000 import PROTOCOL as LDS
-from hw.protocol import ReplyError
-from hw.retry import RetryPolicy
-from twin.instruments.interface import InstrumentError, InstrumentTimeout
-
-from .conftest import LINE_TIMEOUT_S
-
+from deltatwin.hw.lds1000 import PROTOCOL as LDS
+from deltatwin.hw.protocol import ReplyError
+from deltatwin.hw.retry import RetryPolicy
+from deltatwin.twin.instruments.interface import InstrumentError, InstrumentTimeout
+from tests.hw.conftest import LINE_TIMEOUT_S
 
 ONE_OFF = ("no_reply", "garbled", "truncated", "dropped_bytes", "error_code")
 
@@ -69,7 +67,7 @@ def test_one_off_fault_is_retried_logged_and_the_value_is_right(emulated, driver
     call, check = ops[instrument]
     emu = lab.emulators[instrument]
     emu.inject(fault)
-    with caplog.at_level(logging.WARNING, logger="hw.retry"):
+    with caplog.at_level(logging.WARNING, logger="deltatwin.hw.retry"):
         result = call()
     check(result)
     assert emu.faults_applied[fault] == 1                     # the fault was met
@@ -83,7 +81,7 @@ def test_stray_xoff_is_tolerated_without_retry(emulated, drivers, caplog, instru
     ops = prepare(drivers)
     call, check = ops[instrument]
     lab.emulators[instrument].inject("xoff", count=None)       # in every reply
-    with caplog.at_level(logging.WARNING, logger="hw.retry"):
+    with caplog.at_level(logging.WARNING, logger="deltatwin.hw.retry"):
         check(call())
         check(call())
     assert "failed" not in caplog.text
@@ -102,7 +100,7 @@ def test_persistent_fault_stops_with_a_clear_error(emulated, drivers, caplog, fa
     backing, lab = emulated
     prepare(drivers)
     lab.emulators["robot"].inject(fault, count=None)
-    with caplog.at_level(logging.WARNING, logger="hw.retry"):
+    with caplog.at_level(logging.WARNING, logger="deltatwin.hw.retry"):
         with pytest.raises(error, match=r"robot: read_encoders failed 4 time\(s\) in .* s "
                                         r"\(retry limit 4 attempts, 30 s\); last error: .*"
                                         + reason) as err:
@@ -131,7 +129,7 @@ def test_port_vanishes_and_comes_back(emulated, drivers, caplog, instrument):
     for d in (drivers.robot, drivers.thermometers, *drivers.autocollimators.controllers):
         d.retry_policy = patient
     emu.inject("vanish", down_s=0.3)
-    with caplog.at_level(logging.WARNING, logger="hw.retry"):
+    with caplog.at_level(logging.WARNING, logger="deltatwin.hw.retry"):
         check(call())
     assert "PortLost" in caplog.text and emu.faults_applied["vanish"] == 1
     check(call())
@@ -147,15 +145,15 @@ def test_port_that_stays_away_stops_with_a_clear_error(emulated, drivers):
 
 
 def test_port_vanishes_over_tcp(tmp_path, caplog):
-    from hw.emulators.lab import EmulatedLab
-    from hw.lab import open_lab
-    from .conftest import toy_lab
+    from deltatwin.hw.emulators.lab import EmulatedLab
+    from deltatwin.hw.lab import open_lab
+    from tests.hw.conftest import toy_lab
     policy = RetryPolicy(attempts=10, first_delay_s=0.02, factor=2.0, max_delay_s=0.2)
     with EmulatedLab(toy_lab(), link="tcp", timeout_s=LINE_TIMEOUT_S, retry=policy) as lab:
         inst = open_lab(lab.ports())
         inst.robot.move_to(np.array([0.01, 0.0, 0.0]))
         lab.emulators["robot"].inject("vanish", down_s=0.3)
-        with caplog.at_level(logging.WARNING, logger="hw.retry"):
+        with caplog.at_level(logging.WARNING, logger="deltatwin.hw.retry"):
             np.testing.assert_allclose(inst.robot.read_encoders(), [0.0100001, -2e-7, 3e-7])
         assert "PortLost" in caplog.text
         inst.close()

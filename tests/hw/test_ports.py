@@ -2,8 +2,8 @@
 every mistake is named by file, table, key and reason."""
 import pytest
 
-from hw.ports import LabPorts, Port, PortsFileError, load_ports, write_ports
-from hw.retry import RetryPolicy
+from deltatwin.hw.ports import LabPorts, Port, PortsFileError, load_ports, write_ports
+from deltatwin.hw.retry import RetryPolicy
 
 LAB = """\
 lab = "ETH micro-nano lab"

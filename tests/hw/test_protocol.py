@@ -8,12 +8,23 @@ import tty
 
 import pytest
 
-from hw.keithley2700 import PROTOCOL as KEITHLEY, format_reading
-from hw.protocol import (CRC16, Command, InstrumentRejected, PortLost, ReplyError, SerialLine,
-                         generic_protocol, real, reals, text)
-from hw.retry import RetryPolicy, retry
-from hw.robot_controller import PROTOCOL as ROBOT
-from twin.instruments.interface import InstrumentError, InstrumentTimeout
+from deltatwin.hw.keithley2700 import PROTOCOL as KEITHLEY
+from deltatwin.hw.keithley2700 import format_reading
+from deltatwin.hw.protocol import (
+    CRC16,
+    Command,
+    InstrumentRejected,
+    PortLost,
+    ReplyError,
+    SerialLine,
+    generic_protocol,
+    real,
+    reals,
+    text,
+)
+from deltatwin.hw.retry import RetryPolicy, retry
+from deltatwin.hw.robot_controller import PROTOCOL as ROBOT
+from deltatwin.twin.instruments.interface import InstrumentError, InstrumentTimeout
 
 
 def test_declared_command_round_trip_and_echo_check():
@@ -143,7 +154,7 @@ def test_retry_gives_up_with_a_clear_error_and_logs(caplog):
 
     policy = RetryPolicy(attempts=4, first_delay_s=0.01, factor=2.0, max_delay_s=0.03)
     assert [policy.delay_s(k) for k in (1, 2, 3, 4)] == [0.01, 0.02, 0.03, 0.03]
-    with caplog.at_level(logging.WARNING, logger="hw.retry"):
+    with caplog.at_level(logging.WARNING, logger="deltatwin.hw.retry"):
         with pytest.raises(InstrumentTimeout, match=r"dev: read failed 4 time\(s\) in .* s "
                                                     r"\(retry limit 4 attempts\); last error: "
                                                     r"no reply") as err:

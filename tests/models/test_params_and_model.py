@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from deltatwin.cli import main
-from models.geometry import build_geometry
-from models.mjcf import build_model, update_model
-from models.params import DEFAULT_PARAMS_PATH, ParameterError, load_params
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.mjcf import build_model, update_model
+from deltatwin.models.params import DEFAULT_PARAMS_PATH, ParameterError, load_params
 
 
 def _write(tmp_path, text):

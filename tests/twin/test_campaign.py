@@ -5,12 +5,12 @@ import sys
 import numpy as np
 import pytest
 
-from twin.dataset import read_dataset
-from twin.effects import make_effect
-from twin.instruments.optics import Optics, face_distance
-from twin.kinematics import Pose
-from twin.scenario import Scenario, ScenarioError
-from twin.world import Schedule
+from deltatwin.models.kinematics import Pose
+from deltatwin.twin.dataset import read_dataset
+from deltatwin.twin.effects import make_effect
+from deltatwin.twin.instruments.optics import Optics, face_distance
+from deltatwin.twin.scenario import Scenario, ScenarioError
+from deltatwin.twin.world import Schedule
 
 
 @pytest.mark.parametrize("name", ["paper-thermal", "paper-force"])
@@ -89,7 +89,7 @@ def test_cosine_error_comes_from_geometry():
     """A mirror tilted by a returns the double-pass beam at 2a: the reading grows by
     s0 (1/cos 2a - 1) / 2 ~ s0 a^2 (the cosine error), from the geometry alone; the cosine
     correction with the measured tilt removes it."""
-    from twin.instruments.optics import cosine_correction, optical_path
+    from deltatwin.twin.instruments.optics import cosine_correction, optical_path
     a = 300e-6
     R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     optics = Optics.nominal(np.zeros(3), 1)
@@ -182,7 +182,7 @@ def test_frame_arm_moves_the_robot_by_table_minus_frame_expansion_over_the_arm()
 def test_servo_settling_moves_the_motors_at_each_settling_but_not_the_encoders():
     """paper-force's controllers settle at a random angle after every move and load change:
     the platform moves between two settlings at the same target; the encoders read the target."""
-    from twin.instruments.simulated import SimulatedLab
+    from deltatwin.twin.instruments.simulated import SimulatedLab
 
     sc = Scenario.load("paper-force")
     std = next(e for e in sc.effects if e.name == "servo_settling").angle_std_rad

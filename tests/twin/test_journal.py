@@ -10,7 +10,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from twin.journal import Journal, JournalError, read_journal
+from deltatwin.twin.journal import Journal, JournalError, read_journal
 
 HEADER = {"scenario": "thermal_paper", "seed": 3, "hash": "ab12"}
 
@@ -25,7 +25,7 @@ def expected_point(k: int) -> dict:
 WRITER = textwrap.dedent("""
     import sys, time
     sys.path[:0] = [{tests!r}, {root!r}]
-    from twin.journal import Journal
+    from deltatwin.twin.journal import Journal
     from test_journal import expected_point, HEADER
     journal = Journal.open(sys.argv[1], HEADER)
     n = int(sys.argv[2])

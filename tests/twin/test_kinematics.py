@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from models.geometry import build_geometry
-from models.params import load_params
-from twin.kinematics import KinematicsError, forward, inverse
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import KinematicsError, forward, inverse
+from deltatwin.models.params import load_params
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +76,7 @@ def test_rod_length_error_rotation_matches_linearised_hand_derivation():
     q = np.array([[0.02, -0.03, 0.01]])
     p0 = forward(ideal, q)
     p1 = forward(bad, q)
-    from twin.kinematics import elbow_points
+    from deltatwin.models.kinematics import elbow_points
     A = elbow_points(ideal, ideal.theta(q))[0]
     w = np.einsum("ab,ijb->ija", p0.R[0], ideal.P0)
     n = p0.p[0] + w - A

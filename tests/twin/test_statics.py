@@ -6,13 +6,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from models.geometry import build_geometry
-from models.mjcf import build_model, loop_closure, pose_model
-from models.params import load_params
-from twin.kinematics import (Pose, elbow_points, flexure_rest_directions, forward, home_rod_directions,
-                             rotate_about_axis)
-import twin.statics
-from twin.statics import GRAVITY_M_S2, Statics
+import deltatwin.twin.statics
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import (
+    Pose,
+    elbow_points,
+    flexure_rest_directions,
+    forward,
+    home_rod_directions,
+    rotate_about_axis,
+)
+from deltatwin.models.mjcf import build_model, loop_closure, pose_model
+from deltatwin.models.params import load_params
+from deltatwin.twin.statics import GRAVITY_M_S2, Statics
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +35,7 @@ def _angle_vec(a, b):
 
 def exact_energy(S, q, pose, y):
     """Potential energy (J) of the configuration y, with exact (finite) rotations and rod lengths;
-    written independently of the displacement method in twin.statics."""
+    written independently of the displacement method in deltatwin.twin.statics."""
     g, k = S.geom, S.k
     n0, n0_plat = home_rod_directions(g)
     dth, phi = y[6:9], y[9:].reshape(3, 3)
@@ -273,9 +279,9 @@ def test_result_does_not_depend_on_the_thread_count(statics, monkeypatch):
     """Chunks are solved on threads, each writing its own rows: identical bits for 1 or 2."""
     q = np.random.default_rng(5).uniform(*statics.geom.stroke, size=(2500, 3))
     pose = forward(statics.geom, q)
-    monkeypatch.setattr(twin.statics, "THREADS", 1)
+    monkeypatch.setattr(deltatwin.twin.statics, "THREADS", 1)
     one = statics.solve(q, pose=pose).y
-    monkeypatch.setattr(twin.statics, "THREADS", 2)
+    monkeypatch.setattr(deltatwin.twin.statics, "THREADS", 2)
     assert np.array_equal(statics.solve(q, pose=pose).y, one)
 
 

@@ -5,20 +5,20 @@ from __future__ import annotations
 
 import difflib
 
-from .air_refraction import AirRefraction
-from .base import Effect, EffectError, Parameter
-from .beam_misalignment import BeamMisalignment
-from .coil_heating import CoilHeating
-from .geometric_errors import GeometricErrors
-from .gravity_sag import GravitySag
-from .loop_drift import LoopDrift
-from .magnetic_force import MagneticForce
-from .motor_heating import MotorHeating
-from .peltier_supports import PeltierSupports
-from .room_climate import RoomClimate
-from .sensor_contact import SensorContact
-from .servo_settling import ServoSettling
-from .thermal_expansion import ThermalExpansion
+from deltatwin.twin.effects.air_refraction import AirRefraction
+from deltatwin.twin.effects.base import Effect, EffectError, Parameter
+from deltatwin.twin.effects.beam_misalignment import BeamMisalignment
+from deltatwin.twin.effects.coil_heating import CoilHeating
+from deltatwin.twin.effects.geometric_errors import GeometricErrors
+from deltatwin.twin.effects.gravity_sag import GravitySag
+from deltatwin.twin.effects.loop_drift import LoopDrift
+from deltatwin.twin.effects.magnetic_force import MagneticForce
+from deltatwin.twin.effects.motor_heating import MotorHeating
+from deltatwin.twin.effects.peltier_supports import PeltierSupports
+from deltatwin.twin.effects.room_climate import RoomClimate
+from deltatwin.twin.effects.sensor_contact import SensorContact
+from deltatwin.twin.effects.servo_settling import ServoSettling
+from deltatwin.twin.effects.thermal_expansion import ThermalExpansion
 
 LIBRARY: dict[str, type[Effect]] = {cls.name: cls for cls in (
     GeometricErrors, ThermalExpansion, GravitySag, MagneticForce, LoopDrift, AirRefraction,

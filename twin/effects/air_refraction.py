@@ -1,10 +1,8 @@
 """The air's refractive index along each beam and the interferometer's own compensation."""
 from __future__ import annotations
 
-
-from twin.instruments.optics import air_index
-
-from .base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, Parameter
+from deltatwin.twin.instruments.optics import air_index
 
 
 class AirRefraction(Effect):

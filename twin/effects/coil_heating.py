@@ -1,7 +1,7 @@
 """Joule heating of the force simulator's coils (they had to go into an insulated box)."""
 from __future__ import annotations
 
-from .base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, Parameter
 
 
 class CoilHeating(Effect):

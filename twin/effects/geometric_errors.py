@@ -2,8 +2,7 @@
 identifies) plus, in the twin, a seeded random draw once per robot."""
 from __future__ import annotations
 
-
-from .base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, Parameter
 
 
 class GeometricErrors(Effect):

@@ -3,9 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from twin.statics import GRAVITY_M_S2
-
-from .base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, Parameter
+from deltatwin.twin.statics import GRAVITY_M_S2
 
 
 class GravitySag(Effect):

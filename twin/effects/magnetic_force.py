@@ -11,9 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.mjcf import magnet_positions
-
-from .base import Effect, Parameter
+from deltatwin.models.mjcf import magnet_positions
+from deltatwin.twin.effects.base import Effect, Parameter
 
 MU0 = 4e-7 * np.pi
 

@@ -1,7 +1,7 @@
 """The actuators' motors heat the base and the arms, more while they move."""
 from __future__ import annotations
 
-from .base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, Parameter
 
 
 class MotorHeating(Effect):

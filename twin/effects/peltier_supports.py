@@ -1,10 +1,9 @@
 """Peltier-stabilised interferometer supports: steady heads, but a warmer table."""
 from __future__ import annotations
 
-from twin.thermal import SUPPORTS
-
-from .base import Effect, Parameter
-from .room_climate import ornstein_uhlenbeck
+from deltatwin.twin.effects.base import Effect, Parameter
+from deltatwin.twin.effects.room_climate import ornstein_uhlenbeck
+from deltatwin.twin.thermal import SUPPORTS
 
 
 class PeltierSupports(Effect):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from .base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, Parameter
 
 
 class SensorContact(Effect):

@@ -2,7 +2,7 @@
 differently each time."""
 from __future__ import annotations
 
-from .base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, Parameter
 
 
 class ServoSettling(Effect):

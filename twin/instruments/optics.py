@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.mjcf import FOLD_MIRROR_Z, INSTRUMENT_SITES
+from deltatwin.models.mjcf import FOLD_MIRROR_Z, INSTRUMENT_SITES
 
 AXES = ("x", "y", "z")
 # cube face each beam reflects on (outward normal, platform frame) and autocollimator channels
@@ -35,7 +35,7 @@ class Optics:
     n_comp: dict        # axis -> (N,) index the instrument divides by
 
     @classmethod
-    def nominal(cls, cube_home: np.ndarray, n: int, n_nominal: float = 1.0) -> "Optics":
+    def nominal(cls, cube_home: np.ndarray, n: int, n_nominal: float = 1.0) -> Optics:
         head, direction = {}, {}
         for a in AXES:
             off, d = INSTRUMENT_SITES[f"interferometer_{a}"]

@@ -19,13 +19,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twin.noise import NoiseBank
-from twin.world import Schedule, Twin
-
-from .interface import (AngleReading, Autocollimators, Clock, CoilSupply, InstrumentError,
-                        InstrumentSet, InterferometerReading, Interferometers, Robot,
-                        TemperatureScan, ThermometerScanner)
-from .optics import AC_CHANNELS, AXES
+from deltatwin.twin.instruments.interface import (
+    AngleReading,
+    Autocollimators,
+    Clock,
+    CoilSupply,
+    InstrumentError,
+    InstrumentSet,
+    InterferometerReading,
+    Interferometers,
+    Robot,
+    TemperatureScan,
+    ThermometerScanner,
+)
+from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES
+from deltatwin.twin.noise import NoiseBank
+from deltatwin.twin.world import Schedule, Twin
 
 ARCSEC = np.pi / (180.0 * 3600.0)
 

@@ -37,7 +37,11 @@ import scipy.linalg
 import scipy.linalg.lapack
 import scipy.stats
 
-from .errors import CalibrationInputError, DegenerateColumnWarning, DroppedRowsWarning
+from deltatwin.calibration.errors import (
+    CalibrationInputError,
+    DegenerateColumnWarning,
+    DroppedRowsWarning,
+)
 
 __all__ = ["stepwisefit", "StepwiseResult", "StepRecord", "stepwise_refit_loop",
            "resolve_thresholds"]

@@ -29,15 +29,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from models.geometry import build_geometry
-from models.params import RobotParams, load_params
-from twin.dataset import AXES, temperature_columns
-from twin.kinematics import forward
-
-from .errors import CalibrationInputError
-from .features import DEFAULT_WINDOW_S, temperature_variables
-from .physics import (Measurements, PhysicsModel, check_sensors, figures_nm, group_offsets,
-                      load_fitted, measurements, residuals)
+from deltatwin.calibration.blackbox.features import DEFAULT_WINDOW_S, temperature_variables
+from deltatwin.calibration.errors import CalibrationInputError
+from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
+from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
+from deltatwin.calibration.physics.model_file import load_fitted
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import forward
+from deltatwin.models.params import RobotParams, load_params
+from deltatwin.twin.dataset import AXES, temperature_columns
 
 __all__ = ["ModelEvaluation", "evaluate", "compare", "load_model_file", "dgm_reading_m",
            "RESIDUAL_SIGN"]
@@ -74,7 +74,8 @@ class ModelEvaluation:
 def load_model_file(path):
     """A model from a file: a fitted physics model (``.toml``, ``deltatwin fit -o``) or a DGM
     (``.json``, ``deltatwin calibrate -o``). Raises ValueError naming the file otherwise."""
-    from .models import DGM, load_model
+    from deltatwin.calibration.blackbox.dgm import DGM
+    from deltatwin.calibration.blackbox.model_file import load_model
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".toml", ".json"):
@@ -107,7 +108,7 @@ def evaluate(df: pd.DataFrame, meta: dict | None, model, params=None) -> ModelEv
 
     ``params``: robot parameters (RobotParams or file) for a DGM's kinematic positions
     (default: nominal; a physics model uses its own)."""
-    from .models import DGM
+    from deltatwin.calibration.blackbox.dgm import DGM
     df = df.reset_index(drop=True)
     if isinstance(model, PhysicsModel):
         meas = measurements(df, meta, model.params)

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 from scipy.ndimage import uniform_filter1d
 
-from .features import DEFAULT_T_REF_K, ZERO_CELSIUS_K
+from deltatwin.calibration.blackbox.features import DEFAULT_T_REF_K, ZERO_CELSIUS_K
 
 __all__ = ["STRUCTURE_SENSORS", "AIR_SENSORS", "geometric_map", "thermal_campaign",
            "force_campaign", "sensor_metadata"]

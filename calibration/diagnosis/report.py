@@ -14,9 +14,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from deltatwin.files import atomic_write, atomic_write_text  # noqa: E402
-from models.geometry import build_geometry  # noqa: E402
-from models.params import load_params  # noqa: E402
-from twin.kinematics import forward  # noqa: E402
+from deltatwin.models.geometry import build_geometry  # noqa: E402
+from deltatwin.models.kinematics import forward  # noqa: E402
+from deltatwin.models.params import load_params  # noqa: E402
 
 NM = 1e9
 

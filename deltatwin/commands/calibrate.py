@@ -15,7 +15,7 @@ import math
 import sys
 import warnings
 
-from .errors import CalibrationInputError, CalibrationWarning
+from deltatwin.calibration.errors import CalibrationInputError, CalibrationWarning
 
 FEATURES = ("thermal", "force")
 
@@ -77,8 +77,11 @@ def _axis_record(rec: dict) -> dict:
 
 def build_report(df, meta, args) -> tuple[dict, object]:
     """Fit (or load) and evaluate; returns (report dict, model)."""
-    from .models import DGM, DirectIGM, load_model
-    from .validation import check_disjoint, evaluate, ladder
+    from deltatwin.calibration.blackbox.dgm import DGM
+    from deltatwin.calibration.blackbox.direct_igm import DirectIGM
+    from deltatwin.calibration.blackbox.model_file import load_model
+    from deltatwin.calibration.blackbox.validation import evaluate, ladder
+    from deltatwin.calibration.metrics import check_disjoint
 
     check_disjoint(df)
     kind = "DGM" if args.features == "thermal" else "DirectIGM"
@@ -164,7 +167,7 @@ def format_report(rep: dict) -> str:
 
 
 def run(args) -> int:
-    from twin.dataset import read_dataset
+    from deltatwin.twin.dataset import read_dataset
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

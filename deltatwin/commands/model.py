@@ -8,10 +8,9 @@ import mujoco
 import numpy as np
 
 from deltatwin.files import atomic_write
-
-from .geometry import build_geometry
-from .mjcf import build_spec
-from .params import DEFAULT_PARAMS_PATH, load_params
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.mjcf import build_spec
+from deltatwin.models.params import DEFAULT_PARAMS_PATH, load_params
 
 
 def register(sub) -> None:
@@ -43,8 +42,8 @@ def run_export(args) -> int:
 
 def model_info(params_path=None) -> dict:
     """Key figures of a parameter set (see ``deltatwin model info``)."""
-    from twin import workspace
-    from twin.statics import Statics
+    from deltatwin.twin import workspace
+    from deltatwin.twin.statics import Statics
     params = load_params(params_path)
     geom = build_geometry(params)
     spec = build_spec(params, geom)

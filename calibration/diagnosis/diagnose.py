@@ -32,15 +32,28 @@ import pandas as pd
 import statsmodels.api as sm
 from scipy import stats
 
-from twin.instruments.optics import AC_CHANNELS, AXES
-
-from .compare import evaluate
-from .errors import MissingColumnsError
-from .features import (JOINT_INPUTS, FeatureSet, Product, causal_derivatives, force_powers,
-                       geometric, thermal_preset)
-from .models import base_variables, thermal_sensors
-from .physics import (PhysicsFit, PhysicsModel, _projected, figures_nm, group_offsets,
-                      model_effects, residuals)
+from deltatwin.calibration.blackbox.estimator import base_variables, thermal_sensors
+from deltatwin.calibration.blackbox.features import (
+    JOINT_INPUTS,
+    FeatureSet,
+    Product,
+    causal_derivatives,
+    force_powers,
+    geometric,
+    thermal_preset,
+)
+from deltatwin.calibration.diagnosis.compare import evaluate
+from deltatwin.calibration.errors import MissingColumnsError
+from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.model import (
+    PhysicsModel,
+    _projected,
+    figures_nm,
+    group_offsets,
+    model_effects,
+    residuals,
+)
+from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES
 
 ALPHA = 1e-3
 MIN_EXPLAINED = 0.1

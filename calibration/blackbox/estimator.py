@@ -1,24 +1,6 @@
-"""Calibrated models: DGM per axis (first paper), IGM by Newton-Raphson on the DGM, direct IGM
-per motor (second paper), and their JSON export / load.
-
-Estimators follow scikit-learn's shape: parameters are given to the constructor and checked
-there, ``fit(df)`` learns from a dataset table (docs/data-format.md) and sets attributes
-ending in ``_``, ``predict(df)`` returns SI arrays.
-
-* :class:`DGM` — ``reading_axis = f(q1, q2, q3, temperatures, their derivatives)``, one
-  stepwise fit per measured axis, on the rows where that axis was measured (``x_nm``, ``y_nm``
-  in the ``xy`` session, ``z_nm`` in the ``z`` session), calibration split only.
-* :class:`IGM` — the controller's model: position + temperatures -> motor coordinates,
-  by vectorised Newton-Raphson on a fitted DGM; each point converges to ``tol_m`` or is
-  reported as not converged.
-* :class:`DirectIGM` — ``q_i = f(X, Y, Z, F)``, one stepwise fit per motor.
-
-A fitted model is a list of :class:`OutputModel` (one per axis or motor): the kept terms,
-their coefficients in SI, the intercept, and the standardisation used for the regression.
-Every prediction goes through one evaluator that factorises each term into a geometric
-monomial times an auxiliary monomial (temperatures, rates, force), so the IGM's Newton
-iterations only re-evaluate the <= 20 geometric monomials.
-"""
+"""The stepwise estimator shared by the DGM and the direct IGM: one stepwise fit per output on a
+feature set, the fitted outputs (kept terms, coefficients in SI, standardisation), one evaluator
+for every prediction, and the JSON form of a fitted model."""
 from __future__ import annotations
 
 import json
@@ -30,18 +12,26 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from deltatwin.calibration.blackbox.features import (
+    CARTESIAN_INPUTS,
+    DEFAULT_T_REF_K,
+    DEFAULT_WINDOW_S,
+    JOINT_INPUTS,
+    FeatureSet,
+    Term,
+    temperature_variables,
+    variable_unit,
+)
+from deltatwin.calibration.blackbox.stepwise import _PENTER_DEFAULT, resolve_thresholds, stepwisefit
+from deltatwin.calibration.errors import (
+    CalibrationInputError,
+    DroppedRowsWarning,
+    MissingColumnsError,
+    MissingMetadataWarning,
+    ModelFileError,
+    TooFewPointsError,
+)
 from deltatwin.files import atomic_write_text
-
-from .errors import (CalibrationInputError, DroppedRowsWarning, MissingColumnsError,
-                     MissingMetadataWarning, ModelFileError, ModelMismatchError,
-                     TooFewPointsError)
-from .features import (CARTESIAN_INPUTS, DEFAULT_T_REF_K, DEFAULT_WINDOW_S, JOINT_INPUTS,
-                       FeatureSet, Term, force_preset, temperature_variables, thermal_preset,
-                       variable_unit)
-from .stepwise import _PENTER_DEFAULT, resolve_thresholds, stepwisefit
-
-__all__ = ["OutputModel", "DGM", "IGM", "IGMResult", "DirectIGM", "load_model",
-           "thermal_sensors", "MODEL_FORMAT", "MODEL_FORMAT_VERSION"]
 
 MODEL_FORMAT = "deltatwin-calibration-model"
 MODEL_FORMAT_VERSION = 1
@@ -49,6 +39,7 @@ NM = 1e-9
 AXIS_COLUMNS = {"x": "x_nm", "y": "y_nm", "z": "z_nm"}
 MOTOR_COLUMNS = {"q1": "q1_rad", "q2": "q2_rad", "q3": "q3_rad"}
 _CARTESIAN_COLUMN = {"X": "x_nm", "Y": "y_nm", "Z": "z_nm"}
+
 
 
 def thermal_sensors(df: pd.DataFrame, meta: dict | None, sensors=None) -> list[str]:
@@ -135,7 +126,7 @@ class OutputModel:
                 "steps": [[a, n] for a, n in self.steps]}
 
     @staticmethod
-    def from_dict(d: dict) -> "OutputModel":
+    def from_dict(d: dict) -> OutputModel:
         try:
             terms = [Term.from_list(t["factors"]) for t in d["terms"]]
             for t, td in zip(terms, d["terms"]):
@@ -391,7 +382,7 @@ class _StepwiseModel:
         """
         if not isinstance(df, pd.DataFrame):
             raise CalibrationInputError(f"{self.kind}.fit expects a pandas DataFrame")
-        from .validation import check_disjoint
+        from deltatwin.calibration.metrics import check_disjoint
         if "split" in df.columns:
             check_disjoint(df)
         fs, sens = self._resolve_features(df, meta)
@@ -629,241 +620,3 @@ def base_variables(df, needed, sensors, T_ref_K, window_s) -> dict[str, np.ndarr
 
 # ----- DGM -------------------------------------------------------------------------------
 
-class DGM(_StepwiseModel):
-    """Direct geometric model per axis: ``reading = f(q, T, dT/dt, d2T/dt2)`` (first paper).
-
-    ``features``: ``"thermal"`` (the preset: 19 geometric, temperatures, geometric x
-    temperature, first and second derivatives) or any :class:`FeatureSet` over q1..q3 and
-    temperature variables.  ``sensors``: temperature sensor names (default: the metadata's
-    non-air sensors).  ``outputs``: axes to fit (default: every one of x, y, z measured in the
-    calibration rows).  Outputs are in metres.
-    """
-    kind = "DGM"
-    geo_inputs = JOINT_INPUTS
-    preset_name = "thermal"
-    output_columns = AXIS_COLUMNS
-    output_noun = "axis(es)"
-
-    def _sensors_for(self, df, meta):
-        return thermal_sensors(df, meta, self.sensors)
-
-    def _default_features(self, sensors):
-        return thermal_preset(sensors)
-
-    def _output_specs(self, df):
-        if self.outputs is not None:
-            axes = self.outputs
-            missing = [AXIS_COLUMNS[a] for a in axes if AXIS_COLUMNS[a] not in df.columns]
-            if missing:
-                raise MissingColumnsError(f"DGM: axis column(s) {missing} not in the data")
-        else:
-            axes = [a for a, c in AXIS_COLUMNS.items()
-                    if c in df.columns and np.isfinite(df[c].to_numpy(dtype=float)).any()]
-            if not axes:
-                raise MissingColumnsError("DGM: no interferometer reading (x_nm, y_nm, z_nm) "
-                                          "with a finite value in the data")
-        return [(a, "m", AXIS_COLUMNS[a], NM) for a in axes]
-
-
-@dataclass
-class IGMResult:
-    q: np.ndarray            # (n, 3) rad; last iterate where not converged
-    converged: np.ndarray    # (n,) bool: |DGM(q) - target| <= tol_m on every axis
-    iterations: np.ndarray   # (n,) Newton iterations used
-    residual_m: np.ndarray   # (n,) max |DGM(q) - target| over the axes, m
-
-    @property
-    def n_failed(self) -> int:
-        return int((~self.converged).sum())
-
-
-class IGM:
-    """Inverse geometric model by Newton-Raphson on a fitted DGM with x, y and z outputs.
-
-    ``solve(position_m, aux)`` finds q with ``DGM(q, aux) = position`` for a batch, in a
-    vectorised loop over the points not yet converged.  A point is converged when every
-    axis' residual is <= ``tol_m`` (default 1e-12 m = 0.001 nm); points whose Jacobian is
-    singular or whose iterates leave the finite range, or that are still above ``tol_m``
-    after ``max_iter`` iterations, are reported (``converged`` False), never silently kept.
-    """
-
-    def __init__(self, dgm: DGM, tol_m: float = 1e-12, max_iter: int = 30):
-        if not isinstance(dgm, DGM):
-            raise CalibrationInputError(f"IGM needs a DGM, got {type(dgm).__name__}")
-        dgm._check_fitted()
-        missing = [a for a in AXIS_COLUMNS if a not in dgm.output_names_]
-        if missing:
-            raise CalibrationInputError(f"IGM needs DGM outputs x, y and z; axis(es) {missing} "
-                                        "were not fitted")
-        if not (tol_m > 0) or not (max_iter >= 1):
-            raise CalibrationInputError(f"IGM: tol_m = {tol_m} must be > 0 and max_iter = "
-                                        f"{max_iter} >= 1")
-        self.dgm = dgm
-        self.tol_m = float(tol_m)
-        self.max_iter = int(max_iter)
-        order = [dgm.output_names_.index(a) for a in AXIS_COLUMNS]
-        self._order = np.array(order)
-
-    @property
-    def aux_variables(self) -> tuple[str, ...]:
-        """Non-geometric variables the IGM needs (temperatures, rates), SI."""
-        return self.dgm._eval.aux_vars
-
-    def solve(self, position_m, aux: dict | None = None, q0=None,
-              chunk: int = 32768) -> IGMResult:
-        """``position_m``: (n, 3) target readings x, y, z in m; ``aux``: dict of the aux
-        variables (arrays (n,) or scalars, SI: K relative to the reference, K/s, K/s^2);
-        ``q0``: start (default 0 = the campaign's zero).  Points are solved in chunks."""
-        x = np.atleast_2d(np.asarray(position_m, dtype=float))
-        if x.ndim != 2 or x.shape[1] != 3:
-            raise CalibrationInputError(f"IGM.solve: positions must be (n, 3), got {x.shape}")
-        n = x.shape[0]
-        aux = dict(aux or {})
-        for k, v in aux.items():
-            v = np.asarray(v, dtype=float).reshape(-1)
-            aux[k] = np.full(n, v.item()) if v.size == 1 and n != 1 else v
-            if aux[k].size != n:
-                raise CalibrationInputError(f"IGM.solve: variable {k!r} has {v.size} values "
-                                            f"for {n} points")
-        q = np.zeros((n, 3)) if q0 is None else np.array(np.broadcast_to(q0, (n, 3)), float)
-        conv = np.zeros(n, bool)
-        iters = np.zeros(n, int)
-        resid = np.full(n, np.inf)
-        for s0 in range(0, n, chunk):
-            sl = slice(s0, min(n, s0 + chunk))
-            self._solve_chunk(x[sl], {k: v[sl] for k, v in aux.items()}, q[sl], conv[sl],
-                              iters[sl], resid[sl])
-        return IGMResult(q=q, converged=conv, iterations=iters, residual_m=resid)
-
-    def _solve_chunk(self, x, aux, q_out, conv, iters, resid):
-        ev = self.dgm._eval
-        m = x.shape[0]
-        C = ev.coefficients(aux, m)[self._order]                    # (3, n_geo, m)
-        X = np.ascontiguousarray(x.T)                               # (3, m)
-        q = np.ascontiguousarray(q_out.T)                           # (3, m)
-        idx = np.flatnonzero(np.all(np.isfinite(X), axis=0) & np.all(np.isfinite(C), axis=(0, 1)))
-        if idx.size < m:
-            C, X, q = C[:, :, idx], X[:, idx], q[:, idx]
-        for it in range(self.max_iter + 1):
-            if idx.size == 0:
-                break
-            f, J = ev.value_and_jacobian(C, q)
-            r = f - X
-            rmax = np.max(np.abs(r), axis=0)
-            resid[idx] = rmax
-            q_out[idx] = q.T
-            ok = rmax <= self.tol_m
-            conv[idx[ok]] = True
-            if it == self.max_iter:
-                break
-            dq, det = _solve3(J, r)
-            step_ok = np.isfinite(det) & (det != 0.0) & np.all(np.isfinite(dq), axis=0)
-            keep = ~ok & np.isfinite(rmax) & step_ok
-            if not keep.all():
-                idx, C, X, q, dq = idx[keep], C[:, :, keep], X[:, keep], q[:, keep], dq[:, keep]
-            q = q - dq
-            iters[idx] += 1
-
-    def solve_frame(self, df: pd.DataFrame, position_m) -> IGMResult:
-        """Solve with the temperatures (and causal derivatives) of the rows of ``df``."""
-        return self.solve(position_m, self.dgm.variables(df))
-
-
-# ----- direct IGM ------------------------------------------------------------------------
-
-class DirectIGM(_StepwiseModel):
-    """Direct IGM per motor: ``q_i = f(X, Y, Z, F)`` (second paper).  Outputs in rad.
-
-    ``features``: ``"force"`` (the preset: 19 geometric monomials of X, Y, Z; F, F^2, F^3;
-    geometric x those) or a :class:`FeatureSet` over X, Y, Z, F (and temperatures).
-    Rows need all of ``x_nm``, ``y_nm``, ``z_nm`` (rows with NaN are dropped with a warning).
-    """
-    kind = "DirectIGM"
-    geo_inputs = CARTESIAN_INPUTS
-    preset_name = "force"
-    output_columns = MOTOR_COLUMNS
-    output_noun = "motor(s)"
-
-    def _default_features(self, sensors):
-        return force_preset()
-
-    def _output_specs(self, df):
-        motors = self.outputs or list(MOTOR_COLUMNS)
-        return [(m, "rad", MOTOR_COLUMNS[m], 1.0) for m in motors]
-
-    def jacobian(self, values: dict[str, np.ndarray]) -> np.ndarray:
-        """dq/dX of the fitted model at each point: (n, n_outputs, 3) in rad/m."""
-        self._check_fitted()
-        g = self._geo(values)
-        C = self._eval.coefficients(values, g.shape[1])
-        return self._eval.value_and_jacobian(C, g)[1].transpose(2, 0, 1)
-
-    def _errors_and_jacobian(self, df):
-        if self.output_names_ != list(MOTOR_COLUMNS):
-            raise CalibrationInputError(f"{self.kind}: end-effector errors need the outputs "
-                                        f"q1, q2, q3; this model has {self.output_names_}")
-        vals = self.variables(df)
-        dq = self.predict_values(vals) - self.targets(df)
-        J = self.jacobian(vals)
-        ok = np.all(np.isfinite(dq), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
-        ok[ok] &= np.abs(np.linalg.det(J[ok])) > 0
-        return dq, J, ok
-
-    def position_error(self, df: pd.DataFrame) -> np.ndarray:
-        """End-effector error the model's motor-coordinate errors cause: ``J^-1 (q_pred -
-        q_meas)`` with J = dq/dX of the model, (n, 3) in m; NaN where not available."""
-        self._check_fitted()
-        dq, J, ok = self._errors_and_jacobian(df)
-        out = np.full(dq.shape, np.nan)
-        out[ok] = np.linalg.solve(J[ok], dq[ok][:, :, None])[:, :, 0]
-        return out
-
-    def motor_error_at_effector(self, df: pd.DataFrame) -> np.ndarray:
-        """Each motor model's error expressed at the end-effector: dq_i * ||(J^-1)[:, i]||
-        (signed like dq_i), (n, 3) in m: the displacement that motor's error alone causes, a
-        per-motor figure in length units comparable with the paper's."""
-        self._check_fitted()
-        dq, J, ok = self._errors_and_jacobian(df)
-        out = np.full(dq.shape, np.nan)
-        Jinv = np.linalg.inv(J[ok])
-        out[ok] = dq[ok] * np.linalg.norm(Jinv, axis=1)
-        return out
-
-
-# ----- load ------------------------------------------------------------------------------
-
-_KINDS = {"DGM": DGM, "DirectIGM": DirectIGM}
-
-
-def load_model(path, expect_kind: str | None = None, expect_features: str | None = None):
-    """Load a model written by ``save()``; check the format and, if given, its kind and
-    feature preset (``ModelMismatchError`` when they differ)."""
-    path = Path(path)
-    if not path.exists():
-        raise ModelFileError(f"{path}: no such model file")
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ModelFileError(f"{path}: not a JSON model file ({exc})") from exc
-    if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
-        raise ModelFileError(f"{path}: not a {MODEL_FORMAT} file")
-    if d.get("format_version") != MODEL_FORMAT_VERSION:
-        raise ModelFileError(f"{path}: model format version {d.get('format_version')} is not "
-                             f"supported (this code reads {MODEL_FORMAT_VERSION})")
-    kind = d.get("kind")
-    if kind not in _KINDS:
-        raise ModelFileError(f"{path}: unknown model kind {kind!r}")
-    preset = (d.get("features") or {}).get("preset")
-    if expect_features is not None and preset != expect_features:
-        raise ModelMismatchError(f"{path}: is a {kind} fitted with the {preset!r} feature set, "
-                                 f"but the {expect_features!r} features were asked for")
-    if expect_kind is not None and kind != expect_kind:
-        raise ModelMismatchError(f"{path}: holds a {kind} model, a {expect_kind} was expected")
-    try:
-        return _KINDS[kind]._from_dict(d)
-    except (KeyError, TypeError) as exc:
-        raise ModelFileError(f"{path}: malformed model ({type(exc).__name__}: {exc})") from exc
-    except CalibrationInputError as exc:
-        if isinstance(exc, (ModelFileError, ModelMismatchError)):
-            raise type(exc)(f"{path}: {exc}") from exc
-        raise ModelFileError(f"{path}: {exc}") from exc

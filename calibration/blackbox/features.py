@@ -35,7 +35,11 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .errors import CalibrationInputError, MissingColumnsError, MissingMetadataWarning
+from deltatwin.calibration.errors import (
+    CalibrationInputError,
+    MissingColumnsError,
+    MissingMetadataWarning,
+)
 
 __all__ = [
     "Term", "Family", "Monomials", "Variables", "Powers", "Product", "FeatureSet",
@@ -81,7 +85,7 @@ class Term:
     def variables(self) -> tuple[str, ...]:
         return tuple(v for v, _ in self.factors)
 
-    def times(self, other: "Term") -> "Term":
+    def times(self, other: Term) -> Term:
         powers: dict[str, int] = {}
         for v, p in self.factors + other.factors:
             powers[v] = powers.get(v, 0) + p
@@ -91,7 +95,7 @@ class Term:
         return [[v, p] for v, p in self.factors]
 
     @staticmethod
-    def from_list(factors) -> "Term":
+    def from_list(factors) -> Term:
         try:
             return Term(tuple((str(v), int(p)) for v, p in factors))
         except (TypeError, ValueError) as exc:
@@ -112,7 +116,7 @@ class Family:
         return len(self.terms())
 
     @staticmethod
-    def from_dict(d: dict) -> "Family":
+    def from_dict(d: dict) -> Family:
         kinds = {"monomials": Monomials, "variables": Variables, "powers": Powers,
                  "product": Product}
         try:
@@ -302,7 +306,7 @@ class FeatureSet:
                 "n_terms": len(self.terms), "signature": self.signature}
 
     @staticmethod
-    def from_dict(d: dict) -> "FeatureSet":
+    def from_dict(d: dict) -> FeatureSet:
         try:
             fs = FeatureSet([Family.from_dict(f) for f in d["families"]],
                             name=d.get("name", "custom"), preset=d.get("preset"))
@@ -314,7 +318,7 @@ class FeatureSet:
                 f"its families ({fs.signature}); the description was edited or is corrupt")
         return fs
 
-    def subset(self, family_names, name: str) -> "FeatureSet":
+    def subset(self, family_names, name: str) -> FeatureSet:
         fams = [f for f in self.families if f.name in set(family_names)]
         return FeatureSet(fams, name=name, preset=self.preset)
 

@@ -13,14 +13,12 @@ Units: m, rad.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dataclasses import replace
-
-from models.geometry import Geometry
+from deltatwin.models.geometry import Geometry
 
 CLOSURE_TOL_M = 1e-12
 _MAX_ITER = 30

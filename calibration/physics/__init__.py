@@ -1,0 +1,26 @@
+"""Physics models fitted to measurements: the twin's own effects, evaluated on the conditions the
+data recorded, with their free parameters found by nonlinear least squares.
+
+A physics model is a list of effects from the library (twin/effects/). Its prediction of an
+interferometer reading runs the twin's stages (twin/world.py: robot -> part temperatures ->
+exact kinematics -> load through the compliance -> optics) on conditions taken from the data:
+motor coordinates, coil currents and the temperature sensors (each sensor stands for the part it
+is glued on, ``metadata['sensors']``; a part without a sensor takes the mean of its sensed
+siblings — arm1..3, rod1..3, ... — or the reference temperature). Readings are relative to each
+session's zero, as the interferometer counts it: (n s - n0 s0) / n_comp, where n0 s0 is the optical
+path at the zero (the robot at home, coils off, the conditions of the session's first row). The
+zero's path is a constant, but divided by the compensation index it is not: that is the dead-path
+error of an index change, hundreds of nm per kelvin on a 0.1 m dead path, so the model evaluates
+the zero too. What remains is an unknown offset per (session, axis): it is projected out of the
+fit (variable projection) and estimated on the calibration rows. Cosine-corrected data are
+compared with the model's reading divided by the same correction factor from the measured angles.
+
+The fit (``PhysicsFit``, scikit-learn style: ``fit`` then attributes ending in ``_``) works in
+parameter units scaled by each parameter's ``fit_scale`` (its typical size): the Jacobian is
+computed by forward differences, re-using the kinematics for parameters that only change the
+load or the optics; its singular value decomposition says which parameter combinations the data
+determine to better than ``identifiable_ratio`` of their typical size, given the readings'
+noise. Only those are fitted (Gauss-Newton in the reduced coordinates, scipy.linalg); the
+others stay at their starting values and are named in the identifiability report, never fitted
+to noise. Units: SI inside (m, rad, K), nm in reports.
+"""

@@ -1,0 +1,213 @@
+"""What a physics model is evaluated on: the conditions a dataset recorded (motor coordinates, coil
+currents, part temperatures from the sensors, air), gathered from a dataset table and its metadata."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from deltatwin.calibration.blackbox.features import causal_fit
+from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.params import RobotParams
+from deltatwin.twin.campaign import COSINE_ANGLES
+from deltatwin.twin.dataset import temperature_columns
+from deltatwin.twin.effects import LIBRARY
+from deltatwin.twin.instruments.optics import AXES, return_factor
+from deltatwin.twin.statics import Statics
+from deltatwin.twin.thermal import PART_NODES
+from deltatwin.twin.world import Points
+
+SIBLINGS = {"arm": ("arm1", "arm2", "arm3"), "rod": ("rod1", "rod2", "rod3"),
+            "motor": ("motor1", "motor2", "motor3"), "coil": ("coil1", "coil2", "coil3"),
+            "air": ("air_x", "air_y", "air_z")}
+REQUIRED = ("t_s", "split", "session", "q1_rad", "q2_rad", "q3_rad")
+TEMPERATURE_WINDOW_S = 600.0   # causal smoothing of the temperature streams
+
+
+@dataclass
+class Measurements:
+    """A dataset prepared for physics models (arrays with a leading axis N = rows)."""
+    df: pd.DataFrame
+    sensors: dict                 # sensor name -> part
+    y: np.ndarray                 # (N,3) readings (m), NaN where the axis was not measured
+    cos_factor: np.ndarray        # (N,3) 1 / cosine-correction factor (1 if not corrected)
+    group: np.ndarray             # (N,3) index of the (session, axis) zero, -1 where no reading
+    groups: list                  # (session, axis) per group index
+    cal: np.ndarray               # (N,) bool
+    val: np.ndarray               # (N,) bool
+    points: Points                # conditions of the N rows then of the session zeros (N + S
+                                  # rows; params/home filled in per evaluation)
+    zero_row: np.ndarray          # (N,) index in ``points`` of each row's session zero
+    T_ref_C: float
+    sensor_node_T: dict           # part temperatures taken at their sensors' readings
+    _statics: tuple | None = field(default=None, repr=False)
+
+    @property
+    def n(self) -> int:
+        return self.y.shape[0]
+
+    def part_temperatures(self, effects) -> dict:
+        """Part temperatures (N + S rows) under the model's ``effects``: those that say how a
+        sensor reads its part (``sensed_parts``) correct the readings, else each part is at its
+        sensors' reading."""
+        sensed = {}
+        for e in effects:
+            sensed.update(e.sensed_parts(self.points) or {})
+        if not sensed:
+            return self.sensor_node_T
+        readings = {k: v[1] for k, v in self.points.sensor_readings.items()}
+        return node_temperatures({**readings, **sensed}, self.sensors, self.T_ref_C,
+                                 self.points.t_s.shape[0])
+
+    def statics(self, params: RobotParams):
+        """Preload deflection (N,6) and compliance (N,6,6) at each row's position, computed
+        once with the starting robot (a µm change of geometry changes them by ~1e-4)."""
+        if self._statics is None:
+            geom = build_geometry(params)
+            st = Statics(params, geom)
+            qu, inv = np.unique(self.points.q, axis=0, return_inverse=True)
+            inv = inv.reshape(-1)
+            self._statics = (st.solve(qu, gravity=False).deflection[inv], st.compliance(qu)[inv])
+        return self._statics
+
+
+def sensor_streams(df: pd.DataFrame, sensors: dict, window_s: float = TEMPERATURE_WINDOW_S,
+                   where: str = "data") -> dict:
+    """Each sensor's stream smoothed causally (local linear fit over the past ``window_s``, as a
+    controller could: a thermometer's mK noise times a CTE and a 0.35 m loop leg is tens of
+    nm): {sensor name: (part, level degC (N,), rate K/s (N,))}."""
+    t = df["t_s"].to_numpy(dtype=np.float64)
+    order = np.argsort(t, kind="stable")
+    out = {}
+    for s, part in sensors.items():
+        c = f"T_{s}_C"
+        if c not in df:
+            raise MissingColumnsError(f"{where}: metadata 'sensors' names sensor {s!r} (on {part!r}) but "
+                                      f"the data has no column {c!r}")
+        raw = df[c].to_numpy(dtype=np.float64)
+        if not np.all(np.isfinite(raw)):
+            raise CalibrationInputError(f"{where}: column {c!r}: row {int(np.flatnonzero(~np.isfinite(raw))[0])}"
+                                        " is not a finite temperature")
+        level, rate = np.empty_like(raw), np.empty_like(raw)
+        level[order], rate[order] = causal_fit(t[order], raw[order], window_s, degree=1)[:2]
+        out[s] = (part, level, rate)
+    return out
+
+
+def node_temperatures(sensor_T: dict, sensors: dict, T_ref_C: float, n: int) -> dict:
+    """Part temperatures (degC, (n,) each) from the temperature each sensor stands for
+    (``sensor_T``: sensor name -> (n,)): the mean of the sensors on a part; a part without a
+    sensor takes the mean of its sensed siblings (arm1..3, rod1..3, ...), else ``T_ref_C``."""
+    cols = {}
+    for s, part in sensors.items():
+        cols.setdefault(part, []).append(sensor_T[s])
+    T = {p: np.mean(v, axis=0) for p, v in cols.items()}
+    out = {}
+    for node, _, _ in PART_NODES:
+        if node in T:
+            out[node] = T[node]
+            continue
+        kin = next((g for g in SIBLINGS.values() if node in g), ())
+        sensed = [T[k] for k in kin if k in T]
+        out[node] = np.mean(sensed, axis=0) if sensed else np.full(n, T_ref_C)
+    for a in AXES:   # the interferometer's own air sensor sits in its beam's air
+        out[f"sensor:comp_{a}"] = out[f"air_{a}"]
+    return out
+
+
+def check_sensors(effects, meas: Measurements, where: str = "data") -> None:
+    """A model whose effects read temperatures needs the data's sensors mapped to parts: without
+    the map every part would sit at the reference temperature and the effect would silently do
+    nothing."""
+    thermal = [n for n in effects if LIBRARY[n].reads_temperatures]
+    if thermal and not meas.sensors:
+        present = temperature_columns(meas.df)
+        raise CalibrationInputError(
+            f"{where}: the model's effect(s) {thermal} read part temperatures, but the dataset's "
+            f"metadata names no temperature sensor ('sensors': sensor -> part; temperature "
+            f"columns present: {present}): map them in the metadata (the .meta.json beside a "
+            "CSV, docs/data-format.md)")
+
+
+def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
+                 where: str = "data") -> Measurements:
+    """Check the dataset's columns and build the conditions the model is evaluated on."""
+    missing = [c for c in REQUIRED if c not in df.columns]
+    if missing:
+        raise MissingColumnsError(f"{where}: missing column(s) {missing} (data format: "
+                                  "docs/data-format.md)")
+    axes = [a for a in AXES if f"{a}_nm" in df.columns]
+    if not axes:
+        raise MissingColumnsError(f"{where}: no interferometer reading column (x_nm, y_nm, z_nm)")
+    meta = meta or {}
+    sensors = meta.get("sensors") or {}
+    if not isinstance(sensors, dict):
+        raise CalibrationInputError(f"{where}: metadata 'sensors' must map sensor name -> part")
+    parts = {p for p, _, _ in PART_NODES}
+    bad = {s: p for s, p in sensors.items() if p not in parts}
+    if bad:
+        raise CalibrationInputError(f"{where}: metadata 'sensors' puts {bad} on unknown parts; "
+                                    f"parts: {sorted(parts)}")
+    n = len(df)
+    y = np.full((n, 3), np.nan)
+    for a in axes:
+        y[:, AXES.index(a)] = df[f"{a}_nm"].to_numpy(dtype=np.float64) * 1e-9
+    cos = np.ones((n, 3))
+    corrected = df["cosine_corrected"].to_numpy(dtype=bool) if "cosine_corrected" in df else \
+        np.zeros(n, bool)
+    if corrected.any():
+        for a in axes:
+            need = [f"{c}_arcsec" for c in COSINE_ANGLES[a]]
+            if any(c not in df for c in need):
+                raise MissingColumnsError(f"{where}: readings are cosine corrected but the "
+                                          f"angle column(s) {need} are missing")
+            ang = np.radians(df[need].to_numpy(dtype=np.float64) / 3600.0)
+            f = return_factor(np.cos(ang[:, 0]) * np.cos(ang[:, 1]))
+            cos[:, AXES.index(a)] = np.where(corrected, 1.0 / f, 1.0)
+    session = df["session"].astype(str).to_numpy()
+    groups, group = [], np.full((n, 3), -1)
+    for s in dict.fromkeys(session):
+        for k, a in enumerate(AXES):
+            m = (session == s) & np.isfinite(y[:, k]) & np.isfinite(cos[:, k])
+            if m.any():
+                group[m, k] = len(groups)
+                groups.append((s, a))
+    split = df["split"].astype(str).to_numpy()
+    q = df[["q1_rad", "q2_rad", "q3_rad"]].to_numpy(dtype=np.float64)
+    if not np.all(np.isfinite(q)):
+        bad_row = int(np.flatnonzero(~np.all(np.isfinite(q), axis=1))[0])
+        raise CalibrationInputError(f"{where}: row {bad_row}: motor coordinates not finite")
+    currents = np.zeros((n, 3))
+    for i in range(3):
+        if f"coil{i + 1}_A" in df:
+            currents[:, i] = df[f"coil{i + 1}_A"].to_numpy(dtype=np.float64)
+    T_ref = params.reference_temperature_C
+    streams = sensor_streams(df, sensors, where=where)
+    node_T = node_temperatures({k: v[1] for k, v in streams.items()}, sensors, T_ref, n)
+    room = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
+    pressure = df["p_Pa"].to_numpy(dtype=np.float64) if "p_Pa" in df else np.full(n, 101325.0)
+    t_s = df["t_s"].to_numpy(dtype=np.float64)
+    # each session's zero: the robot at home with the coils off, in the conditions of the
+    # session's first row (the zero is taken just before it)
+    names = list(dict.fromkeys(session))
+    first = np.array([np.flatnonzero(session == s_)[np.argmin(t_s[session == s_])] for s_ in names])
+    zero_row = n + np.array([names.index(s_) for s_ in session], dtype=np.int64)
+    with_zeros = lambda v: np.concatenate([v, v[first]])
+    node_T = {k: with_zeros(v) for k, v in node_T.items()}
+    pts = Points(t_s=with_zeros(t_s), q=np.concatenate([q, np.zeros((first.size, 3))]),
+                 currents_A=np.concatenate([currents, np.zeros((first.size, 3))]),
+                 node_T=node_T, room_C=with_zeros(room), pressure_Pa=with_zeros(pressure),
+                 support_C={a: node_T["table"] for a in AXES}, params=params,
+                 home_p=np.zeros(3),
+                 sensor_readings={k: (part, with_zeros(T), with_zeros(r))
+                                  for k, (part, T, r) in streams.items()})
+    return Measurements(df=df, sensors=dict(sensors), y=y, cos_factor=cos, group=group,
+                        groups=groups, cal=split == "cal", val=split == "val", points=pts,
+                        zero_row=zero_row, T_ref_C=T_ref, sensor_node_T=node_T)
+
+
+# ---------------------------------------------------------------------------------------------
+# the model
+

@@ -1,0 +1,1 @@
+"""Shipped scenarios: declarative TOML files read through importlib.resources (twin.scenario)."""

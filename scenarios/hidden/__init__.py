@@ -1,0 +1,1 @@
+"""Hidden-effect scenarios: a library effect the baseline model lacks, for the diagnosis."""
