@@ -31,10 +31,12 @@ import warnings  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from deltatwin.calibration import stepwisefit  # noqa: E402
 from deltatwin.calibration.blackbox.estimator import base_variables  # noqa: E402
 from deltatwin.calibration.blackbox.features import thermal_preset  # noqa: E402
-from deltatwin.calibration.blackbox.stepwise import stepwise_refit_loop  # noqa: E402
+from deltatwin.calibration.blackbox.stepwise import (
+    stepwise_refit_loop,  # noqa: E402
+    stepwisefit,  # noqa: E402
+)
 from tests.calibration.synthetic import STRUCTURE_SENSORS, thermal_campaign  # noqa: E402
 
 

@@ -1,16 +1,14 @@
 """Writing files the way every deltatwin output is written: atomically (a temporary file in the
 same folder, renamed over the target only once complete, so a crash or a bad input never leaves
-a half-written file), with the permissions a plain ``open`` would give; and TOML values for the
-few TOML files the project writes (robot parameters, ports, fitted models)."""
+a half-written file), with the permissions a plain ``open`` would give; and TOML text for the
+few TOML files the project writes (robot parameters, ports, fitted models). The ground floor:
+every layer may import this module, and it imports nothing of the project."""
 from __future__ import annotations
 
-import math
 import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-
-import numpy as np
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
@@ -37,21 +35,21 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
-def toml_value(v) -> str:
-    """A TOML literal for a string, bool, number (inf/nan included), list, numpy array or
-    inline table."""
-    if isinstance(v, (bool, np.bool_)):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + " }"
-    if isinstance(v, (list, tuple, np.ndarray)):
-        return "[" + ", ".join(toml_value(x) for x in v) + "]"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        x = float(v)
-        return repr(x) if math.isfinite(x) else ("nan" if math.isnan(x) else
-                                                 ("inf" if x > 0 else "-inf"))
-    raise TypeError(f"cannot write {v!r} to TOML")
+def _plain(value):
+    """numpy scalars and arrays, and tuples, as the Python values TOML writers take."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return _plain(value.tolist())
+    return value
+
+
+def toml_text(doc: dict, comment: str = "") -> str:
+    """``doc`` as TOML text (tomli-w: strings with newlines, keys with spaces or dots, inf and
+    nan written as TOML says; floats exactly), with ``comment`` as leading ``#`` lines."""
+    import tomli_w
+
+    head = "".join(f"# {line}\n" for line in comment.splitlines())
+    return head + tomli_w.dumps(_plain(doc))

@@ -28,7 +28,6 @@ import binascii
 import logging
 import re
 import string
-import termios
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -42,8 +41,14 @@ log = logging.getLogger(__name__)
 
 XON, XOFF = b"\x11", b"\x13"
 TERMINATORS = {"LF": b"\n", "CR": b"\r", "CRLF": b"\r\n"}
-# what pyserial lets through when a device goes away (termios.error is no OSError)
-_LINK_ERRORS = (serial.SerialException, OSError, termios.error)
+# what pyserial lets through when a device goes away (termios.error is no OSError; termios
+# exists on POSIX only, and a Windows lab PC must still import the drivers)
+try:
+    from termios import error as _TermiosError
+except ImportError:
+    _LINK_ERRORS: tuple = (serial.SerialException, OSError)
+else:
+    _LINK_ERRORS = (serial.SerialException, OSError, _TermiosError)
 _POLL_S = 0.01   # pyserial read timeout: how often a waiting read checks its own deadline
 
 

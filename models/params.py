@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deltatwin.files import toml_value
+from deltatwin.files import toml_text
 
 DEFAULT_PARAMS_PATH = Path(__file__).with_name("delta_agietron") / "params.toml"
 
@@ -151,15 +151,13 @@ class RobotParams:
 
     def to_toml(self) -> str:
         """The parameter set as TOML text that ``load_params`` reads back identically."""
-        sections: dict[str, list[str]] = {}
-        for key, attr, _, rule in _SCHEMA:
+        doc: dict[str, dict] = {}
+        for key, attr, _, _rule in _SCHEMA:
             sec, name = key.split(".")
-            value = getattr(self, attr)
-            sections.setdefault(sec, []).append(f"{name} = {toml_value(value)}")
-        for mname, mat in self.materials.items():
-            sections[f"materials.{mname}"] = [f"{k} = {toml_value(getattr(mat, k))}"
-                                              for k in _MATERIAL_KEYS]
-        return "\n".join(f"[{s}]\n" + "\n".join(lines) + "\n" for s, lines in sections.items())
+            doc.setdefault(sec, {})[name] = getattr(self, attr)
+        doc["materials"] = {mname: {k: getattr(mat, k) for k in _MATERIAL_KEYS}
+                            for mname, mat in self.materials.items()}
+        return toml_text(doc)
 
 
 def _check(value, shape, rule, source, key):

@@ -24,7 +24,6 @@ arrays are converted. Floats round-trip exactly.
 """
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import math
@@ -36,6 +35,18 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
+
+
+def _lock_exclusively(file) -> None:
+    """An exclusive, non-blocking lock held while the file is open (OSError if another process
+    holds it): flock on POSIX, msvcrt's byte-range lock on Windows."""
+    try:
+        import fcntl
+    except ImportError:                                   # Windows
+        import msvcrt
+        msvcrt.locking(file.fileno(), msvcrt.LK_NBLCK, 1)
+        return
+    fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
 
 
 class JournalError(ValueError):
@@ -134,8 +145,8 @@ class Journal:
         file = open(path, "r+b", buffering=0)
         try:
             try:
-                fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+                _lock_exclusively(file)
+            except OSError:
                 raise JournalError(f"{path}: in use by another process") from None
             data = file.read()
             stored, points, good = _parse(path, data)

@@ -327,3 +327,11 @@ def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "D
             "val_err90_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
             "ranking": ranking, "correlated_family": best["family"] if best else None,
             "unexplained": {"depends_on": dependence[:10], "message": message}}
+
+
+def ranking_table(diagnosis: dict) -> pd.DataFrame:
+    """A diagnosis' candidates as a table, strongest first (index: the effect, or the feature
+    family for a stepwise DGM): what each explains, its F test and BIC, the error after it."""
+    rows = diagnosis.get("ranking", [])
+    key = "family" if rows and "family" in rows[0] else "effect"
+    return pd.DataFrame(rows).set_index(key) if rows else pd.DataFrame()

@@ -7,26 +7,22 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+# Figures are drawn on matplotlib's object API (Figure + its own Agg canvas), not pyplot:
+# writing a report neither needs a display nor switches the backend of a user's notebook.
+from matplotlib.figure import Figure
 
-from deltatwin.files import atomic_write, atomic_write_text  # noqa: E402
-from deltatwin.models.geometry import build_geometry  # noqa: E402
-from deltatwin.models.kinematics import forward  # noqa: E402
-from deltatwin.models.params import load_params  # noqa: E402
+from deltatwin.files import atomic_write, atomic_write_text
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import forward
+from deltatwin.models.params import load_params
 
 NM = 1e9
 
 
 def _save(fig, path: Path) -> None:
-    try:
-        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110,
-                                                   bbox_inches="tight"))
-    finally:
-        plt.close(fig)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight"))
 
 
 def _magnitude_nm(res: np.ndarray) -> np.ndarray:
@@ -36,7 +32,8 @@ def _magnitude_nm(res: np.ndarray) -> np.ndarray:
 
 
 def ladder_figure(ladder: list[dict], path: Path) -> None:
-    fig, ax = plt.subplots(figsize=(6, 3.2))
+    fig = Figure(figsize=(6, 3.2))
+    ax = fig.subplots()
     names = [row["model"] for row in ladder]
     vals = [row["val_err90_nm"] for row in ladder]
     ax.bar(range(len(vals)), vals, color="#3070c0")
@@ -58,7 +55,8 @@ def residual_maps(df, fits, path: Path) -> None:
     ends = [fits[0], fits[-1]]
     mags = [_magnitude_nm(f.residual_) for f in ends]
     vmax = float(np.nanpercentile(mags[0], 99))
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4), sharex=True, sharey=True)
+    fig = Figure(figsize=(9, 4))
+    axes = fig.subplots(1, 2, sharex=True, sharey=True)
     for ax, f, m in zip(axes, ends, mags):
         sc = ax.scatter(p[:, 0], p[:, 1], c=m, s=8, cmap="viridis", vmin=0, vmax=vmax)
         ax.set_title(f"{'+'.join(f.effects) or 'nominal'}", fontsize=8)
@@ -74,7 +72,8 @@ def error_vs_figure(df, fits, variables: list[str], path: Path) -> None:
     variables = [v for v in variables if v in df.columns and np.nanstd(df[v]) > 0]
     if not variables:
         variables = ["t_s"]
-    fig, axes = plt.subplots(1, len(variables), figsize=(4 * len(variables), 3.4), squeeze=False)
+    fig = Figure(figsize=(4 * len(variables), 3.4))
+    axes = fig.subplots(1, len(variables), squeeze=False)
     for ax, v in zip(axes[0], variables):
         x = df[v].to_numpy(dtype=float)
         for f, colour in ((fits[0], "#c04030"), (fits[-1], "#3070c0")):

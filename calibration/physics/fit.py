@@ -2,6 +2,7 @@
 Gauss-Newton on the identified directions, with the identifiability report."""
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -18,8 +19,11 @@ from deltatwin.calibration.physics.model import (
     residuals,
 )
 from deltatwin.models.params import RobotParams
+from deltatwin.twin.instruments.optics import AXES
 
 NM = 1e9   # the solver works on residuals in nm, where its tolerances are meaningful
+
+log = logging.getLogger(__name__)
 
 
 class PhysicsFit:
@@ -128,7 +132,7 @@ class PhysicsFit:
             z, r = z + step, r_new
             Jz = jac(z)
             if self.progress:
-                print(f"  fit {self.effects}: calibration rms {np.sqrt(np.mean(r ** 2)):.3f} nm")
+                log.info("fit %s: calibration rms %.3f nm", self.effects, np.sqrt(np.mean(r ** 2)))
         theta = theta_of(z)
         A, J = model.jacobian(meas, theta)
         self.n_evaluations_ += p + 1
@@ -210,6 +214,22 @@ class PhysicsFit:
                                zip(self.measurements_.groups, self.offsets_)},
                 "identifiability": self.identifiability_, "parameters": self.parameters_,
                 "values": self.model_.values()}
+
+    # -- tables (pandas) ----------------------------------------------------------------------
+    def parameter_table(self) -> pd.DataFrame:
+        """One row per free parameter (index ``effect.parameter[i]``): fitted ``value``,
+        ``start``, ``unit``, 1-sigma ``uncertainty`` (same unit) and ``identified_fraction``
+        (the share of the parameter the data determine)."""
+        return pd.DataFrame(self.parameters_).set_index("label")
+
+    def residual_table(self) -> pd.DataFrame:
+        """Residual per axis in nm (reading minus model, after each session's zero offset),
+        indexed like the data's rows; NaN where an axis was not read; ``split`` beside it."""
+        meas = self.measurements_
+        out = pd.DataFrame(self.residual_ * 1e9, index=meas.df.index,
+                           columns=[f"{a}_nm" for a in AXES])
+        out["split"] = meas.df["split"].to_numpy()
+        return out
 
 
 def _axis_p90(fig: dict) -> dict:

@@ -7,27 +7,28 @@ from pathlib import Path
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, _or_nan
 from deltatwin.calibration.physics.model import PhysicsModel
-from deltatwin.files import toml_value
-from deltatwin.twin.effects import EffectError
+from deltatwin.files import toml_text
+from deltatwin.twin.effects import LIBRARY, EffectError
+
+FORMAT = "deltatwin-physics-model"
+FORMAT_VERSION = 1
 
 
 def fitted_toml(fit: PhysicsFit, data: str) -> str:
     """The fitted model as TOML: effects and every parameter value (SI), the fit's figures."""
-    lines = ["# deltatwin physics model (calibration/physics.py); load with "
-             "`deltatwin compare DATA --model THIS`",
-             "[model]", f"effects = {toml_value(fit.effects)}", f"data = {toml_value(data)}",
-             f"noise_nm = {fit.noise_nm!r}", f"identifiable_ratio = {fit.identifiable_ratio!r}",
-             # the sensor -> part map the temperatures were taken from (the data's metadata)
-             "sensors = { " + ", ".join(f"{toml_value(s)} = {toml_value(p)}" for s, p in
-                                        fit.measurements_.sensors.items()) + " }",
-             "", "[fit]", f"val_err90_nm = {toml_value(_or_nan(fit.val_['all']['err_p90']))}",
-             f"cal_err90_nm = {toml_value(_or_nan(fit.cal_['all']['err_p90']))}",
-             f"n_parameters = {fit.model_.n_free}",
-             f"n_identified_directions = {fit.identifiability_['n_identified_directions']}",
-             f"not_identifiable = {toml_value(fit.identifiability_['not_identifiable'])}"]
-    for name, vals in fit.model_.values().items():
-        lines += ["", f"[effects.{name}]"] + [f"{k} = {toml_value(v)}" for k, v in vals.items()]
-    return "\n".join(lines) + "\n"
+    doc = {"format": FORMAT, "format_version": FORMAT_VERSION,
+           "model": {"effects": fit.effects, "data": data, "noise_nm": fit.noise_nm,
+                     "identifiable_ratio": fit.identifiable_ratio,
+                     # the sensor -> part map the temperatures were taken from (the data's metadata)
+                     "sensors": dict(fit.measurements_.sensors)},
+           "fit": {"val_err90_nm": _or_nan(fit.val_["all"]["err_p90"]),
+                   "cal_err90_nm": _or_nan(fit.cal_["all"]["err_p90"]),
+                   "n_parameters": fit.model_.n_free,
+                   "n_identified_directions": fit.identifiability_["n_identified_directions"],
+                   "not_identifiable": fit.identifiability_["not_identifiable"]},
+           "effects": fit.model_.values()}
+    return toml_text(doc, "deltatwin physics model; load with "
+                          "`deltatwin compare DATA --model THIS`")
 
 
 def load_fitted(path) -> tuple[PhysicsModel, dict]:
@@ -42,6 +43,20 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
     if "model" not in doc or "effects" not in doc.get("model", {}):
         raise FitError(f"{path}: no [model] effects = [...]: not a fitted physics model "
                        "(write one with `deltatwin fit DATA --effects ... -o FILE`)")
+    version = doc.get("format_version", 0)      # files written before the version key: 0
+    if doc.get("format", FORMAT) != FORMAT or not isinstance(version, int) \
+            or version > FORMAT_VERSION:
+        raise FitError(f"{path}: format {doc.get('format')!r} version {version!r}: this deltatwin "
+                       f"reads {FORMAT!r} up to version {FORMAT_VERSION}")
+    # a file cut short must not fall back on default values: every effect of the model that
+    # has free parameters needs its table
+    tables = doc.get("effects", {})
+    missing = [e for e in doc["model"]["effects"]
+               if e not in tables and e in LIBRARY and LIBRARY[e].free_parameters()]
+    if missing:
+        raise FitError(f"{path}: no [effects.{missing[0]}] table"
+                       + (f" (nor {', '.join(missing[1:])})" if missing[1:] else "")
+                       + ": the file is incomplete (cut short?); refit or restore it")
     try:
         model = PhysicsModel(doc["model"]["effects"], None, doc.get("effects", {}),
                              where=f"{path} [effects]")

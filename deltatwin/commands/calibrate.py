@@ -10,12 +10,12 @@ See docs/calibration.md for the JSON schema.
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import warnings
 
 from deltatwin.calibration.errors import CalibrationInputError, CalibrationWarning
+from deltatwin.commands.output import strict_json
 
 FEATURES = ("thermal", "force")
 
@@ -48,17 +48,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _clean(obj):
-    """JSON-safe: NaN / inf -> None, numpy scalars -> Python."""
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 def _axis_record(rec: dict) -> dict:
@@ -186,7 +175,7 @@ def run(args) -> int:
         model.save(args.output)
         report["model_written"] = str(args.output)
     if args.json:
-        print(json.dumps(_clean(report), indent=1))
+        print(strict_json(report, indent=1))
     else:
         print(format_report(report))
         if args.output:

@@ -9,7 +9,7 @@ time windows and variables; ``--json`` prints the whole result as one JSON objec
 """
 from __future__ import annotations
 
-import json
+from deltatwin.commands.output import strict_json
 
 
 def register(sub) -> None:
@@ -98,7 +98,7 @@ def run(args) -> int:
         raise CalibrationInputError(f"{args.data} with model {args.model}: {exc}") from exc
     rep = {"data": str(args.data), "model_file": str(args.model), **rep}
     if args.json:
-        print(json.dumps(rep, indent=1, allow_nan=False))
+        print(strict_json(rep, indent=1))
     else:
         print(format_report(rep))
     return 0

@@ -6,11 +6,11 @@ it, refit, and print the falling-error ladder; write the dataset, the fitted mod
 (Markdown + PNG) and a Rerun recording into ``--out``."""
 from __future__ import annotations
 
-import json
+import sys
 import time
 from pathlib import Path
 
-from tqdm import tqdm
+from deltatwin.commands.output import strict_json
 
 DEFAULT_SCENARIO = "hidden/magnetic-force"
 
@@ -46,7 +46,11 @@ def run(args) -> int:
                          "the demo needs a scenario of scenarios/hidden/")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    say = (lambda m: None) if args.json else (lambda m: tqdm.write(f"[{time.perf_counter() - t0:5.1f} s] {m}"))
+    def say(message: str) -> None:
+        """The story as it unfolds: progress, so on stderr (stdout holds the results)."""
+        if not args.quiet:
+            print(f"[{time.perf_counter() - t0:5.1f} s] {message}", file=sys.stderr, flush=True)
+
     say(f"simulating {sc.name} (hidden from the model: {', '.join(sc.hidden['effects'])})")
     df, meta = sc.simulate(None if args.scale == 1 else args.scale)
     data = out / "data.parquet"
@@ -90,7 +94,7 @@ def run(args) -> int:
                "report": str(report), "recording": str(recording) if recording else None,
                "seconds": round(time.perf_counter() - t0, 1)}
     if args.json:
-        print(json.dumps(summary))
+        print(strict_json(summary))
         return 0
     print(f"\nladder ({sc.name}; hidden: {', '.join(sc.hidden['effects'])}):")
     print(f"  {'model':<28} {'val err90 nm':>13}")

@@ -9,11 +9,12 @@ scale -> the same data). Prints the device paths, writes the ports file (``--por
 """
 from __future__ import annotations
 
-import json
 import signal
 import sys
 import threading
 from pathlib import Path
+
+from deltatwin.commands.output import strict_json
 
 
 def register(sub) -> None:
@@ -65,7 +66,7 @@ def serve(instruments, *, name: str, directory: Path | None, ports_out: Path | N
                         comment=f"emulated laboratory for {name}: valid while `deltatwin "
                                 f"emulate` runs")
         if as_json:
-            print(json.dumps({"devices": {n: {"url": u, "device": d}
+            print(strict_json({"devices": {n: {"url": u, "device": d}
                                           for n, (u, d) in devices.items()},
                               "ports": None if ports_out is None else str(ports_out)}))
         else:

@@ -2,10 +2,7 @@
 dataset, and which effect they miss (calibration/physics.py, calibration/diagnosis.py)."""
 from __future__ import annotations
 
-import json
-
-import numpy as np
-
+from deltatwin.commands.output import strict_json
 from deltatwin.files import atomic_write_text
 
 
@@ -40,12 +37,6 @@ def _effects(text: str) -> list[str]:
     return [] if names == ["none"] else names
 
 
-def _json_default(x):
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(type(x).__name__)
 
 
 def _known_values(settings: list[str]) -> dict:
@@ -81,7 +72,7 @@ def run_fit(args) -> int:
         atomic_write_text(args.output, fitted_toml(fit, str(args.data)))
     s = fit.summary()
     if args.json:
-        print(json.dumps(s, default=_json_default))
+        print(strict_json(s))
         return 0
     ident = s["identifiability"]
     print(f"fitted {', '.join(fit.effects) or 'the nominal robot'} to {args.data}: "
@@ -123,7 +114,7 @@ def run_diagnose(args) -> int:
                                                                             where=str(args.data))
     d = diagnose(fit, str(args.data))
     if args.json:
-        print(json.dumps(d, default=_json_default))
+        print(strict_json(d))
         return 0
     print(f"model {', '.join(fit.effects) or 'nominal robot'}: validation error (90 %) "
           f"{d['val_err90_nm']:.1f} nm")
@@ -147,7 +138,7 @@ def _diagnose_stepwise(args, df, meta) -> int:
 
     d = diagnose_families(df, meta, load_model_file(args.model), str(args.data))
     if args.json:
-        print(json.dumps(d, default=_json_default))
+        print(strict_json(d))
         return 0
     print(f"stepwise DGM ({d['features']}): validation error (90 %) {d['val_err90_nm']:.1f} nm")
     print(f"  {'feature family':<28} {'terms':>5} {'in model':>9} {'explains':>9} "

@@ -1,32 +1,36 @@
 """``deltatwin model export | info``: the robot model as MJCF, and its key figures."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import mujoco
-import numpy as np
-
-from deltatwin.files import atomic_write
-from deltatwin.models.geometry import build_geometry
-from deltatwin.models.mjcf import build_spec
-from deltatwin.models.params import DEFAULT_PARAMS_PATH, load_params
+from deltatwin.commands.output import strict_json
 
 
 def register(sub) -> None:
     model = sub.add_parser("model", help="the robot model: export MJCF, print key figures")
     msub = model.add_subparsers(dest="model_command", required=True, metavar="ACTION")
-    exp = msub.add_parser("export", help="write the MuJoCo model as MJCF XML")
+    exp = msub.add_parser("export", help="write the MuJoCo model as MJCF XML",
+                          description="Write the MuJoCo model as MJCF XML (MuJoCo loads it back "
+                                      "before the file is put in place).")
     exp.add_argument("-o", "--output", required=True, help="output .xml path")
-    exp.add_argument("--params", default=None, help=f"parameter TOML (default {DEFAULT_PARAMS_PATH.name})")
+    exp.add_argument("--params", default=None,
+                     help="parameter TOML (default: the shipped models/delta_agietron/params.toml)")
     exp.set_defaults(func=run_export)
-    info = msub.add_parser("info", help="workspace, envelope, compliance, strokes")
+    info = msub.add_parser("info", help="workspace, envelope, compliance, strokes",
+                           description="Key figures of the robot: workspace volume, envelope, "
+                                       "compliance at the workspace centre, strokes, flexures.")
     info.add_argument("--params", default=None, help="parameter TOML")
     info.add_argument("--json", action="store_true", help="print one JSON object")
     info.set_defaults(func=run_info)
 
 
 def run_export(args) -> int:
+    import mujoco
+
+    from deltatwin.files import atomic_write
+    from deltatwin.models.mjcf import build_spec
+    from deltatwin.models.params import load_params
+
     params = load_params(args.params)
     xml = build_spec(params).to_xml()
     out = Path(args.output)
@@ -42,6 +46,12 @@ def run_export(args) -> int:
 
 def model_info(params_path=None) -> dict:
     """Key figures of a parameter set (see ``deltatwin model info``)."""
+    import mujoco
+    import numpy as np
+
+    from deltatwin.models.geometry import build_geometry
+    from deltatwin.models.mjcf import build_spec
+    from deltatwin.models.params import DEFAULT_PARAMS_PATH, load_params
     from deltatwin.twin import workspace
     from deltatwin.twin.statics import Statics
     params = load_params(params_path)
@@ -82,9 +92,11 @@ def model_info(params_path=None) -> dict:
 
 
 def run_info(args) -> int:
+    import numpy as np
+
     info = model_info(args.params)
     if args.json:
-        print(json.dumps(info, indent=1))
+        print(strict_json(info, indent=1))
         return 0
     C = np.array(info["compliance_nm_per_N"])
     print(f"parameters      {info['parameter_file']}")

@@ -1,18 +1,20 @@
 """`deltatwin simulate SCENARIO -o OUT.parquet` and `deltatwin effects`."""
 from __future__ import annotations
 
-import json
 import time
 
-import numpy as np
-from tqdm import tqdm
-
-from deltatwin.twin.dataset import write_dataset
-from deltatwin.twin.effects import LIBRARY
-from deltatwin.twin.scenario import Scenario
+from deltatwin.commands.output import strict_json
 
 
 def run_simulate(args) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from deltatwin.twin.dataset import write_dataset
+    from deltatwin.twin.scenario import Scenario
+
+
+
     t0 = time.perf_counter()
     with tqdm(total=3, desc="simulate", unit="stage", disable=args.quiet) as bar:
         bar.set_postfix_str("scenario")
@@ -35,15 +37,18 @@ def run_simulate(args) -> int:
                "duration_h": round(float(df["t_s"].max()) / 3600.0, 2)}
     T = df[[c for c in df.columns if c.startswith("T_")]].to_numpy()
     summary["temperature_range_C"] = [round(float(np.nanmin(T)), 3), round(float(np.nanmax(T)), 3)]
-    print(json.dumps(summary) if args.json else
+    print(strict_json(summary) if args.json else
           "\n".join(f"{k:>20}: {v}" for k, v in summary.items()))
     return 0
 
 
 def run_effects(args) -> int:
+    from deltatwin.twin.effects import LIBRARY
+
+
     info = {name: cls().describe() for name, cls in LIBRARY.items()}
     if args.json:
-        print(json.dumps(info, indent=1))
+        print(strict_json(info, indent=1))
         return 0
     for name, d in info.items():
         print(f"{name}: {d['summary']}")
@@ -56,17 +61,18 @@ def register(sub) -> None:
     p = sub.add_parser("simulate", help="run a scenario's campaign on the twin and write its dataset",
                        description="Simulate a scenario (a TOML path or a name in scenarios/) and "
                                    "write the dataset (Parquet, or CSV by suffix) atomically.")
-    p.add_argument("scenario")
-    p.add_argument("-o", "--output", required=True)
+    p.add_argument("scenario", help="a scenario TOML path, or a shipped name (paper-thermal, "
+                   "paper-force, hidden/...)")
+    p.add_argument("-o", "--output", required=True,
+                   help="dataset to write (.parquet; .csv writes a .meta.json beside it)")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale (tests)")
     g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points")
     p.add_argument("--through-interface", action="store_true",
                    help="run point by point through the instrument interface (same data, slower)")
-    p.add_argument("--json", action="store_true")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run_simulate)
     e = sub.add_parser("effects", help="list the physical effects and their parameters")
-    e.add_argument("--json", action="store_true")
+    e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=run_effects)

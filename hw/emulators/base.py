@@ -38,7 +38,6 @@ import select
 import socket
 import threading
 import time
-import tty
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -91,6 +90,7 @@ class PtyLink:
 
     def up(self) -> None:
         self._master, self._slave = os.openpty()
+        import tty  # POSIX only: emulators serve pseudo-terminals
         tty.setraw(self._slave)          # no echo, no CR/LF translation, 8-bit clean
         os.set_blocking(self._master, False)
         self.device = os.ttyname(self._slave)

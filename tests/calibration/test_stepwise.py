@@ -5,9 +5,12 @@ import warnings
 import numpy as np
 import pytest
 
-from deltatwin.calibration import stepwisefit
 from deltatwin.calibration.blackbox.features import thermal_preset
-from deltatwin.calibration.blackbox.stepwise import resolve_thresholds, stepwise_refit_loop
+from deltatwin.calibration.blackbox.stepwise import (
+    resolve_thresholds,
+    stepwise_refit_loop,
+    stepwisefit,
+)
 from deltatwin.calibration.errors import (
     CalibrationInputError,
     DegenerateColumnWarning,
