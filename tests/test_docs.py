@@ -41,7 +41,7 @@ def test_readme_python_block_runs(tmp_path):
     r = subprocess.run([sys.executable, "-c", _blocks("python")[0]], cwd=tmp_path,
                        capture_output=True, text=True, timeout=280)
     assert r.returncode == 0, r.stderr[-3000:]
-    lines = r.stdout.strip().splitlines()
+    lines = [line.strip() for line in r.stdout.strip().splitlines()]
     assert float(lines[0]) > 0                               # a validation error in nm
     first = lines[lines.index("effect") + 1]                 # pandas prints the index name
     assert first.split()[0] == "magnetic_force", r.stdout    # the hidden effect ranks first
