@@ -89,8 +89,7 @@ def _configure_logging(args) -> None:
     handler.setFormatter(logging.Formatter("%(message)s"))
     log = logging.getLogger("deltatwin")
     log.handlers[:] = [handler]
-    log.setLevel(level)
-    log.propagate = False
+    log.setLevel(level)           # records still propagate: a host's own handlers see them too
 
 
 def _is_instrument_fault(exc: BaseException) -> bool:
