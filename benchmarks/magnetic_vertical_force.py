@@ -11,11 +11,11 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from models.geometry import build_geometry
-from models.mjcf import magnet_positions
-from twin.effects.magnetic_force import dipole_force_torque
-from twin.kinematics import forward
-from twin.scenario import Scenario
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import forward
+from deltatwin.models.mjcf import magnet_positions
+from deltatwin.twin.effects.magnetic_force import dipole_force_torque
+from deltatwin.twin.scenario import Scenario
 
 levels = int(sys.argv[1]) if len(sys.argv) > 1 else 21
 sc = Scenario.load("paper-force")

@@ -5,8 +5,8 @@ formula, and the reference file's sensitivities."""
 import numpy as np
 import pytest
 
-from twin.effects.magnetic_force import MU0, dipole_force_torque
-from twin.instruments.optics import air_index
+from deltatwin.twin.effects.magnetic_force import MU0, dipole_force_torque
+from deltatwin.twin.instruments.optics import air_index
 
 
 def _dipole_field(m, r_from, at):
@@ -110,7 +110,7 @@ def test_thermal_network_integration_equals_matrix_exponential():
     glued sensor nodes: agreement better than 1e-9 K; and uniform inputs with no heating give every node that temperature."""
     from scipy.linalg import expm
 
-    from twin.thermal import GRID_S, Sensor, ThermalNetwork
+    from deltatwin.twin.thermal import GRID_S, Sensor, ThermalNetwork
 
     net = ThermalNetwork((Sensor("s_base", "base", 0.02, 0.001), Sensor("s_arm1", "arm1", 0.02, 0.001)))
     assert "sensor:s_base" in net.nodes
@@ -149,7 +149,7 @@ def test_interferometer_noise_statistics_match_their_textbook_values():
     E[sigma^2] = sample_noise^2 exp(2 spread^2) (log-normal moment); the reported sample std
     squared has mean E[sigma^2] (chi-square with N-1 degrees of freedom / (N-1)); rounding to the
     resolution adds step^2 / 12 (uniform). 200k windows: each within 1 %."""
-    from twin.instruments.simulated import InstrumentSettings, interferometer_bank, quantize
+    from deltatwin.twin.instruments.simulated import InstrumentSettings, interferometer_bank, quantize
 
     s = InstrumentSettings()
     rows = interferometer_bank(np.random.default_rng(21), s).take(0, 200_000)
