@@ -19,7 +19,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from deltatwin.twin.instruments.interface import InstrumentError, InstrumentSet
-from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES, cosine_correction
+from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES, cosine_correction, cosine_factor
 from deltatwin.twin.instruments.simulated import (
     InstrumentSettings,
     SimulatedLab,
@@ -109,8 +109,8 @@ def _rows(plan: Plan, t_s, ifm, ifm_std, ac, T, sensors, zero_ac, cosine: bool,
             continue
         if cosine:
             ia, ib = (AC_CHANNELS.index(c) for c in COSINE_ANGLES[a])
-            x = cosine_correction(x, dead_path[a], ac[:, :, ia], ac[:, :, ib],
-                                  zero_ac[:, None, ia], zero_ac[:, None, ib])
+            x = cosine_correction(x, dead_path[a], cosine_factor(ac[:, :, ia], ac[:, :, ib]),
+                                  cosine_factor(zero_ac[:, None, ia], zero_ac[:, None, ib]))
         df[f"{a}_nm"] = np.mean(x, axis=1) * 1e9
         df[f"{a}_std_nm"] = np.max(ifm_std[:, :, k], axis=1) * 1e9
         if plan.readings > 1:

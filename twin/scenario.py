@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from deltatwin.models.mjcf import FOLD_MIRROR_Z, INSTRUMENT_SITES
 from deltatwin.models.params import ParameterError, load_params
 from deltatwin.twin.campaign import Plan, force_plan, run_campaign, simulate_campaign, thermal_plan
 from deltatwin.twin.effects import LIBRARY, EffectError, make_effect
+from deltatwin.twin.instruments.optics import nominal_dead_path
 from deltatwin.twin.instruments.simulated import InstrumentSettings, SimulatedLab
 from deltatwin.twin.thermal import PART_NODES
 from deltatwin.twin.world import Twin, random_streams
@@ -234,11 +234,7 @@ class Scenario:
 
     def dead_path(self) -> dict:
         """Nominal beam path head -> cube face (m) per axis, for the cosine correction."""
-        h = 0.5 * self.params.mirror_cube_size_m
-        out = {a: float(np.linalg.norm(INSTRUMENT_SITES[f"interferometer_{a}"][0])) - h for a in "xy"}
-        head_z = INSTRUMENT_SITES["interferometer_z"][0]
-        out["z"] = float(np.linalg.norm(head_z - FOLD_MIRROR_Z) + np.linalg.norm(FOLD_MIRROR_Z)) - h
-        return out
+        return nominal_dead_path(self.params.mirror_cube_size_m)
 
     def horizon_s(self, plan: Plan) -> float:
         """Upper bound of the campaign's duration (the twin's environment is made this long)."""
@@ -264,7 +260,8 @@ class Scenario:
                           "hidden": self.hidden,
                           "reading_noise_std_nm": self.settings.noise_floor_m * 1e9,
                           "noise_floor_nm": noise_floor_nm,
-                          "cosine_correction": self.cosine}}
+                          "cosine_correction": self.cosine},
+                "cosine_dead_path_m": self.dead_path()}
 
     def simulate(self, scale: float | None = None) -> tuple[pd.DataFrame, dict]:
         """The campaign's dataset through the vectorised fast path."""

@@ -78,6 +78,15 @@ def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def _bend_vector(rest, actual):
+    """Rotation vector (3,...) turning unit vector ``rest`` into unit vector ``actual``: along
+    rest x actual, of length the angle between them (rad)."""
+    c = _cross(rest, actual)
+    sin_angle = np.sqrt(_dot(c, c))
+    safe = np.where(sin_angle > 0.0, sin_angle, 1.0)
+    return c * np.where(sin_angle > 0.0, np.arctan2(sin_angle, _dot(rest, actual)) / safe, 1.0)
+
+
 def _cross(a, b, out=None):
     if out is None:
         out = np.empty(np.broadcast_shapes(a.shape, b.shape))
@@ -251,10 +260,12 @@ class Statics:
         for lower, upper in ((_DR, _DP), (_ETA, _DP), (_ETA, _DR)):
             K[lower, upper] = K[upper, lower].swapaxes(0, 1)
 
-        # preload: initial bending strains (rest direction x actual direction) of both hinges
+        # preload: initial bending strains of both hinges, the rotation vector from the rest to
+        # the actual direction (the bend angle, not its sine: a flexure's moment is linear in
+        # its angle; see models/delta_agietron/README.md)
         fixed, radial, tangential = self._rest_elbow
         rest_elbow = fixed + radial * np.cos(qT) + tangential * np.sin(qT)
-        e_elbow, e_plat = _cross(rest_elbow, n), _cross(rest_plat, n)
+        e_elbow, e_plat = _bend_vector(rest_elbow, n), _bend_vector(rest_plat, n)
         sigma = _cross(e_elbow + e_plat, n) * inv_len
         f0 = np.empty((10, 3, m))
         f0[_DP] = -kb * _both_rods(sigma)

@@ -13,7 +13,8 @@ zero's path is a constant, but divided by the compensation index it is not: that
 error of an index change, hundreds of nm per kelvin on a 0.1 m dead path, so the model evaluates
 the zero too. What remains is an unknown offset per (session, axis): it is projected out of the
 fit (variable projection) and estimated on the calibration rows. Cosine-corrected data are
-compared with the model's reading divided by the same correction factor from the measured angles.
+compared with the model's reading put through the same correction (deltatwin.twin.instruments.optics:
+cosine_correction) with the measured angles.
 
 The fit (``PhysicsFit``, scikit-learn style: ``fit`` then attributes ending in ``_``) works in
 parameter units scaled by each parameter's ``fit_scale`` (its typical size): the Jacobian is

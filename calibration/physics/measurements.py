@@ -14,7 +14,7 @@ from deltatwin.models.params import RobotParams
 from deltatwin.twin.campaign import COSINE_ANGLES
 from deltatwin.twin.dataset import temperature_columns
 from deltatwin.twin.effects import LIBRARY
-from deltatwin.twin.instruments.optics import AXES, return_factor
+from deltatwin.twin.instruments.optics import AXES, cosine_correction, cosine_factor, nominal_dead_path
 from deltatwin.twin.statics import Statics
 from deltatwin.twin.thermal import PART_NODES
 from deltatwin.twin.world import Points
@@ -32,7 +32,10 @@ class Measurements:
     df: pd.DataFrame
     sensors: dict                 # sensor name -> part
     y: np.ndarray                 # (N,3) readings (m), NaN where the axis was not measured
-    cos_factor: np.ndarray        # (N,3) 1 / cosine-correction factor (1 if not corrected)
+    cos_scale: np.ndarray         # (N,3) 1 / cosine factor of the row's measured tilts (1 if
+                                  # not corrected)
+    cos_offset: np.ndarray        # (N,3) the correction's dead-path term s0 (1/c - 1) (m; 0 if
+                                  # not corrected)
     group: np.ndarray             # (N,3) index of the (session, axis) zero, -1 where no reading
     groups: list                  # (session, axis) per group index
     cal: np.ndarray               # (N,) bool
@@ -71,6 +74,24 @@ class Measurements:
             inv = inv.reshape(-1)
             self._statics = (st.solve(qu, gravity=False).deflection[inv], st.compliance(qu)[inv])
         return self._statics
+
+
+def _cosine_dead_path(meta: dict, params: RobotParams, axes, where: str) -> dict:
+    """The dead path (m per axis) the data's cosine correction assumed: metadata
+    ``cosine_dead_path_m`` if given, else the nominal instrument layout's."""
+    given = meta.get("cosine_dead_path_m")
+    if given is None:
+        return nominal_dead_path(params.mirror_cube_size_m)
+    if not isinstance(given, dict):
+        raise CalibrationInputError(f"{where}: metadata 'cosine_dead_path_m' must map axis -> m")
+    out = {}
+    for a in axes:
+        v = given.get(a)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 10.0:
+            raise CalibrationInputError(f"{where}: metadata 'cosine_dead_path_m' {a!r} = {v!r}: "
+                                        "expected a path in metres, 0 to 10")
+        out[a] = float(v)
+    return out
 
 
 def sensor_streams(df: pd.DataFrame, sensors: dict, window_s: float = TEMPERATURE_WINDOW_S,
@@ -154,18 +175,24 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
     y = np.full((n, 3), np.nan)
     for a in axes:
         y[:, AXES.index(a)] = df[f"{a}_nm"].to_numpy(dtype=np.float64) * 1e-9
-    cos = np.ones((n, 3))
+    cos, cos_offset = np.ones((n, 3)), np.zeros((n, 3))
     corrected = df["cosine_corrected"].to_numpy(dtype=bool) if "cosine_corrected" in df else \
         np.zeros(n, bool)
     if corrected.any():
+        dead_path = _cosine_dead_path(meta, params, axes, where)
         for a in axes:
             need = [f"{c}_arcsec" for c in COSINE_ANGLES[a]]
             if any(c not in df for c in need):
                 raise MissingColumnsError(f"{where}: readings are cosine corrected but the "
                                           f"angle column(s) {need} are missing")
             ang = np.radians(df[need].to_numpy(dtype=np.float64) / 3600.0)
-            f = return_factor(np.cos(ang[:, 0]) * np.cos(ang[:, 1]))
-            cos[:, AXES.index(a)] = np.where(corrected, 1.0 / f, 1.0)
+            c = cosine_factor(ang[:, 0], ang[:, 1])
+            k = AXES.index(a)
+            cos[:, k] = np.where(corrected, 1.0 / c, 1.0)
+            # the correction is affine in the reading: (s0 c0 + r) / c - s0 = r / c + s0 (1/c - 1)
+            # + s0 (c0 - 1) / c; the last term is the zero's tilt, a constant of the session
+            # to 1e-16 m (c = 1 - O(1e-7)), left to the session's offset: c0 = 1 here
+            cos_offset[:, k] = np.where(corrected, cosine_correction(0.0, dead_path[a], c), 0.0)
     session = df["session"].astype(str).to_numpy()
     groups, group = [], np.full((n, 3), -1)
     for s in dict.fromkeys(session):
@@ -203,7 +230,8 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
                  home_p=np.zeros(3),
                  sensor_readings={k: (part, with_zeros(T), with_zeros(r))
                                   for k, (part, T, r) in streams.items()})
-    return Measurements(df=df, sensors=dict(sensors), y=y, cos_factor=cos, group=group,
+    return Measurements(df=df, sensors=dict(sensors), y=y, cos_scale=cos, cos_offset=cos_offset,
+                        group=group,
                         groups=groups, cal=split == "cal", val=split == "val", points=pts,
                         zero_row=zero_row, T_ref_C=T_ref, sensor_node_T=node_T)
 

@@ -160,13 +160,16 @@ class PhysicsModel:
                 np.stack([truth.n_comp[a] for a in AXES], axis=1))
 
     @staticmethod
-    def _counted(meas: Measurements, path: np.ndarray, n_comp: np.ndarray) -> np.ndarray:
-        """What the interferometers count from their session's zero, (n s - n0 s0) / n_comp, as
-        the data show it (cosine corrected or not): (N, 3, ...) from paths (N + S, 3, ...)."""
+    def _counted(meas: Measurements, path: np.ndarray, n_comp: np.ndarray,
+                 derivative: bool = False) -> np.ndarray:
+        """What the interferometers count from their session's zero, (n L - n0 L0) / n_comp, as
+        the data show it (cosine corrected or not): (N, 3, ...) from paths (N + S, 3, ...).
+        ``derivative``: paths are derivatives, so the correction's constant term drops out."""
         n = meas.n
         d = path[:n] - path[meas.zero_row]
-        f = meas.cos_factor / n_comp[:n]
-        return d * f.reshape(f.shape + (1,) * (d.ndim - 2))
+        f = meas.cos_scale / n_comp[:n]
+        counted = d * f.reshape(f.shape + (1,) * (d.ndim - 2))
+        return counted if derivative else counted + meas.cos_offset
 
     def _observe(self, meas: Measurements, stage) -> np.ndarray:
         return self._counted(meas, *self._paths(meas, stage))
@@ -205,7 +208,7 @@ class PhysicsModel:
             J[:, :, j] = (Aj - A) / steps[j]
         if chain.any():
             dpath = self._pose_chain(meas, theta, stage, path, np.flatnonzero(chain), steps)
-            J[:, :, chain] = self._counted(meas, dpath, n_comp)
+            J[:, :, chain] = self._counted(meas, dpath, n_comp, derivative=True)
         self.set_theta(theta)
         return A, J
 

@@ -5,10 +5,9 @@ import sys
 import numpy as np
 import pytest
 
-from deltatwin.models.kinematics import Pose
 from deltatwin.twin.dataset import read_dataset
 from deltatwin.twin.effects import make_effect
-from deltatwin.twin.instruments.optics import Optics, face_distance
+from deltatwin.twin.instruments.optics import Optics
 from deltatwin.twin.scenario import Scenario, ScenarioError
 from deltatwin.twin.world import Schedule
 
@@ -83,25 +82,6 @@ def test_room_climate_over_three_days():
     assert np.allclose(room[(t >= 0) & (t < ac_off_s)], 20.0, atol=0.05)
     free = room[(t > ac_off_s + 6 * 3600) & (t < 3 * 86400)]
     assert 20.5 < free.min() < 22.5 and 23.5 < free.max() < 25.5
-
-
-def test_cosine_error_comes_from_geometry():
-    """A mirror tilted by a returns the double-pass beam at 2a: the reading grows by
-    s0 (1/cos 2a - 1) / 2 ~ s0 a^2 (the cosine error), from the geometry alone; the cosine
-    correction with the measured tilt removes it."""
-    from deltatwin.twin.instruments.optics import cosine_correction, optical_path
-    a = 300e-6
-    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-    optics = Optics.nominal(np.zeros(3), 1)
-    o, b = optics.beam("x")
-    s0 = face_distance(Pose(np.zeros((1, 3)), np.eye(3)[None]), np.zeros(3), 0.0, "x", o, b)[0]
-    flat = optical_path(Pose(np.zeros((1, 3)), np.eye(3)[None]), np.zeros(3), 0.0, optics, "x")[0]
-    tilted = optical_path(Pose(np.zeros((1, 3)), R[None]), np.zeros(3), 0.0, optics, "x")[0]
-    assert flat == pytest.approx(s0, abs=1e-15)
-    assert tilted - flat == pytest.approx(s0 * (1 / np.cos(2 * a) - 1) / 2, rel=1e-6)
-    assert tilted - flat > 5e-9                      # nanometres: it matters here
-    corrected = cosine_correction(tilted - flat, s0, a, 0.0)
-    assert abs(corrected) < 1e-13
 
 
 def test_thermal_network_pieces_equal_whole():

@@ -1,13 +1,20 @@
 """The metrology loop's optics: where each beam starts and goes, what it reflects on, and what
 interferometers and autocollimators therefore read from the platform's full pose.
 
-An interferometer reads the optical path change along its beam to a face of the Zerodur cube,
-divided by the air index it assumes: ``(n s - n0 s0) / n_comp``.  ``s`` is the exact distance
-along the beam to the (moving, tilting) mirror plane, so Abbe offsets, the cosine error of
-parasitic rotations (the double pass's return path on a tilted face) and beam misalignment come out of the geometry,
-and the dead path (s0, the distance at the zero) multiplies every index change.  The Z beam
-runs horizontally to a 45 deg fold mirror and up to the cube's bottom face: it is traced as
-the fold mirror's image of the head (a longer path, two reflections).  Units: m, rad.
+An interferometer reads the optical path change of its beam, divided by the air index it assumes:
+``(n L - n0 L0) / n_comp``.  Each is a double-pass plane-mirror interferometer: the beam goes to a
+cube face, back to the head, through the cube corner there, to the face again and back, out
+parallel to the input whatever the face's tilt.  Its reading (optical path / 4, up to a constant
+of the head) is ``L = h cos(alpha)``: h the perpendicular distance from the cube corner's vertex
+(``Optics.head``, the point the head measures from; the measurement axis runs through it) to the
+face plane, alpha the angle between the beam and the face normal; equivalently ``s cos^2(alpha)``
+for the distance s along the beam from the vertex to the face.  A tilted face reads short (the
+textbook cosine error); Abbe offsets, parasitic rotations and beam misalignment come out of this
+geometry, and the dead path (L0, at the zero) multiplies every index change.  The Z beam runs
+horizontally to a 45 deg fold mirror and up to the cube's bottom face: it is traced as the fold
+mirror's image of the head (a longer path, two more reflections).  Checked against an
+independent ray trace with real cube-corner faces (tests/twin/raytrace.py) to 1e-12 m.
+Units: m, rad.
 """
 from __future__ import annotations
 
@@ -28,7 +35,8 @@ FOLD_TURN = np.array([0.0, 0.0, 1.0])   # direction of the Z beam after the fold
 @dataclass
 class Optics:
     """Per-point optics (each array has a leading axis N). Effects change them in place."""
-    head: dict          # axis -> (N,3) beam origin at the interferometer head
+    head: dict          # axis -> (N,3) the head's cube-corner vertex (the measurement axis'
+                        # origin: the beam's two passes lie symmetric about it)
     direction: dict     # axis -> (N,3) unit beam direction leaving the head
     fold: np.ndarray    # (N,3) Z fold mirror centre
     n_air: dict         # axis -> (N,) refractive index along the beam
@@ -46,7 +54,8 @@ class Optics:
                    n_comp={a: np.full(n, n_nominal) for a in AXES})
 
     def beam(self, axis: str) -> tuple[np.ndarray, np.ndarray]:
-        """Effective straight beam (origin, unit direction) reaching the cube, (N,3) each."""
+        """Effective straight beam (cube-corner vertex, unit direction) reaching the cube, (N,3)
+        each: for Z their images in the fold mirror."""
         o, b = self.head[axis], self.direction[axis]
         if axis != "z":
             return o, b / np.linalg.norm(b, axis=-1, keepdims=True)
@@ -58,28 +67,36 @@ class Optics:
         return self.fold + reflect(o - self.fold), reflect(b / np.linalg.norm(b, axis=-1, keepdims=True))
 
 
-def face_distance(pose, cube_offset: np.ndarray, cube_size: float, axis: str, origin, direction):
-    """Distance (N,) along the beam from ``origin`` to the plane of the cube face of ``axis``."""
+def double_pass_reading(pose, cube_offset: np.ndarray, cube_size: float, axis: str, vertex,
+                        direction) -> np.ndarray:
+    """Geometric reading h cos(alpha) (m, (N,)) of a double-pass plane-mirror interferometer on
+    the cube face of ``axis``: h the distance from the cube corner's ``vertex`` (N,3) to the
+    face plane, alpha the angle between the unit beam ``direction`` (N,3) and the face normal.
+    The head's own constant path is left out (readings count from a zero)."""
     nf = FACE_NORMALS[axis]
     centre_local = np.broadcast_to(cube_offset + 0.5 * cube_size * nf, pose.p.shape)
     c = pose.p + np.einsum("nab,nb->na", pose.R, centre_local)
-    nw = pose.R @ nf
-    return np.sum(nw * (c - origin), axis=-1) / np.sum(nw * direction, axis=-1)
-
-
-def return_factor(cos_incidence):
-    """Plane-mirror (double-pass) geometry: the beam goes out a distance s, comes back along the
-    mirror's reflection to the head's plane, s / cos(2 theta); the reading is half the round
-    trip, s (1 + 1/cos 2theta) / 2 ~ s (1 + theta^2): the cosine error of a tilted mirror."""
-    return 0.5 * (1.0 + 1.0 / (2.0 * cos_incidence ** 2 - 1.0))
+    nw = pose.R @ nf                                   # outward normal, towards the head
+    h = np.sum(nw * (vertex - c), axis=-1)
+    cos_alpha = -np.sum(nw * direction, axis=-1)
+    return h * cos_alpha
 
 
 def optical_path(pose, cube_offset, cube_size, optics: Optics, axis: str) -> np.ndarray:
-    """Optical path n*s (m) of the beam of ``axis`` (half the round trip)."""
-    o, b = optics.beam(axis)
-    s = face_distance(pose, cube_offset, cube_size, axis, o, b)
-    cos_incidence = np.abs(np.sum((pose.R @ FACE_NORMALS[axis]) * b, axis=-1))
-    return optics.n_air[axis] * s * return_factor(cos_incidence)
+    """Optical path n h cos(alpha) (m) of the interferometer of ``axis`` (a quarter of the
+    double pass's round trips)."""
+    vertex, b = optics.beam(axis)
+    return optics.n_air[axis] * double_pass_reading(pose, cube_offset, cube_size, axis, vertex, b)
+
+
+def nominal_dead_path(cube_size: float) -> dict:
+    """Nominal beam path (m) per axis from the head to its cube face at home (via the fold mirror
+    for Z): the dead path the real-time cosine correction assumes."""
+    h = 0.5 * cube_size
+    out = {a: float(np.linalg.norm(INSTRUMENT_SITES[f"interferometer_{a}"][0])) - h for a in "xy"}
+    head_z = INSTRUMENT_SITES["interferometer_z"][0]
+    out["z"] = float(np.linalg.norm(head_z - FOLD_MIRROR_Z) + np.linalg.norm(FOLD_MIRROR_Z)) - h
+    return out
 
 
 def autocollimator_angles(R: np.ndarray) -> dict[str, np.ndarray]:
@@ -101,10 +118,16 @@ def air_index(T_C, p_Pa, vapour_Pa, wavelength_m: float = 632.99e-9):
     return 1.0 + ntp - np.asarray(vapour_Pa) * (3.7345 - 0.0401 * sigma2) * 1e-10
 
 
-def cosine_correction(reading_m, dead_path_m, angle_a, angle_b, angle_a0=0.0, angle_b0=0.0):
-    """The seed's real-time cosine correction: the path to the mirror (dead path + reading)
-    divided by the double-pass factor of the measured face tilts (cos theta = cos a cos b),
-    relative to the zero's tilts."""
-    f = return_factor(np.cos(angle_a) * np.cos(angle_b))
-    f0 = return_factor(np.cos(angle_a0) * np.cos(angle_b0))
-    return (dead_path_m + reading_m) / f - dead_path_m / f0
+def cosine_factor(angle_a, angle_b):
+    """cos^2(alpha) of a face whose normal is tilted from the beam by the two autocollimator
+    angles a, b (rad; tan a, tan b the normal's components across the beam over its component
+    along it): the reading per unit of distance along the beam."""
+    return 1.0 / (1.0 + np.tan(angle_a) ** 2 + np.tan(angle_b) ** 2)
+
+
+def cosine_correction(reading_m, dead_path_m, factor, factor0=1.0):
+    """The real-time cosine correction: from a reading counted since the zero, the distance
+    along the beam to the face since the zero, s - s0 (m). The reading is s c - s0 c0
+    (c = ``cosine_factor`` of the measured tilts, c0 at the zero, s0 the dead path), so
+    s - s0 = (s0 c0 + reading) / c - s0."""
+    return (dead_path_m * factor0 + reading_m) / factor - dead_path_m
