@@ -6,7 +6,8 @@ The recording holds
   along the campaign (an evenly spaced subsample of the readings, ``max_poses``);
   ``world/instruments/<site>``: the interferometer and autocollimator beams;
 * ``world/workspace/hull`` (the hexagonal double pyramid) and ``world/workspace/cal`` /
-  ``world/workspace/val``: the commanded positions coloured by split;
+  ``world/workspace/val``: the commanded positions coloured by split, all drawn where the
+  mirror cube's centre is (the measured point), and the error arrows there too;
 * ``world/error/residual``: per position, the arrow of the residual (model minus measurement,
   mean over the position's readings) coloured by magnitude, one ``ladder`` step per model;
   from the second model on, ``world/error/added_effect`` (what the model adds to the previous
@@ -315,15 +316,16 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     q = df[["q1_rad", "q2_rad", "q3_rad"]].to_numpy(dtype=float)
     check_stroke(geom, q, "view: dataset motor coordinates (q1_rad, q2_rad, q3_rad) of row")
 
-    # the workspace, the local origin and the commanded positions
-    ws = hull(geom)
+    # the workspace, the local origin and the commanded positions, all at the mirror cube's
+    # centre (what the instruments measure; the platform origin lies inside the plate)
+    ws = hull(geom, point=geom.cube_offset)
     origin = ws.bounds.mean(axis=0)
     extent_mm = float(np.max(ws.extents) * MM_PER_M)
     pos_id = df["pos_id"].to_numpy()
     ids, first, inv = np.unique(pos_id, return_index=True, return_inverse=True)
     q_mean = np.column_stack([np.bincount(inv, q[:, k], ids.size) for k in range(3)])
     q_mean /= np.bincount(inv, minlength=ids.size)[:, None]
-    pos_mm = (forward(geom, q_mean).p - origin) * MM_PER_M
+    pos_mm = (forward(geom, q_mean).point(geom.cube_offset) - origin) * MM_PER_M
     split = df["split"].astype(str).to_numpy()[first]
 
     # error fields of the ladder

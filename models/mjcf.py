@@ -13,6 +13,8 @@ configuration into it.  Joint stiffnesses are the element stiffnesses of models/
 """
 from __future__ import annotations
 
+import xml.etree.ElementTree as ET
+
 import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -24,15 +26,54 @@ from deltatwin.models.stiffness import element_stiffness
 
 INSTRUMENT_SITES = {
     # name: (origin offset from the cube centre in the world frame at home, beam direction).
-    # X and Y look at the cube's -x and -y faces; Z runs horizontally to a 45 deg fold mirror
-    # under the cube (``FOLD_MIRROR_Z``) and up to the cube's bottom face (longer path).
+    # The interferometers X and Y look at the cube's -x and -y faces through their centres; Z runs
+    # horizontally to a 45 deg fold mirror under the cube (``FOLD_MIRROR_Z``) and up to the cube's
+    # bottom face (longer path).  Each autocollimator looks at the face opposite an interferometer
+    # (+x, +y): a face's tilt is the cube's, and two beams on one 25 mm face would leave the face
+    # as the platform moves ~+-8 mm (see ``beam_origins`` and tests/models/test_assembly.py).
     "interferometer_x": (np.array([-0.10, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])),
     "interferometer_y": (np.array([0.0, -0.10, 0.0]), np.array([0.0, 1.0, 0.0])),
     "interferometer_z": (np.array([0.0, 0.10, -0.06]), np.array([0.0, -1.0, 0.0])),
-    "autocollimator_1": (np.array([-0.12, 0.0, 0.006]), np.array([1.0, 0.0, 0.0])),
-    "autocollimator_2": (np.array([0.0, -0.12, 0.006]), np.array([0.0, 1.0, 0.0])),
+    "autocollimator_1": (np.array([0.12, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])),
+    "autocollimator_2": (np.array([0.0, 0.12, 0.0]), np.array([0.0, -1.0, 0.0])),
 }
 FOLD_MIRROR_Z = np.array([0.0, 0.0, -0.06])   # fold mirror centre, offset from the cube centre
+FOLD_MIRROR_NORMAL = np.array([0.0, 1.0, 1.0]) / np.sqrt(2.0)   # bisects -y in and +z out
+FOLD_MIRROR_HALF_M = (0.012, 0.015, 0.003)   # reflecting face 24 x 30 mm, 6 mm thick substrate
+# instrument housings (half sizes: across, across, along the beam), behind the beam's start
+HEAD_HALF_M = {"interferometer": (0.020, 0.020, 0.030), "autocollimator": (0.025, 0.025, 0.040)}
+# Beam radius used for the obstruction check: an assumption (neither paper gives it): rays on
+# the beam's rim, this far from its axis, must reach the same cube face as the axis ray.
+BEAM_RADIUS_M = 0.001
+
+# The force simulator (paper 2): magnets under the plate, coils 10-15 mm below them.
+PLATE_THICKNESS_M = 0.006
+MAGNET_HALF_M = (0.0075, 0.0075, 0.0015)       # 15 x 15 x 3 mm
+COIL_RADIUS_M = 0.012                          # winding and the conductive tube around it
+COIL_HEIGHT_M = 0.030
+# The magnets sit under the ends of a three-spoke flange below the plate (the plate, the hull of
+# the rod hinges, is too small to put the coils out of the beams); the cube hangs from its hub.
+SPOKE_WIDTH_M = 0.016
+SPOKE_THICKNESS_M = 0.003
+STEM_RADIUS_M = 0.005
+
+# bodies fixed in the room rather than parts of the robot (name prefixes)
+ROOM_BODY_PREFIXES = ("coil", "interferometer_", "autocollimator_", "fold_mirror")
+
+
+def is_room_body(name: str) -> bool:
+    """True for the force simulator's coils and the metrology loop (heads, fold mirror)."""
+    return name.startswith(ROOM_BODY_PREFIXES)
+
+
+# Simulation (MuJoCo's dynamics, see README.md): the stiffest elements (drive, arm, rod axial)
+# would need a timestep of ~10 us; armature (added inertia, k / w^2) caps every joint's own
+# frequency at SIM_MAX_RAD_S and damping 2 zeta k / w damps it, so a 0.1 ms step is stable.
+# Statics are unchanged (inertia and damping do not enter an equilibrium).
+SIM_TIMESTEP_S = 1e-4
+SIM_MAX_RAD_S = 2000.0
+SIM_DAMPING_RATIO = 1.0
+LOOP_SOLREF = (0.002, 1.0)   # connect constraints: time constant (s), damping ratio
 
 
 def _quat_z_to(direction: np.ndarray) -> np.ndarray:
@@ -63,6 +104,18 @@ def rod_frames(geom: Geometry) -> np.ndarray:
     return frames
 
 
+def joint_dynamics(stiffness: float) -> tuple[float, float]:
+    """(armature kg m^2 or kg, damping N m s/rad or N s/m) of a joint of ``stiffness`` (N m/rad
+    or N/m): its own frequency capped at SIM_MAX_RAD_S and damped at SIM_DAMPING_RATIO."""
+    armature = stiffness / SIM_MAX_RAD_S ** 2
+    return armature, 2.0 * SIM_DAMPING_RATIO * stiffness / SIM_MAX_RAD_S
+
+
+def _add_joint(body, stiffness: float, **kwargs) -> None:
+    armature, damping = joint_dynamics(stiffness)
+    body.add_joint(stiffness=stiffness, armature=armature, damping=damping, **kwargs)
+
+
 def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSpec:
     """The MjSpec of the robot, its metrology frame and its force simulator coils."""
     from deltatwin.models.kinematics import forward
@@ -72,15 +125,21 @@ def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSp
     spec.modelname = params.name
     spec.compiler.degree = False
     spec.option.gravity = [0.0, 0.0, -9.80665]
+    spec.option.timestep = SIM_TIMESTEP_S
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     rho = {part: params.material(part).density_kg_m3 for part in ("base", "arms", "rods", "platform")}
+    home = forward(geom, np.zeros((1, 3)), check=False)
+    cube_home = home.point(geom.cube_offset)[0]
 
-    plate = platform_plate(geom.P0, 0.006)
+    plate = platform_plate(geom.P0, PLATE_THICKNESS_M)
     spec.add_mesh(name="platform_plate", uservert=plate.vertices.ravel().tolist(),
                   userface=plate.faces.ravel().tolist())
 
     world = spec.worldbody
+    table_top = cube_home[2] + FOLD_MIRROR_Z[2] - 0.03   # under the fold mirror
     world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.3, 0.3, 0.02],
-                   pos=[0.0, 0.0, -0.25], contype=0, conaffinity=0, rgba=[0.4, 0.4, 0.45, 1])
+                   pos=[0.0, 0.0, table_top - 0.02], contype=0, conaffinity=0,
+                   rgba=[0.4, 0.4, 0.45, 1])
     base = world.add_body(name="base")
     base.add_geom(name="base_plate", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
                   size=[params.base_radius_m + 0.025, 0.01], pos=[0.0, 0.0, 0.03],
@@ -89,8 +148,11 @@ def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSp
     for i in range(3):
         arm0 = Rotation.from_rotvec(geom.axis[i] * geom.theta_zero[i])
         arm = world.add_body(name=f"arm{i + 1}", pos=geom.B[i], quat=_quat(arm0))
+        # the drive's stiffness is its position actuator's gain
+        armature, damping = joint_dynamics(k.drive)
         arm.add_joint(name=f"q{i + 1}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=geom.axis[i],
-                      range=geom.stroke, limited=mujoco.mjtLimited.mjLIMITED_TRUE)
+                      range=geom.stroke, limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                      armature=armature, damping=damping)
         arm.add_geom(name=f"motor{i + 1}", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
                      size=[0.02, 0.03], quat=_quat_z_to(geom.axis[i]), density=7800.0,
                      contype=0, conaffinity=0, rgba=[0.2, 0.2, 0.2, 1])
@@ -101,8 +163,8 @@ def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSp
         flex = arm.add_body(name=f"arm{i + 1}_flex", pos=pivot)
         for name, ax, stiff in (("inplane", geom.axis[i], k.arm[0]), ("outplane", e_n, k.arm[1]),
                                 ("torsion", a_dir, k.arm[2])):
-            flex.add_joint(name=f"arm{i + 1}_{name}", type=mujoco.mjtJoint.mjJNT_HINGE,
-                           axis=ax, stiffness=stiff)
+            _add_joint(flex, stiff, name=f"arm{i + 1}_{name}", type=mujoco.mjtJoint.mjJNT_HINGE,
+                       axis=ax)
         flex.add_geom(name=f"arm{i + 1}_beam", type=mujoco.mjtGeom.mjGEOM_BOX,
                       size=[np.linalg.norm(elbow) / 2, params.arm_width_m / 2, params.arm_thickness_m / 2],
                       pos=elbow / 2 - pivot, quat=_quat(Rotation.align_vectors(
@@ -112,17 +174,17 @@ def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSp
             L = geom.L[i, j]
             rod = flex.add_body(name=f"rod{i + 1}{j + 1}", pos=geom.arm_vec[i, j] - pivot,
                                 quat=_quat(Rotation.from_matrix(frames[i, j])))
-            rod.add_joint(name=f"rod{i + 1}{j + 1}_bx", type=mujoco.mjtJoint.mjJNT_HINGE,
-                          axis=[1, 0, 0], stiffness=k.hinge_bending)
-            rod.add_joint(name=f"rod{i + 1}{j + 1}_by", type=mujoco.mjtJoint.mjJNT_HINGE,
-                          axis=[0, 1, 0], stiffness=k.hinge_bending)
-            rod.add_joint(name=f"rod{i + 1}{j + 1}_ax", type=mujoco.mjtJoint.mjJNT_SLIDE,
-                          axis=[0, 0, 1], stiffness=k.rod_axial[i, j])
-            rod.add_geom(name=f"rod{i + 1}{j + 1}_body", type=mujoco.mjtGeom.mjGEOM_CAPSULE,
-                         fromto=[0, 0, 2 * params.flexure_leaf_length_m, 0, 0, L - 2 * params.flexure_leaf_length_m], size=[params.rod_diameter_m / 2],
-                         density=rho["rods"], contype=0, conaffinity=0, rgba=[0.8, 0.8, 0.85, 1])
+            for axis_name, axis in (("bx", [1, 0, 0]), ("by", [0, 1, 0])):
+                _add_joint(rod, k.hinge_bending, name=f"rod{i + 1}{j + 1}_{axis_name}",
+                           type=mujoco.mjtJoint.mjJNT_HINGE, axis=axis)
+            _add_joint(rod, k.rod_axial[i, j], name=f"rod{i + 1}{j + 1}_ax",
+                       type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1])
             lf, lt, lw = (params.flexure_leaf_length_m, params.flexure_leaf_thickness_m,
                           params.flexure_leaf_width_m)
+            # pos/size rather than fromto: the exported XML then carries the spec's own numbers
+            rod.add_geom(name=f"rod{i + 1}{j + 1}_body", type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                         pos=[0, 0, L / 2], size=[params.rod_diameter_m / 2, L / 2 - 2 * lf, 0],
+                         density=rho["rods"], contype=0, conaffinity=0, rgba=[0.8, 0.8, 0.85, 1])
             for end, z0 in (("top", 0.0), ("bottom", L - 2 * lf)):
                 for leaf, half in ((0, [lt / 2, lw / 2, lf / 2]), (1, [lw / 2, lt / 2, lf / 2])):
                     rod.add_geom(name=f"rod{i + 1}{j + 1}_flexure_{end}{leaf + 1}",
@@ -133,48 +195,117 @@ def build_spec(params: RobotParams, geom: Geometry | None = None) -> mujoco.MjSp
         act = spec.add_actuator(name=f"drive{i + 1}", target=f"q{i + 1}",
                                 trntype=mujoco.mjtTrn.mjTRN_JOINT)
         act.set_to_position(kp=k.drive)
+        act.ctrlrange = geom.stroke
+        act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
 
-    home = forward(geom, np.zeros((1, 3)), check=False)
     plat = world.add_body(name="platform", pos=home.p[0])
     plat.add_freejoint(name="platform_free")
     plat.add_geom(name="platform_plate", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="platform_plate",
                   density=rho["platform"], contype=0, conaffinity=0, rgba=[0.6, 0.65, 0.7, 1])
     s = params.mirror_cube_size_m
+    cube_top = geom.cube_offset[2] + s / 2
+    hub_bottom = -PLATE_THICKNESS_M - SPOKE_THICKNESS_M
+    if cube_top >= hub_bottom:
+        raise ValueError(f"geometry.mirror_cube_offset_m {geom.cube_offset.tolist()}: the cube "
+                         f"({s} m) must hang below the plate and flange (z < {hub_bottom} m)")
+    plat.add_geom(name="cube_stem", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                  size=[STEM_RADIUS_M, (cube_top - hub_bottom) / -2, 0],
+                  pos=[*geom.cube_offset[:2], (cube_top + hub_bottom) / 2],
+                  density=rho["platform"], contype=0, conaffinity=0, rgba=[0.6, 0.65, 0.7, 1])
     plat.add_geom(name="mirror_cube", type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2] * 3,
                   pos=geom.cube_offset, density=params.material("mirror_cube").density_kg_m3,
                   contype=0, conaffinity=0, rgba=[0.6, 0.8, 1.0, 0.7])
     plat.add_site(name="mirror_cube_centre", pos=geom.cube_offset)
     for i, m in enumerate(magnet_positions(params)):
+        radial = m[:2] / np.linalg.norm(m[:2])
+        spoke = np.linalg.norm(m[:2]) + MAGNET_HALF_M[0]     # hub to the magnet's outer edge
+        plat.add_geom(name=f"flange_spoke{i + 1}", type=mujoco.mjtGeom.mjGEOM_BOX,
+                      size=[spoke / 2, SPOKE_WIDTH_M / 2, SPOKE_THICKNESS_M / 2],
+                      pos=[*(radial * spoke / 2), -PLATE_THICKNESS_M - SPOKE_THICKNESS_M / 2],
+                      quat=_quat(Rotation.from_rotvec([0.0, 0.0, np.arctan2(m[1], m[0])])),
+                      density=rho["platform"], contype=0, conaffinity=0, rgba=[0.6, 0.65, 0.7, 1])
         plat.add_geom(name=f"magnet{i + 1}", type=mujoco.mjtGeom.mjGEOM_BOX,
-                      size=[0.0075, 0.0075, 0.0015], pos=m, density=7500.0,
+                      size=MAGNET_HALF_M, pos=m, density=7500.0,
                       contype=0, conaffinity=0, rgba=[0.75, 0.75, 0.7, 1])
         # coil below its magnet at the home pose, across the nominal gap
-        coil_top = home.p[0] + m - [0.0, 0.0, 0.0015 + params.coil_gap_m]
-        coil = world.add_body(name=f"coil{i + 1}", pos=coil_top - [0.0, 0.0, 0.015])
+        coil_top = home.p[0] + m - [0.0, 0.0, MAGNET_HALF_M[2] + params.coil_gap_m]
+        coil = world.add_body(name=f"coil{i + 1}", pos=coil_top - [0.0, 0.0, COIL_HEIGHT_M / 2])
         coil.add_geom(name=f"coil{i + 1}_winding", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
-                      size=[0.012, 0.015], contype=0, conaffinity=0, rgba=[0.72, 0.45, 0.2, 1])
-        coil.add_site(name=f"coil{i + 1}_face", pos=[0.0, 0.0, 0.015])
+                      size=[COIL_RADIUS_M, COIL_HEIGHT_M / 2], contype=0, conaffinity=0,
+                      rgba=[0.72, 0.45, 0.2, 1])
+        coil.add_site(name=f"coil{i + 1}_face", pos=[0.0, 0.0, COIL_HEIGHT_M / 2])
     for i in range(3):
         for j in range(2):
             plat.add_site(name=f"plat{i + 1}{j + 1}", pos=geom.P0[i, j])
             spec.add_equality(name=f"loop{i + 1}{j + 1}", type=mujoco.mjtEq.mjEQ_CONNECT,
                               objtype=mujoco.mjtObj.mjOBJ_SITE, name1=f"rod{i + 1}{j + 1}_end",
-                              name2=f"plat{i + 1}{j + 1}", solref=[0.002, 1.0])
-    frame = world.add_body(name="metrology_frame")
-    cube_home = home.point(geom.cube_offset)[0]
+                              name2=f"plat{i + 1}{j + 1}", solref=list(LOOP_SOLREF))
+    # metrology loop: one fixed body per instrument (its housing behind the beam's start, so a
+    # ray cast from the site can exclude it) and the Z fold mirror (reflecting face through
+    # its body origin, substrate behind)
     for name, (offset, direction) in INSTRUMENT_SITES.items():
-        frame.add_site(name=name, pos=cube_home + offset, quat=_quat_z_to(direction),
-                       size=[0.004, 0.004, 0.004])
-    frame.add_site(name="fold_mirror_z", pos=cube_home + FOLD_MIRROR_Z,
-                   quat=_quat_z_to(np.array([0.0, 1.0, 1.0])), size=[0.008, 0.008, 0.001])
+        half = HEAD_HALF_M[name.split("_")[0]]
+        head = world.add_body(name=f"{name}_head", pos=cube_home + offset,
+                              quat=_quat_z_to(direction))
+        head.add_geom(name=f"{name}_housing", type=mujoco.mjtGeom.mjGEOM_BOX, size=half,
+                      pos=[0.0, 0.0, -half[2]], contype=0, conaffinity=0,
+                      rgba=[0.25, 0.3, 0.45, 1])
+        head.add_site(name=name, size=[0.004])
+    fold = world.add_body(name="fold_mirror", pos=cube_home + FOLD_MIRROR_Z,
+                          quat=_quat_z_to(FOLD_MIRROR_NORMAL))
+    fold.add_geom(name="fold_mirror_z", type=mujoco.mjtGeom.mjGEOM_BOX, size=FOLD_MIRROR_HALF_M,
+                  pos=[0.0, 0.0, -FOLD_MIRROR_HALF_M[2]], contype=0, conaffinity=0,
+                  rgba=[0.8, 0.85, 0.9, 1])
+    fold.add_site(name="fold_mirror_z", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.008, 0.008, 0.001])
     return spec
 
 
+# MJCF attribute -> MjSpec field where the names differ (integers such as faces are exact)
+_XML_FIELDS = {"vertex": "uservert"}
+
+
+def to_xml_full_precision(spec: mujoco.MjSpec) -> str:
+    """MJCF of ``spec`` with every number of a named element (and the options) at full float64
+    precision.  ``MjSpec.to_xml`` writes 6 significant digits (0.43 um errors on this robot);
+    each numeric attribute is replaced by the spec's own value, written as the shortest string
+    that reads back to the same double, after checking the 6-digit text is that value."""
+    finders = {"body": spec.body, "geom": spec.geom, "site": spec.site, "joint": spec.joint,
+               "mesh": spec.mesh, "general": spec.actuator, "connect": spec.equality}
+    root = ET.fromstring(spec.to_xml())
+    for element in root.iter():
+        if element.tag == "option":
+            source = spec.option
+        elif element.tag in finders and "name" in element.attrib:
+            source = finders[element.tag](element.get("name"))
+        else:
+            continue
+        for attr, text in element.attrib.items():
+            value = getattr(source, _XML_FIELDS.get(attr, attr), None)
+            if value is None or isinstance(value, (str, bool, int)):
+                continue   # names, flags, integer fields: written exactly
+            # float32 fields (colours, mesh vertices) round-trip with float32's shortest text
+            dtype = value.dtype if isinstance(value, np.ndarray) else (
+                np.float64 if isinstance(value, float) else np.float32)
+            try:
+                written = np.array(text.split(), dtype=np.float64)
+                full = np.array(list(np.atleast_1d(value)), dtype=dtype).ravel()[:written.size]
+            except (TypeError, ValueError):
+                continue   # enumerations
+            if full.size != written.size or not np.allclose(written, full, rtol=1e-5, atol=1e-12):
+                raise ValueError(f"MJCF export: <{element.tag} name={element.get('name')!r}> "
+                                 f"{attr}={text!r} is not the spec's {full.tolist()}")
+            element.set(attr, " ".join(str(v) if dtype == np.float32 else repr(float(v))
+                                       for v in full))
+    ET.indent(root)
+    return ET.tostring(root, encoding="unicode") + "\n"
+
+
 def magnet_positions(params: RobotParams) -> np.ndarray:
-    """Magnet centres (3,3) in the platform frame, under the plate."""
+    """Magnet centres (3,3) in the platform frame, under the flange's spokes."""
     az = np.deg2rad(params.magnet_azimuth_deg)
     r = params.magnet_radius_m
-    return np.stack([r * np.cos(az), r * np.sin(az), np.full(3, -0.006 - 0.0015)], axis=1)
+    return np.stack([r * np.cos(az), r * np.sin(az),
+                     np.full(3, -PLATE_THICKNESS_M - SPOKE_THICKNESS_M - MAGNET_HALF_M[2])], axis=1)
 
 
 def build_model(params: RobotParams) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
@@ -185,7 +316,8 @@ def build_model(params: RobotParams) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
 def update_model(model: mujoco.MjModel, params: RobotParams) -> None:
     """Write new geometry (errors, temperatures) into a compiled model without recompiling:
     actuator axis points and axes, elbow and platform hinge positions, rod lengths, the
-    platform's home pose.  The coils and the metrology frame stay where they are in the room."""
+    platform's home pose.  The coils and the metrology loop (``is_room_body``) stay where they
+    are in the room."""
     geom = build_geometry(params)
     frames = rod_frames(geom)
     for i in range(3):

@@ -57,9 +57,11 @@ def boundary_motor_coordinates(geom: Geometry, n: int = 9) -> np.ndarray:
     return np.array(sorted(pts))
 
 
-def hull(geom: Geometry, n: int = 9) -> trimesh.Trimesh:
-    """Convex hull (m) of the image of the stroke cube's surface."""
-    return trimesh.convex.convex_hull(forward(geom, boundary_motor_coordinates(geom, n)).p)
+def hull(geom: Geometry, n: int = 9, point=None) -> trimesh.Trimesh:
+    """Convex hull (m) of the image of the stroke cube's surface: of the platform origin, or of
+    ``point`` (3,) given in the platform frame (the mirror cube's centre: where it is measured)."""
+    pose = forward(geom, boundary_motor_coordinates(geom, n))
+    return trimesh.convex.convex_hull(pose.p if point is None else pose.point(point))
 
 
 def flexure_angles(geom: Geometry, q: np.ndarray) -> np.ndarray:

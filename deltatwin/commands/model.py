@@ -28,11 +28,11 @@ def run_export(args) -> int:
     import mujoco
 
     from deltatwin.files import atomic_write
-    from deltatwin.models.mjcf import build_spec
+    from deltatwin.models.mjcf import build_spec, to_xml_full_precision
     from deltatwin.models.params import load_params
 
     params = load_params(args.params)
-    xml = build_spec(params).to_xml()
+    xml = to_xml_full_precision(build_spec(params))
     out = Path(args.output)
 
     def write(tmp):
@@ -50,7 +50,7 @@ def model_info(params_path=None) -> dict:
     import numpy as np
 
     from deltatwin.models.geometry import build_geometry
-    from deltatwin.models.mjcf import build_spec
+    from deltatwin.models.mjcf import build_spec, is_room_body
     from deltatwin.models.params import DEFAULT_PARAMS_PATH, load_params
     from deltatwin.twin import workspace
     from deltatwin.twin.statics import Statics
@@ -61,8 +61,9 @@ def model_info(params_path=None) -> dict:
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for g in range(m.ngeom):
-        if m.geom(g).name == "table":
+    for g in range(m.ngeom):   # the robot's envelope: not the table, coils or instruments
+        body = m.geom_bodyid[g]
+        if body == 0 or is_room_body(m.body(body).name):
             continue
         R = d.geom_xmat[g].reshape(3, 3)
         c = d.geom_xpos[g] + R @ m.geom_aabb[g, :3]

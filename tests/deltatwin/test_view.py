@@ -21,7 +21,7 @@ from deltatwin.calibration.physics.model_file import fitted_toml
 from deltatwin.cli import main
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import forward
-from deltatwin.models.mjcf import INSTRUMENT_SITES, build_model
+from deltatwin.models.mjcf import INSTRUMENT_SITES, PLATE_THICKNESS_M, build_model
 from deltatwin.models.params import load_params
 from deltatwin.twin.dataset import write_dataset
 from deltatwin.twin.scenario import Scenario
@@ -147,11 +147,11 @@ def test_arrows_are_the_residuals_in_the_stated_unit(written):
     assert small[-1] < 10.0 and small[-1] < small[0] / 2   # complete model: a few nm
     # arrows sit at the positions in the stated frame: mm from the workspace centre, ~1 nm
     geom = build_geometry(load_params())
-    origin = hull(geom).bounds.mean(axis=0)
+    origin = hull(geom, point=geom.cube_offset).bounds.mean(axis=0)
     np.testing.assert_allclose(summary.origin_m, origin, rtol=0, atol=0)
     exp = expected_field_nm(df, ladder[0])
     q = df.groupby("pos_id")[["q1_rad", "q2_rad", "q3_rad"]].mean().loc[exp.index].to_numpy()
-    p_m = forward(geom, q).p
+    p_m = forward(geom, q).point(geom.cube_offset)      # the measured point, the cube's centre
     _, origins = rows_of(rrd, "/world/error/residual", "Arrows3D:origins", view.LADDER_TIMELINE)
     got_mm = np.array(origins[0], dtype=np.float64)
     assert np.max(np.abs(got_mm - (p_m - origin) * 1e3)) < 1e-6           # < 1 nm
@@ -239,7 +239,12 @@ def test_robot_posed_along_the_campaign(written):
     np.testing.assert_allclose(ends[:, 0], cube_mm[:, 0] - half_mm, atol=1e-4)
     # the workspace hull, and the points coloured by split
     _, verts = rows_of(rrd, "/world/workspace/hull", "Mesh3D:vertex_positions")
-    ws = hull(geom)
+    ws = hull(geom, point=geom.cube_offset)
+    lo, hi = ws.bounds                           # drawn where the posed cube is ...
+    assert np.all((cube_mm / 1e3 + summary.origin_m >= lo - 1e-9)
+                  & (cube_mm / 1e3 + summary.origin_m <= hi + 1e-9))
+    plate_bottom = forward(geom, np.zeros((1, 3))).p[0, 2] - PLATE_THICKNESS_M
+    assert hi[2] < plate_bottom - 0.01           # ... not inside the platform plate
     np.testing.assert_allclose(np.array(verts[0]), (ws.vertices - summary.origin_m) * 1e3,
                                atol=1e-5)
     for s in ("cal", "val"):

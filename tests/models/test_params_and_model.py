@@ -7,7 +7,7 @@ import pytest
 
 from deltatwin.cli import main
 from deltatwin.models.geometry import build_geometry
-from deltatwin.models.mjcf import build_model, update_model
+from deltatwin.models.mjcf import build_model, is_room_body, update_model
 from deltatwin.models.params import DEFAULT_PARAMS_PATH, ParameterError, load_params
 
 
@@ -60,7 +60,7 @@ def test_update_model_matches_a_fresh_compile():
                         d_base_joint_m=np.array([[1e-5, 0, 0], [0, 0, 0], [0, 0, 2e-5]]))
     update_model(m, changed)
     _, fresh = build_model(changed)
-    robot = [b for b in range(m.nbody) if not m.body(b).name.startswith(("coil", "metrology"))]
+    robot = [b for b in range(m.nbody) if not is_room_body(m.body(b).name)]
     for attr in ("body_pos", "body_quat"):
         assert np.allclose(getattr(m, attr)[robot], getattr(fresh, attr)[robot], rtol=0, atol=1e-15), attr
     sites = [s for s in range(m.nsite) if m.site_bodyid[s] in robot]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deltatwin.models.mjcf import magnet_positions
+from deltatwin.models.mjcf import MAGNET_HALF_M, magnet_positions
 from deltatwin.twin.effects.base import Effect, Parameter
 
 MU0 = 4e-7 * np.pi
@@ -54,7 +54,7 @@ class MagneticForce(Effect):
         """Coil dipole centres (3,3), world frame: under each magnet at the home pose, across the
         nominal gap, plus the coil offsets."""
         mag = home_pose_p + magnet_positions(params)
-        face = mag - np.array([0.0, 0.0, 0.0015 + params.coil_gap_m])
+        face = mag - np.array([0.0, 0.0, MAGNET_HALF_M[2] + params.coil_gap_m])
         return face - np.array([0.0, 0.0, self.core_depth_m]) + self.coil_offset_m
 
     def wrench(self, points):
