@@ -287,15 +287,20 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
         axes = [AXES.index(a) for a in plan.sessions[k_sess][1]]
         need = idx.size * R
         stop = windows + need
+        # at most max_rereads + 1 windows per reading: beyond, some reading has failed anyway
+        limit = windows + need * (s.max_rereads + 1)
         while True:
             rows = lab.ifm_bank.take(windows, stop)
             ok = np.all(rows[:, 1, axes] < s.std_limit_m, axis=1)
             acc = np.flatnonzero(ok)
-            if acc.size >= need:
+            if acc.size >= need or stop >= limit:
                 break
-            stop += need // 10 + 16
+            stop = min(stop + need // 10 + 16, limit)
         acc = acc[:need] + windows
         attempts = np.diff(np.concatenate([[windows - 1], acc]))
+        if acc.size < need:     # the next reading found no window up to the limit: the windows
+            # it tried exceed max_rereads + 1 (they sum past need * (max_rereads + 1))
+            attempts = np.append(attempts, stop - (acc[-1] if acc.size else windows - 1))
         if attempts.max() > s.max_rereads + 1:
             bad = int(np.argmax(attempts > s.max_rereads + 1)) // R
             raise InstrumentError("interferometers", f"point {int(idx[bad])}: sample std above "

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -58,15 +59,26 @@ def _check_keys(where, table: dict, allowed) -> None:
             raise ScenarioError(f"{where}: unknown key {key!r}{hint}; allowed: {sorted(allowed)}")
 
 
-def _number(where, value, minimum=None, integer=False):
+def _number(where, value, minimum=None, integer=False, maximum=None, above=False):
+    """``value`` checked as a number in [minimum, maximum] (``above``: > minimum)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ScenarioError(f"{where} = {value!r}: expected a number in the unit its name states"
                             " (SI: m, s, rad, A, N; degC where the name ends in _C)")
+    if not np.isfinite(value):
+        raise ScenarioError(f"{where} = {value!r}: must be a finite number")
     if integer and int(value) != value:
         raise ScenarioError(f"{where} = {value!r}: expected an integer")
-    if not np.isfinite(value) or (minimum is not None and value < minimum):
-        raise ScenarioError(f"{where} = {value!r}: must be >= {minimum}")
+    low_ok = minimum is None or (value > minimum if above else value >= minimum)
+    if not low_ok or (maximum is not None and value > maximum):
+        low = "" if minimum is None else f"{'>' if above else '>='} {minimum:g}"
+        high = "" if maximum is None else f"<= {maximum:g}"
+        raise ScenarioError(f"{where} = {value!r}: must be {' and '.join(x for x in (low, high) if x)}")
     return int(value) if integer else float(value)
+
+
+SENSOR_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")   # it becomes a column name, T_<name>_C
+MAX_DAYS = 60.0                 # the longest campaign the twin simulates (its environment is
+                                # integrated over the whole campaign before it starts)
 
 
 def noise_floor(df: pd.DataFrame, noise_free: pd.DataFrame) -> dict:
@@ -127,8 +139,13 @@ class Scenario:
                 _check_keys(f"{f} [{t}]", doc[t], keys)
         sc = doc.get("scenario", {})
         name = sc.get("name", path.stem)
-        seed = seed if seed is not None else _number(f"{f} [scenario] seed", sc.get("seed", 0), 0, True)
+        seed = seed if seed is not None else _number(f"{f} [scenario] seed", sc.get("seed", 0), 0,
+                                                     True, 2**63 - 1)
         robot_file = doc.get("robot", {}).get("file")
+        if robot_file is not None and (not isinstance(robot_file, str)
+                                       or (path.parent / robot_file).is_dir()):
+            raise ScenarioError(f"{f} [robot] file = {robot_file!r}: expected the path of a "
+                                "parameter TOML file")
         try:
             params = load_params(path.parent / robot_file if robot_file else None)
         except (ParameterError, FileNotFoundError) as exc:
@@ -148,7 +165,15 @@ class Scenario:
             raise ScenarioError(str(exc)) from exc
         sensors = doc.get("sensors", {})
         parts = {p for p, _, _ in PART_NODES}
+        if not isinstance(sensors, dict):
+            raise ScenarioError(f"{f} [sensors]: expected a table of sensor = \"part\"")
         for sname, part in sensors.items():
+            if not SENSOR_NAME.match(sname):
+                raise ScenarioError(f"{f} [sensors] {sname!r}: a sensor name is letters, digits "
+                                    "and _ (it names the column T_<name>_C and a scanner channel)")
+            if not isinstance(part, str):
+                raise ScenarioError(f"{f} [sensors] {sname} = {part!r}: expected one part name "
+                                    "(a string)")
             if part not in parts:
                 close = difflib.get_close_matches(str(part), parts, n=1)
                 raise ScenarioError(f"{f} [sensors] {sname} = {part!r}: unknown part"
@@ -160,8 +185,10 @@ class Scenario:
             raise ScenarioError(f"{f} [instruments] cosine_correction: expected true or false")
         fields = {fl.name: fl for fl in dataclasses.fields(InstrumentSettings)}
         _check_keys(f"{f} [instruments]", inst, fields)
+        ranges = InstrumentSettings.RANGES
         settings = InstrumentSettings(**{
-            k: _number(f"{f} [instruments] {k}", v, 0.0, fields[k].type == "int")
+            k: _number(f"{f} [instruments] {k}", v, ranges[k][0], fields[k].type == "int",
+                       ranges[k][1], above=not ranges[k][2])
             for k, v in inst.items()})
         camp = doc.get("campaign", {})
         kind = camp.get("kind")
@@ -169,7 +196,8 @@ class Scenario:
             raise ScenarioError(f"{f} [campaign] kind = {kind!r}: expected one of "
                                 f"{sorted(CAMPAIGN_KEYS)}")
         _check_keys(f"{f} [campaign]", camp, CAMPAIGN_KEYS[kind])
-        red = _number(f"{f} [reduced] scale", doc.get("reduced", {}).get("scale", 0.05), 0.0)
+        red = _number(f"{f} [reduced] scale", doc.get("reduced", {}).get("scale", 0.05), 0.0,
+                      maximum=1.0, above=True)
         hidden = doc.get("hidden")
         if hidden is not None:
             for key in ("effects", "baseline"):
@@ -191,7 +219,7 @@ class Scenario:
         sc = cls(path=path, text=text, name=name, seed=seed, params=params, effects=effects,
                  sensors=sensors, settings=settings, cosine=cosine, campaign=camp,
                  reduced_scale=red, hidden=hidden)
-        sc.plan(random_streams(0)["campaign"], scale)      # validate the plan's keys now
+        sc._timeline(sc.plan(random_streams(0)["campaign"], scale))   # validate the plan now
         return sc
 
     # -- the campaign -------------------------------------------------------------------------
@@ -208,28 +236,33 @@ class Scenario:
                 axes = tuple(s.get("axes", ()))
                 if not axes or any(a not in ("x", "y", "z") for a in axes):
                     raise ScenarioError(f"{w} axes = {list(axes)}: expected some of x, y, z")
-                n_cal = max(1, int(round(_number(f"{w} cal", s.get("cal"), 1, True) * scale)))
-                n_val = max(1, int(round(_number(f"{w} val", s.get("val"), 1, True) * scale)))
+                n_cal = _number(f"{w} cal", s.get("cal"), 1, True, 10**6)
+                n_val = _number(f"{w} val", s.get("val"), 1, True, 10**6)
+                n_cal, n_val = (max(1, int(round(n * scale))) for n in (n_cal, n_val))
                 sessions.append((s.get("name", f"s{i}"), axes, n_cal, n_val))
             if not sessions:
                 raise ScenarioError(f"{f} sessions: at least one session is needed")
-            n_pos = _number(f"{f} n_positions", c.get("n_positions", 1000), 2, True)
+            n_pos = _number(f"{f} n_positions", c.get("n_positions", 1000), 2, True, 10**6)
             n_pos = max(10, int(round(n_pos * min(1.0, 4 * scale))))
             frac = _number(f"{f} cal_fraction", c.get("cal_fraction", 0.7), 0.0)
             if not 0 < frac < 1:
                 raise ScenarioError(f"{f} cal_fraction = {frac}: must be between 0 and 1")
             return thermal_plan(rng, stroke, n_pos, frac, sessions)
-        levels = lambda k, d: _number(f"{f} {k}", c.get(k, d), 2, True)
+        levels = lambda k, d: _number(f"{f} {k}", c.get(k, d), 2, True, 50)
         cal, val = levels("cal_levels", 6), levels("val_levels", 5)
         if scale < 1.0:
             cal, val = max(2, int(round(cal * scale ** (1 / 3)))), max(2, int(round(val * scale ** (1 / 3))))
         forces = c.get("forces_N", [0.0, 0.5, 1.0, 1.5, 2.0])
+        if not isinstance(forces, list) or not forces:
+            raise ScenarioError(f"{f} forces_N = {forces!r}: expected a non-empty list of forces "
+                                "(N), e.g. [0.0, 0.5, 1.0, 1.5, 2.0]")
         forces = [_number(f"{f} forces_N", x, 0.0) for x in forces]
-        per_A = _number(f"{f} force_per_A", c.get("force_per_A", 1.0), 1e-9)
+        per_A = _number(f"{f} force_per_A", c.get("force_per_A", 1.0), 0.0, maximum=100.0,
+                        above=True)
         if max(forces) / per_A > 2.0 + 1e-12:
             raise ScenarioError(f"{f} forces_N: {max(forces)} N needs {max(forces) / per_A:.2f} A, "
                                 "above the coils' 2 A")
-        readings = _number(f"{f} readings", c.get("readings", 4), 1, True)
+        readings = _number(f"{f} readings", c.get("readings", 4), 1, True, 100)
         return force_plan(stroke, cal, val, forces, per_A, readings)
 
     def dead_path(self) -> dict:
@@ -244,11 +277,23 @@ class Scenario:
                      + plan.readings * (4 * s.window_s + s.ac_read_s) + s.overhead_s)
         return len(plan) * per_point + len(plan.sessions) * (s.session_gap_s + 600.0) + 3600.0
 
+    def _timeline(self, plan: Plan) -> tuple[float, float]:
+        """(horizon, warm-up) in s, checked against the longest campaign the twin simulates."""
+        warmup = _number(f"{self.path} [campaign] warmup_s", self.campaign.get("warmup_s", 7200.0),
+                         0.0, maximum=7 * 86400.0)
+        horizon = self.horizon_s(plan)
+        if horizon + warmup > MAX_DAYS * 86400.0:
+            raise ScenarioError(f"{self.path}: the campaign would last "
+                                f"{(horizon + warmup) / 86400:.0f} days (points, timing and gaps "
+                                f"of [campaign] and [instruments]); the twin simulates at most "
+                                f"{MAX_DAYS:g} days")
+        return horizon, warmup
+
     def build(self, scale: float | None = None):
         """(twin, plan) for this scenario and seed."""
         plan = self.plan(random_streams(self.seed)["campaign"], scale)
-        warmup = _number(f"{self.path} [campaign] warmup_s", self.campaign.get("warmup_s", 7200.0), 0.0)
-        twin = Twin(self.params, self.effects, self.sensors, self.seed, self.horizon_s(plan), warmup)
+        horizon, warmup = self._timeline(plan)
+        twin = Twin(self.params, self.effects, self.sensors, self.seed, horizon, warmup)
         return twin, plan
 
     def metadata(self, twin: Twin, scale, noise_floor_nm: dict | None = None) -> dict:

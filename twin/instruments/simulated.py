@@ -16,6 +16,7 @@ Instrument models (``InstrumentSettings``):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -63,6 +64,23 @@ class InstrumentSettings:
     wait_s: float = 5.0                   # the papers' wait after a move
     overhead_s: float = 1.5               # logging, correction, temperature read-out per point
     session_gap_s: float = 1800.0         # re-arranging the optics between sessions
+
+    # the physically meaningful range of each setting: (lowest, highest, lowest allowed itself);
+    # a scenario outside it is refused (a zero speed divides by zero, a zero range reads NaN,
+    # a zero acceptance limit never accepts a window, a 1e12 s gap allocates terabytes)
+    RANGES: ClassVar[dict] = {
+        "noise_floor_m": (0.0, 1e-6, True), "sample_noise_m": (0.0, 1e-6, True),
+        "sample_noise_spread": (0.0, 3.0, True), "samples_per_window": (1, 10**6, True),
+        "window_s": (0.0, 60.0, False), "std_limit_m": (0.0, 1e-6, False),
+        "max_rereads": (0, 1000, True), "resolution_m": (0.0, 1e-6, False),
+        "ac_noise_rad": (0.0, 1e-3, True), "ac_resolution_rad": (0.0, 1e-3, False),
+        "ac_range_rad": (0.0, 0.1, False), "ac_read_s": (0.0, 60.0, True),
+        "T_noise_C": (0.0, 1.0, True), "T_resolution_C": (0.0, 1.0, False),
+        "scan_period_s": (0.0, 3600.0, False), "move_base_s": (0.0, 600.0, True),
+        "speed_rad_s": (0.0, 10.0, False), "coil_settle_s": (0.0, 600.0, True),
+        "wait_s": (0.0, 3600.0, True), "overhead_s": (0.0, 600.0, True),
+        "session_gap_s": (0.0, 7 * 86400.0, True),
+    }
 
     def move_time(self, dq) -> float:
         return self.move_base_s + float(np.max(np.abs(dq))) / self.speed_rad_s
