@@ -48,11 +48,12 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
             or version > FORMAT_VERSION:
         raise FitError(f"{path}: format {doc.get('format')!r} version {version!r}: this deltatwin "
                        f"reads {FORMAT!r} up to version {FORMAT_VERSION}")
-    # a file cut short must not fall back on default values: every effect of the model that
-    # has free parameters needs its table
+    # a fitted file cut short must not fall back on default values: every effect with free
+    # parameters needs its table (a hand-written model without [fit] starts at the defaults)
     tables = doc.get("effects", {})
     missing = [e for e in doc["model"]["effects"]
-               if e not in tables and e in LIBRARY and LIBRARY[e].free_parameters()]
+               if "fit" in doc and e not in tables and e in LIBRARY
+               and LIBRARY[e].free_parameters()]
     if missing:
         raise FitError(f"{path}: no [effects.{missing[0]}] table"
                        + (f" (nor {', '.join(missing[1:])})" if missing[1:] else "")
