@@ -168,8 +168,9 @@ class Twin:
         # step short of t_s
         k = int(np.searchsorted(self.t_grid, t_s, side="left"))
         if k >= self.t_grid.size:
-            raise ValueError(f"time {t_s:.0f} s is beyond the scenario's horizon "
-                             f"({self.t_grid[-1]:.0f} s): raise campaign.horizon_s")
+            raise ValueError(f"time {t_s:.6g} s is beyond the twin's time horizon "
+                             f"({self.t_grid[-1]:.6g} s, the longest campaign its scenario, "
+                             "scale and seed plan for)")
         self.schedule = schedule
         if k <= self._done:
             return

@@ -2,6 +2,8 @@
 so that drivers follow the twin's simulated time."""
 from __future__ import annotations
 
+import math
+
 from deltatwin.hw.clock import PROTOCOL
 from deltatwin.hw.emulators.generic import GenericEmulator
 
@@ -14,5 +16,11 @@ class ClockEmulator(GenericEmulator):
         clock = self.backing.instruments.clock
         if command == "now":
             return self.protocol.reply("now", t_s=self.backing.call(clock.now))
-        self.backing.call(clock.sleep, values["s"])
+        s = values["s"]
+        if not (math.isfinite(s) and s >= 0):
+            return self.bad_argument(f"sleep must be a finite number of seconds >= 0, got {s!r}")
+        try:
+            self.backing.call(clock.sleep, s)
+        except ValueError as exc:      # e.g. past the end of a simulated world
+            return self.bad_argument(str(exc))
         return self.protocol.reply("sleep")

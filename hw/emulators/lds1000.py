@@ -88,6 +88,10 @@ class LDS1000Emulator(LineEmulator):
         self.last_error = "A"
         return None
 
+    def overlong(self) -> str | None:
+        self.last_error = "A"        # the manual's input buffer holds 255 characters
+        return None
+
     def fail(self, error: InstrumentError, request) -> str | None:
         self.last_error = error.code if error.code in ERROR_CODES else "S"
         if request is not None and request[0] == "position" and request[1]["axis"] in self.axes:
