@@ -9,6 +9,8 @@ impossible value, all raise ScenarioError naming the file, the key and the reaso
 """
 from __future__ import annotations
 
+import hashlib
+
 import dataclasses
 import difflib
 import tomllib
@@ -250,6 +252,13 @@ class Scenario:
         warmup = _number(f"{self.path} [campaign] warmup_s", self.campaign.get("warmup_s", 7200.0), 0.0)
         twin = Twin(self.params, self.effects, self.sensors, self.seed, self.horizon_s(plan), warmup)
         return twin, plan
+
+    def identity(self, scale: float | None) -> dict:
+        """What makes two runs of this scenario the same world: its name, the SHA-256 of its
+        TOML text, the seed and the scale (1.0 for the full campaign)."""
+        return {"scenario": self.name,
+                "scenario_sha256": hashlib.sha256(self.text.encode()).hexdigest(),
+                "seed": self.seed, "scale": 1.0 if scale is None else float(scale)}
 
     def metadata(self, twin: Twin, scale, noise_floor_nm: dict | None = None) -> dict:
         from deltatwin import __version__

@@ -31,12 +31,14 @@ class EmulatedLab:
     """``link``: "pty" (symlinks in ``directory``) or "tcp"; ``realtime`` paces the backing
     clock by the wall clock; ``timeout_s`` per reply line goes to the ports file; ``ac_unit``
     is the LDS1000s' display unit (``sec``: arcsec to 0.01, which holds the twin's 0.02 arcsec
-    steps exactly; ``µrad`` to 0.1)."""
+    steps exactly; ``µrad`` to 0.1); ``world``: what the backing simulates (scenario,
+    scenario_sha256, seed, scale), answered on the clock port (``WORLD?``) so that a campaign
+    checks it runs against the same scenario and seed."""
 
     def __init__(self, instruments: InstrumentSet, directory: str | Path | None = None, *,
                  link: str = "pty", realtime: bool = False, timeout_s: float | None = None,
                  retry: RetryPolicy = RetryPolicy(), name: str = "emulated laboratory",
-                 ac_unit: str = "sec"):
+                 ac_unit: str = "sec", world: dict | None = None):
         if link not in ("pty", "tcp"):
             raise ValueError(f"link must be 'pty' or 'tcp', got {link!r}")
         sensors = tuple(instruments.thermometers.sensors)
@@ -57,7 +59,7 @@ class EmulatedLab:
 
         b = self.backing
         self.emulators = {
-            "clock": ClockEmulator(b, make_link("clock"), name="clock"),
+            "clock": ClockEmulator(b, make_link("clock"), name="clock", world=world),
             "robot": RobotControllerEmulator(b, make_link("robot"), name="robot"),
             "interferometers": SP2000Emulator(b, make_link("interferometers"),
                                               name="interferometers"),

@@ -255,8 +255,6 @@ class SimCoils(CoilSupply):
         I = np.asarray(currents_A, dtype=np.float64)
         if I.shape != (3,) or not np.all(np.abs(I) <= 2.0 + 1e-12):     # NaN too
             raise InstrumentError(self.name, f"currents {I.tolist()} A outside +-2 A", code="RANGE")
-        if np.array_equal(I, lab.currents):   # the same set point: nothing changes or settles
-            return
         lab.schedule.set_currents(lab.t, I)
         lab.currents = I.copy()
         lab.t += lab.s.coil_settle_s
