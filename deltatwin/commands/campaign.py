@@ -169,8 +169,8 @@ def run(args) -> int:
             else:
                 what, code = f"stopped by an instrument fault at point {done} of {len(plan)}: " \
                              f"{exc}", EXIT_INSTRUMENT_FAULT
-            safe = (f"{done} of {len(plan)} point(s) are safe in the journal {journal_path}; "
-                    "run the same command with --resume to continue" if done else
+            safe = (f"{done} point(s) are safe in the journal {journal_path} ({len(plan) - done}"
+                    " to go); run the same command with --resume to continue" if done else
                     f"no point was journaled yet ({journal_path} removed): run the same "
                     "command again")
             print(f"deltatwin campaign: {what}\n  {safe}"

@@ -41,6 +41,10 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+# the twin's parasitic rotations stay within +-95 arcsec over the workspace (paper-thermal,
+# paper-force; steps between points <= 19 arcsec): a step above 200 arcsec is a damaged reply
+TWIN_AC_MAX_STEP_ARCSEC = 200.0
+
 def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None):
     """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it."""
     from deltatwin.twin.instruments.simulated import SimulatedLab
@@ -60,7 +64,8 @@ def serve(instruments, *, name: str, directory: Path | None, ports_out: Path | N
     from deltatwin.hw.ports import write_ports
 
     with EmulatedLab(instruments, directory, link="tcp" if tcp else "pty", realtime=realtime,
-                     timeout_s=timeout_s, name=name, world=world) as lab:
+                     timeout_s=timeout_s, name=name, world=world,
+                     ac_max_step_arcsec=TWIN_AC_MAX_STEP_ARCSEC) as lab:
         devices = lab.devices()
         if ports_out is not None:
             write_ports(ports_out, lab.ports(),
