@@ -251,12 +251,13 @@ def test_wall_clock_continues_after_a_resume(tmp_path):
     from deltatwin.hw.clock import WallClock
     from deltatwin.twin.journal import Journal
 
+    assert resumed_wall_clock_s(tmp_path / "j") == 0.0              # no journal yet
     with Journal.open(tmp_path / "j", {"scenario": "s"}) as journal:
-        assert resumed_wall_clock_s(journal) == 0.0
+        assert resumed_wall_clock_s(journal.path) == 0.0
         journal.append(0, {"t_s": 100.0})
         stamp = time.time() - 50.0
         os.utime(journal.path, (stamp, stamp))
-        start = resumed_wall_clock_s(journal)
+        start = resumed_wall_clock_s(journal.path)
     assert 150.0 <= start < 155.0
     clock = WallClock(start)
     assert start <= clock.now() < start + 5.0
