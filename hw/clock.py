@@ -13,11 +13,10 @@ Clock protocol (generic convention, docs/hardware.md):
 """
 from __future__ import annotations
 
+import json
 import time
 
 from deltatwin.hw.driver import LineInstrument
-import json
-
 from deltatwin.hw.protocol import Command, generic_protocol, real, text
 from deltatwin.twin.instruments.interface import DEFAULT_TIMEOUT_S, Clock
 

@@ -21,9 +21,21 @@ from __future__ import annotations
 import math
 
 from deltatwin.hw.driver import LineInstrument
-from deltatwin.hw.protocol import Command, InstrumentRejected, Protocol, ReplyError, integer, text
-from deltatwin.twin.instruments.interface import (DEFAULT_TIMEOUT_S, AngleReading, Autocollimators, Clock,
-                                        InstrumentError)
+from deltatwin.hw.protocol import (
+    Command,
+    InstrumentRejected,
+    Protocol,
+    ReplyError,
+    integer,
+    text,
+)
+from deltatwin.twin.instruments.interface import (
+    DEFAULT_TIMEOUT_S,
+    AngleReading,
+    Autocollimators,
+    Clock,
+    InstrumentError,
+)
 
 ERROR_CODES = {"@": "no error", "A": "unknown command", "B": "bad axis", "C": "out of limits",
                "D": "not allowed", "O": "out of range", "S": "timeout"}
@@ -120,7 +132,8 @@ class LDS1000(LineInstrument):
     def _plausible(self, axis: int, text: str) -> float:
         """The reading ``text`` in rad, after every check the protocol allows (no checksum, no
         fixed width): the unit's number of decimals, the measuring range, and a step from the
-        previous reading below ``max_step_rad`` (when set). Raises ``ReplyError`` (retried: a new reading)."""
+        previous reading below ``max_step_rad`` (when set). Raises ``ReplyError`` (retried: a new
+        reading)."""
         unit = self.unit[axis]
         decimals = len(text.partition(".")[2])
         if "." not in text or decimals != UNIT_DECIMALS[unit]:

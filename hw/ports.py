@@ -41,7 +41,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from deltatwin.files import atomic_write_text, toml_value
+from deltatwin.files import atomic_write_text, toml_text
 from deltatwin.hw.protocol import TERMINATORS
 from deltatwin.hw.retry import RetryPolicy
 
@@ -226,35 +226,32 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
         coils=coils, n_coils=n_coils, retry=retry)
 
 
-def _port_lines(port: Port, **extra) -> list[str]:
-    lines = [f"url = {toml_value(port.url)}", f"baud = {port.baud}",
-             f"terminator = {toml_value(port.terminator)}", f"timeout_s = {port.timeout_s!r}"]
+def _port_table(port: Port, **extra) -> dict:
+    table = {"url": port.url, "baud": port.baud, "terminator": port.terminator,
+             "timeout_s": port.timeout_s}
     if port.xonxoff:
-        lines.append("xonxoff = true")
-    lines += [f"{k} = {toml_value(v)}" for k, v in extra.items()]
-    return lines
+        table["xonxoff"] = True
+    return table | extra
 
 
 def format_ports(ports: LabPorts, comment: str = "") -> str:
-    out = [f"# {line}" for line in comment.splitlines()]
-    out.append(f"lab = {toml_value(ports.lab)}")
     r = ports.retry
-    out += ["", "[retry]", f"attempts = {r.attempts}", f"first_delay_s = {r.first_delay_s!r}",
-            f"factor = {r.factor!r}", f"max_delay_s = {r.max_delay_s!r}"]
+    doc: dict = {"lab": ports.lab,
+                 "retry": {"attempts": r.attempts, "first_delay_s": r.first_delay_s,
+                           "factor": r.factor, "max_delay_s": r.max_delay_s}}
     if ports.clock is not None:
-        out += ["", "[clock]", *_port_lines(ports.clock)]
-    out += ["", "[robot]", *_port_lines(ports.robot)]
-    out += ["", "[interferometers]",
-            *_port_lines(ports.interferometers, axes=list(ports.interferometer_axes))]
+        doc["clock"] = _port_table(ports.clock)
+    doc["robot"] = _port_table(ports.robot)
+    doc["interferometers"] = _port_table(ports.interferometers,
+                                         axes=list(ports.interferometer_axes))
     steps = ports.autocollimator_max_step_arcsec or (None,) * len(ports.autocollimators)
-    for (port, axes), step in zip(ports.autocollimators, steps):
-        extra = {"channels": axes} | ({} if step is None else {"max_step_arcsec": step})
-        out += ["", "[[autocollimators]]", *_port_lines(port, **extra)]
-    out += ["", "[thermometers]",
-            *_port_lines(ports.thermometers, channels=ports.thermometer_channels)]
+    doc["autocollimators"] = [
+        _port_table(port, channels=axes, **({} if step is None else {"max_step_arcsec": step}))
+        for (port, axes), step in zip(ports.autocollimators, steps)]
+    doc["thermometers"] = _port_table(ports.thermometers, channels=ports.thermometer_channels)
     if ports.coils is not None:
-        out += ["", "[coils]", *_port_lines(ports.coils, n_coils=ports.n_coils)]
-    return "\n".join(out) + "\n"
+        doc["coils"] = _port_table(ports.coils, n_coils=ports.n_coils)
+    return toml_text(doc, comment)
 
 
 def write_ports(path: str | os.PathLike, ports: LabPorts, comment: str = "") -> Path:

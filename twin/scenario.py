@@ -9,10 +9,9 @@ impossible value, all raise ScenarioError naming the file, the key and the reaso
 """
 from __future__ import annotations
 
-import hashlib
-
 import dataclasses
 import difflib
+import hashlib
 import tomllib
 from dataclasses import dataclass
 from importlib import resources

@@ -10,11 +10,12 @@ dataset is written (atomically) once every point is in the journal, which is kep
 """
 from __future__ import annotations
 
-import json
 import logging
 import sys
 import time
 from pathlib import Path
+
+from deltatwin.commands.output import strict_json
 
 # exit code of a campaign stopped by an instrument fault (2 = bad input, see deltatwin.cli)
 EXIT_INSTRUMENT_FAULT = 3
@@ -43,7 +44,6 @@ def register(sub) -> None:
     g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points "
                    "(with serial: the same as `deltatwin emulate` was given)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
@@ -198,6 +198,6 @@ def run(args) -> int:
                "zeros_after_resume": sum(z["after_resume"] for z in zeros),
                "seconds": round(time.perf_counter() - t0, 2),
                "campaign_time_h": round(float(df["t_s"].max()) / 3600.0, 3)}
-    print(json.dumps(summary) if args.json else
+    print(strict_json(summary) if args.json else
           "\n".join(f"{k:>20}: {v}" for k, v in summary.items()))
     return 0

@@ -30,8 +30,8 @@ from collections import deque
 
 from deltatwin.hw.emulators.base import LineEmulator
 from deltatwin.hw.keithley2700 import PROTOCOL, format_element
-from deltatwin.hw.scpi import (ScpiCommand as C, ScpiError, ScpiParser, channel_list, choice, choices,
-                     integer, quoted)
+from deltatwin.hw.scpi import ScpiCommand as C
+from deltatwin.hw.scpi import ScpiError, ScpiParser, channel_list, choice, choices, integer, quoted
 from deltatwin.twin.instruments.interface import InstrumentError
 
 QUEUE_SIZE = 10

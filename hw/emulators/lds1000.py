@@ -16,7 +16,6 @@ from deltatwin.hw.lds1000 import ERROR_CODES, PROTOCOL, RANGE_RAD, UNIT_RAD, for
 from deltatwin.twin.instruments.interface import InstrumentError
 
 
-
 class AngleSource:
     """Backing angles shared by the controllers: a channel asked for a second time takes a new
     backing reading (so one pass over every channel = one reading)."""

@@ -297,8 +297,8 @@ def world_lab(tmp_path, seed):
 
 
 def test_emulator_of_another_seed_is_refused(tmp_path, capsys):
-    """`emulate --seed 7` and a campaign of the default seed (1): refused before anything is measured, naming the
-    seed; no journal is left behind; with --seed 7 the same command runs."""
+    """`emulate --seed 7` and a campaign of the default seed (1): refused before anything is
+    measured, naming the seed; no journal is left behind; with --seed 7 the same command runs."""
     with world_lab(tmp_path, seed=7) as lab:
         write_ports(tmp_path / "ports.toml", lab.ports())
         assert serial_campaign(tmp_path, tmp_path / "ports.toml") == 2

@@ -184,7 +184,7 @@ def test_lds1000_dropped_bytes_detection():
     per unit) always; beyond the range; a jump of more than 200 arcsec from the previous
     reading. What passes: a lost integer digit or sign whose error is below the 200 arcsec
     step limit (documented in docs/hardware.md)."""
-    from deltatwin.hw.lds1000 import ARCSEC_RAD, UNIT_RAD, format_value
+    from deltatwin.hw.lds1000 import ARCSEC_RAD, format_value
     driver = lds_driver("µrad")
     assert accepted(driver, "1TP-1596.3", -1596.3e-6) == pytest.approx(-1596.3e-6)
     reply = "1TP-1596.3"     # the reference's example: every single drop is now detected

@@ -1,16 +1,15 @@
 """SCPI as IEEE 488.2 / SCPI-99 say, on the Keithley emulator: the parser (hw/scpi.py), a peer
 driver (PyMeasure's Keithley2700 through pyvisa-py on a real pseudo-terminal), the reading
 counter past 99,999; and the emulators' refusals of well-formed invalid values."""
-import logging
 import time
 
 import numpy as np
 import pytest
 import serial
 
-from hw.emulators.keithley2700 import COMMANDS
-from hw.protocol import CRC16
-from hw.scpi import ScpiError
+from deltatwin.hw.emulators.keithley2700 import COMMANDS
+from deltatwin.hw.protocol import CRC16
+from deltatwin.hw.scpi import ScpiError
 
 from .conftest import ARCSEC  # noqa: F401  (conftest's toy lab backs the emulators)
 
@@ -132,7 +131,7 @@ def test_reading_counter_past_99999(emulated, drivers):
 
 
 def test_keithley_dropped_digit_in_a_long_reading_number_is_detected():
-    from hw.keithley2700 import PROTOCOL, format_reading
+    from deltatwin.hw.keithley2700 import PROTOCOL, format_reading
     line = ",".join(format_reading(20.0 + k, 1.0, 123_456 + k, 101 + k) for k in range(3))
     readings = PROTOCOL.parse_reply("read", line, {}, "k")["readings"]
     assert [n for _, _, n in readings] == [123456, 123457, 123458]
@@ -192,7 +191,7 @@ def test_long_lines_are_refused_fast_and_buffers_bounded(emulated):
 
 
 def test_real_number_field_parses_a_long_line_in_linear_time():
-    from hw.coil_supply import PROTOCOL
+    from deltatwin.hw.coil_supply import PROTOCOL
     for n in (2_000, 20_000):
         start = time.monotonic()
         assert PROTOCOL.parse_request(CRC16.encode("CURR " + "1" * n + " x")) is None
@@ -201,8 +200,8 @@ def test_real_number_field_parses_a_long_line_in_linear_time():
 
 
 def test_simulated_clock_refuses_bad_sleeps_without_naming_unknown_keys():
-    from twin.instruments.simulated import SimulatedLab
-    from twin.scenario import Scenario
+    from deltatwin.twin.instruments.simulated import SimulatedLab
+    from deltatwin.twin.scenario import Scenario
     sc = Scenario.load("paper-thermal")
     twin, _ = sc.build(0.0003)
     clock = SimulatedLab(twin, sc.settings).instrument_set().clock

@@ -193,9 +193,9 @@ def test_session_start_puts_coils_to_zero_and_checks_it():
     """A coil supply left at 1 A by an earlier session: the campaign switches it off and reads it
     back before the zero, so the data equal a clean start's (before: every reading offset by
     tens of nm while the rows said 0 A); a supply that does not go to 0 A stops the campaign."""
-    from twin.campaign import run_campaign
-    from twin.instruments.interface import InstrumentError
-    from twin.instruments.simulated import SimCoils, SimulatedLab
+    from deltatwin.twin.campaign import run_campaign
+    from deltatwin.twin.instruments.interface import InstrumentError
+    from deltatwin.twin.instruments.simulated import SimCoils, SimulatedLab
 
     sc = Scenario.load("paper-force")
 
