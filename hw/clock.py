@@ -13,15 +13,19 @@ Clock protocol (generic convention, docs/hardware.md):
 """
 from __future__ import annotations
 
+import json
 import time
 
 from deltatwin.hw.driver import LineInstrument
-from deltatwin.hw.protocol import Command, generic_protocol, real
+from deltatwin.hw.protocol import Command, generic_protocol, real, text
 from deltatwin.twin.instruments.interface import DEFAULT_TIMEOUT_S, Clock
 
 PROTOCOL = generic_protocol("deltatwin emulated clock", {
     "now": Command("TIME?", "TIME {t_s}", {"t_s": real()}),
     "sleep": Command("SLEEP {s}", "SLEEP OK", {"s": real()}),
+    # the emulated laboratory's world: its scenario, scenario_sha256, seed and scale as one JSON
+    # object ({} when it does not say), so a campaign refuses to run against another scenario
+    "world": Command("WORLD?", "WORLD {world}", {"world": text(r"\{[ -~]*\}")}),
 })
 IDENTITY_PREFIX = "deltatwin emulated clock"
 
@@ -51,6 +55,12 @@ class SerialClock(LineInstrument, Clock):
 
     def now(self) -> float:
         return self.operation("now", lambda: self.ask("now")["t_s"], DEFAULT_TIMEOUT_S)
+
+    def world(self) -> dict:
+        """What the emulated laboratory simulates (scenario, scenario_sha256, seed, scale), or
+        {} when it does not say."""
+        return self.operation("world", lambda: json.loads(self.ask("world")["world"]),
+                              DEFAULT_TIMEOUT_S)
 
     def sleep(self, seconds: float) -> None:
         """Wait ``seconds`` of campaign time (a lost reply makes the retry wait again)."""

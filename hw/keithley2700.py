@@ -1,15 +1,17 @@
 """Keithley 2700 with a multiplexer card: a 4-wire PT100 scan (``ThermometerScanner``).
 
 SCPI over RS-232 (sequence and reply format: ../shared/reference.md "Instruments",
-docs/hardware.md). Set-up on connect: ``*CLS``, ``ROUT:SCAN:LSEL NONE``, ``SENS:FUNC 'TEMP'``,
+docs/hardware.md). Set-up on connect: ``*CLS``, ``FORM:ELEM READ,UNIT,TST,RNUM,CHAN`` (the reply
+layout, whatever the instrument's last state), ``ROUT:SCAN:LSEL NONE``, ``SENS:FUNC 'TEMP'``,
 ``SENS:TEMP:TRAN FRTD``, ``SENS:TEMP:FRTD:TYPE PT100`` (on the scan list), ``INIT:CONT OFF``,
 ``TRIG:SOUR IMM``, ``TRIG:COUN 1``, ``ROUT:SCAN (@list)``, ``SAMP:COUN n``,
 ``ROUT:SCAN:TSO IMM``, then ``SYST:ERR?`` must answer ``0,"No error"``. Per scan:
 ``ROUT:SCAN:LSEL INT``, ``READ?``, ``ROUT:SCAN:LSEL NONE``, ``SYST:ERR?``.
 
 A reply element is ``+2.53908043E+01C,+0.346SECS,+00002RDNG#,110INTCHAN``; the driver accepts
-only that fixed-width form (a dropped or garbled byte breaks it and is detected), checks that the
-channels come back in scan-list order, and drops stray XON/XOFF bytes. An overflow (``+9.9E37``,
+only that form (fixed width but for the reading number, at least 5 digits and consecutive within
+a reply: a dropped or garbled byte breaks it and is detected), checks that the channels come back
+in scan-list order, and drops stray XON/XOFF bytes. An overflow (``+9.9E37``,
 an open or unplugged PT100) raises ``InstrumentError`` with code ``"overflow"`` naming the
 channel(s) and sensor(s): an overflowed channel carries no temperature, and the interface
 reports failures as errors, never as silent NaNs.
@@ -56,21 +58,38 @@ def _parse_channels(s: str) -> tuple[int, ...]:
 
 CHANNELS = Field(r"\d{3}(?::\d{3})?(?:,\d{3}(?::\d{3})?)*", _parse_channels, _format_channels)
 
+# The reply layout the driver sets with FORM:ELEM (so it does not depend on the instrument's
+# last state). The reading number has no fixed width (the manual's figure: ``+236RDNG``): at
+# least 5 digits as instruments write it (``+00002RDNG#``), more past 99,999 (``+100043RDNG#``);
+# the driver checks instead that the numbers of one reply are consecutive.
+ELEMENTS = ("READING", "UNITS", "TSTAMP", "RNUMBER", "CHANNEL")
 _VALUE = r"(?:[+-]\d\.\d{8}E[+-]\d{2}|\+9\.9E\+?37)"
-_ELEMENT = _VALUE + r"C,[+-]\d+\.\d{3}SECS,[+-]\d{5}RDNG#,\d{3}INTCHAN"
+_ELEMENT = _VALUE + r"C,[+-]\d+\.\d{3}SECS,[+-]\d{5,}RDNG#,\d{3}INTCHAN"
 _ELEMENT_GROUPS = re.compile(r"(?P<value>[^C,]+)C,(?P<secs>[^S]+)SECS,(?P<rdng>[^R]+)RDNG#,"
                              r"(?P<chan>\d{3})INTCHAN")
 
 
-def _parse_readings(s: str) -> list[tuple[int, float]]:
-    """``(channel, value degC)`` per element, in reply order."""
-    return [(int(m["chan"]), float(m["value"])) for m in _ELEMENT_GROUPS.finditer(s)]
+def _parse_readings(s: str) -> list[tuple[int, float, int]]:
+    """``(channel, value degC, reading number)`` per element, in reply order."""
+    return [(int(m["chan"]), float(m["value"]), int(m["rdng"]))
+            for m in _ELEMENT_GROUPS.finditer(s)]
+
+
+def format_element(elements, value_C: float, secs: float, number: int, channel: int) -> str:
+    """One reading as the 2700 writes it with FORM:ELEM ``elements`` (long forms, upper case;
+    overflow for a non-finite value)."""
+    units = "UNITS" in elements
+    parts = {"READING": (f"{value_C:+.8E}" if abs(value_C) < OVERFLOW else "+9.9E37")
+                        + ("C" if units else ""),
+             "TSTAMP": f"{secs:+.3f}" + ("SECS" if units else ""),
+             "RNUMBER": f"{number:+06d}" + ("RDNG#" if units else ""),
+             "CHANNEL": f"{channel:03d}" + ("INTCHAN" if units else "")}
+    return ",".join(parts[e] for e in elements if e in parts)
 
 
 def format_reading(value_C: float, secs: float, number: int, channel: int) -> str:
-    """One reply element as the 2700 writes it (overflow for a non-finite value)."""
-    v = f"{value_C:+.8E}" if abs(value_C) < OVERFLOW else "+9.9E37"
-    return f"{v}C,{secs:+.3f}SECS,{number:+06d}RDNG#,{channel:03d}INTCHAN"
+    """One reading in the driver's layout (``ELEMENTS``)."""
+    return format_element(ELEMENTS, value_C, secs, number, channel)
 
 
 READINGS = Field(f"{_ELEMENT}(?:,{_ELEMENT})*", _parse_readings, lambda elements: ",".join(elements))
@@ -93,6 +112,7 @@ PROTOCOL = Protocol(
         "scan_list": Command("ROUT:SCAN (@{channels})", None, {"channels": CHANNELS}),
         "sample_count": Command("SAMP:COUN {n}", None, {"n": integer()}),
         "scan_trigger_immediate": Command("ROUT:SCAN:TSO IMM"),
+        "format_elements": Command("FORM:ELEM READ,UNIT,TST,RNUM,CHAN"),
         "read": Command("READ?", "{readings}", {"readings": READINGS}),
         "error": Command("SYST:ERR?", '{code},"{reason}"',
                          {"code": integer(), "reason": text(r'[^"]*')}),
@@ -124,6 +144,7 @@ class Keithley2700Scanner(LineInstrument, ThermometerScanner):
                                                 f"{ident['model']}, not a Keithley 2700")
         chans = tuple(self.channels)
         self.ask("clear")
+        self.ask("format_elements")
         self.ask("scan_list_select", mode="NONE")
         self.ask("function", channels=chans)
         self.ask("transducer", channels=chans)
@@ -152,16 +173,20 @@ class Keithley2700Scanner(LineInstrument, ThermometerScanner):
         readings = self.ask("read")["readings"]
         self.ask("scan_list_select", mode="NONE")
         self._raise_pending("scan")
-        got = [c for c, _ in readings]
+        got = [c for c, _, _ in readings]
         if got != list(self.channels):
             raise ReplyError(self.name, f"scan returned channels {got}, expected "
                                         f"{list(self.channels)}")
-        over = [f"{c} ({self.channels[c]})" for c, v in readings if v >= OVERFLOW]
+        numbers = [n for _, _, n in readings]
+        if numbers != list(range(numbers[0], numbers[0] + len(numbers))):
+            raise ReplyError(self.name, f"scan returned reading numbers {numbers}, not "
+                                        "consecutive (a digit lost?)")
+        over = [f"{c} ({self.channels[c]})" for c, v, _ in readings if v >= OVERFLOW]
         if over:
             raise InstrumentError(self.name, f"overflow (+9.9E37) on channel(s) "
                                              f"{', '.join(over)}: open or unplugged PT100?",
                                   "overflow")
-        return TemperatureScan(self.clock.now(), {self.channels[c]: v for c, v in readings})
+        return TemperatureScan(self.clock.now(), {self.channels[c]: v for c, v, _ in readings})
 
     def scan(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> TemperatureScan:
         return self.operation("scan", self._scan_once, timeout_s)

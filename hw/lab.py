@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from deltatwin.hw.clock import SerialClock, WallClock
 from deltatwin.hw.coil_supply import CoilSupplyDriver
 from deltatwin.hw.keithley2700 import Keithley2700Scanner
-from deltatwin.hw.lds1000 import LDS1000, NewportAutocollimators
+from deltatwin.hw.lds1000 import ARCSEC_RAD, LDS1000, NewportAutocollimators
 from deltatwin.hw.ports import LabPorts, Port, load_ports
 from deltatwin.hw.protocol import SerialLine, terminator_bytes
 from deltatwin.hw.robot_controller import RobotController
@@ -58,9 +58,11 @@ def open_lab(ports: LabPorts | str | os.PathLike,
     kw = {"retry_policy": ports.retry}
     clock = (WallClock(wall_clock_start_s) if ports.clock is None
              else SerialClock(serial_line(ports.clock, "clock"), **kw))
+    steps = ports.autocollimator_max_step_arcsec or (None,) * len(ports.autocollimators)
     controllers = [LDS1000(serial_line(port, f"autocollimator{k + 1}"), axes,
-                           name=f"autocollimator{k + 1}", **kw)
-                   for k, (port, axes) in enumerate(ports.autocollimators)]
+                           name=f"autocollimator{k + 1}",
+                           max_step_rad=None if step is None else step * ARCSEC_RAD, **kw)
+                   for k, ((port, axes), step) in enumerate(zip(ports.autocollimators, steps))]
     coils = (None if ports.coils is None else
              CoilSupplyDriver(serial_line(ports.coils, "coils"), n_coils=ports.n_coils, **kw))
     return SerialInstrumentSet(

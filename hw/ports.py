@@ -56,7 +56,7 @@ DEFAULTS = {
 }
 PORT_KEYS = ("url", "baud", "terminator", "timeout_s", "xonxoff")
 EXTRA_KEYS = {"clock": (), "robot": (), "interferometers": ("axes",),
-              "autocollimators": ("channels",), "thermometers": ("channels",),
+              "autocollimators": ("channels", "max_step_arcsec"), "thermometers": ("channels",),
               "coils": ("n_coils",)}
 NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 KEITHLEY_BAUDS = (300, 600, 1200, 2400, 4800, 9600, 19200)
@@ -88,6 +88,9 @@ class LabPorts:
     coils: Port | None = None
     n_coils: int = 3
     retry: RetryPolicy = RetryPolicy()
+    # per [[autocollimators]] table: the largest believable change of an angle between two
+    # readings (arcsec), None = not checked
+    autocollimator_max_step_arcsec: tuple[float | None, ...] = ()
 
 
 def _fail(path, where: str, reason: str):
@@ -185,10 +188,15 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
     acs = doc["autocollimators"]
     if not isinstance(acs, list) or not acs:
         _fail(path, "autocollimators", "must be one or more [[autocollimators]] tables")
-    controllers = []
+    controllers, max_steps = [], []
     for k, table in enumerate(acs):
         where = f"autocollimators #{k + 1}"
         port = _port(path, where, "autocollimators", table)
+        step = table.get("max_step_arcsec")
+        if step is not None and (isinstance(step, bool) or not isinstance(step, (int, float))
+                                 or not 0 < step <= 800):
+            _fail(path, where, f"max_step_arcsec: must be a number in (0, 800], got {step!r}")
+        max_steps.append(None if step is None else float(step))
         controllers.append((port, _channel_map(path, where, table.get("channels"),
                                                lambda a: a in (1, 2), "an LDS1000 axis (1, 2)")))
     names = [n for _, ch in controllers for n in ch.values()]
@@ -211,6 +219,7 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
         interferometers=_port(path, "interferometers", "interferometers", ifm),
         interferometer_axes=tuple(axes),
         autocollimators=tuple(controllers),
+        autocollimator_max_step_arcsec=tuple(max_steps),
         thermometers=_port(path, "thermometers", "thermometers", th),
         thermometer_channels=channels,
         clock=_port(path, "clock", "clock", doc["clock"]) if "clock" in doc else None,
@@ -235,8 +244,10 @@ def format_ports(ports: LabPorts, comment: str = "") -> str:
     doc["robot"] = _port_table(ports.robot)
     doc["interferometers"] = _port_table(ports.interferometers,
                                          axes=list(ports.interferometer_axes))
-    doc["autocollimators"] = [_port_table(port, channels=axes)
-                              for port, axes in ports.autocollimators]
+    steps = ports.autocollimator_max_step_arcsec or (None,) * len(ports.autocollimators)
+    doc["autocollimators"] = [
+        _port_table(port, channels=axes, **({} if step is None else {"max_step_arcsec": step}))
+        for (port, axes), step in zip(ports.autocollimators, steps)]
     doc["thermometers"] = _port_table(ports.thermometers, channels=ports.thermometer_channels)
     if ports.coils is not None:
         doc["coils"] = _port_table(ports.coils, n_coils=ports.n_coils)

@@ -84,7 +84,8 @@ class Field:
     format: Callable[[Any], str] = str
 
 
-_REAL = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|[+-]?(?:nan|inf)"
+# unambiguous (one way to match any text), so a failed match costs linear time, not quadratic
+_REAL = r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?|[+-]?(?:nan|inf)"
 
 
 def _shortest(v) -> str:
@@ -259,6 +260,17 @@ class Protocol:
             values = _parse(cmd._request_re, cmd.fields, payload)
             if values is not None:
                 return name, values
+        return None
+
+    def command_with_header(self, line: str) -> str | None:
+        """The command whose request begins with ``line``'s header (the literal text before
+        its first field, e.g. ``"CURR "``) although the whole line is no valid request: a known
+        command with a malformed argument ("bad argument", not "unknown command")."""
+        payload = self.framing.decode(line)
+        for name, cmd in self.commands.items():
+            head = next(string.Formatter().parse(cmd.request))
+            if payload is not None and head[1] and head[0] and payload.startswith(head[0]):
+                return name
         return None
 
     def reply(self, name: str, **values) -> str:

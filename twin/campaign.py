@@ -124,6 +124,35 @@ def _rows(plan: Plan, t_s, ifm, ifm_std, ac, T, sensors, zero_ac, cosine: bool,
     return df
 
 
+COIL_ZERO_TOLERANCE_A = 1e-3   # ~1 mN of force (2 A ~ 2 N): well below a nanometre
+HOME_TOLERANCE_RAD = 1e-5      # encoders at home: the robot went there, not a precision figure
+
+
+def known_state(inst: InstrumentSet) -> None:
+    """Put the instruments in the state a session starts from and check it: the coil currents
+    read back, and switched off (then read back again) unless they read 0 A (a supply left at
+    1 A by an earlier session would offset every reading; one that reads 0 A is not sent an
+    order, which on the simulated coils would be a load change); robot home and its encoders
+    read back. Raises ``InstrumentError`` naming the instrument when a read-back disagrees.
+    (The interferometers are zeroed and the autocollimators read next, by the caller; the
+    thermometer scanner is set up on connecting.)"""
+    if inst.coils is not None:
+        read = np.asarray(inst.coils.read_currents(), dtype=np.float64)
+        if not np.all(np.abs(read) <= COIL_ZERO_TOLERANCE_A):
+            inst.coils.set_currents(np.zeros(3))
+            read = np.asarray(inst.coils.read_currents(), dtype=np.float64)
+        if not np.all(np.abs(read) <= COIL_ZERO_TOLERANCE_A):
+            raise InstrumentError(inst.coils.name, f"set to 0 A at the session start but reads "
+                                  f"back {read.tolist()} A (tolerance "
+                                  f"{COIL_ZERO_TOLERANCE_A * 1e3:g} mA)")
+    inst.robot.move_to(np.zeros(3))
+    q = np.asarray(inst.robot.read_encoders(), dtype=np.float64)
+    if not np.all(np.abs(q) <= HOME_TOLERANCE_RAD):
+        raise InstrumentError(inst.robot.name, f"sent home at the session start but its "
+                              f"encoders read {q.tolist()} rad (tolerance "
+                              f"{HOME_TOLERANCE_RAD:g} rad)")
+
+
 def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, cosine: bool,
                  dead_path: dict, progress: bool = True, journal=None,
                  replay: bool = False) -> pd.DataFrame:
@@ -174,15 +203,11 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
             behind = done[k - 1]["t_s"] + settings.overhead_s - inst.clock.now()
             if behind > 0:
                 inst.clock.sleep(behind)
-            if inst.coils is not None and np.any(plan.currents_A != 0):
-                currents = np.full(3, np.nan)     # unknown after a crash: switched off below
         if new_session or rezero:
             if new_session and k > 0:
                 inst.clock.sleep(settings.session_gap_s)
-            if np.any(currents != 0):
-                inst.coils.set_currents(np.zeros(3))
-                currents = np.zeros(3)
-            inst.robot.move_to(np.zeros(3))
+            known_state(inst)
+            currents = np.zeros(3)
             inst.clock.sleep(settings.wait_s)
             zero_t = inst.clock.now()
             inst.interferometers.zero()

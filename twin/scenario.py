@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import hashlib
 import re
 import tomllib
 from dataclasses import dataclass
@@ -295,6 +296,13 @@ class Scenario:
         horizon, warmup = self._timeline(plan)
         twin = Twin(self.params, self.effects, self.sensors, self.seed, horizon, warmup)
         return twin, plan
+
+    def identity(self, scale: float | None) -> dict:
+        """What makes two runs of this scenario the same world: its name, the SHA-256 of its
+        TOML text, the seed and the scale (1.0 for the full campaign)."""
+        return {"scenario": self.name,
+                "scenario_sha256": hashlib.sha256(self.text.encode()).hexdigest(),
+                "seed": self.seed, "scale": 1.0 if scale is None else float(scale)}
 
     def metadata(self, twin: Twin, scale, noise_floor_nm: dict | None = None) -> dict:
         from deltatwin import __version__

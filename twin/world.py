@@ -163,10 +163,14 @@ class Twin:
         """Integrate the thermal network far enough to know temperatures at time ``t_s``.
         Inputs at a grid time depend only on events before it, so integrating in pieces as a
         campaign goes gives the same temperatures as integrating its whole schedule at once."""
-        k = int(np.ceil((t_s - self.t_grid[0]) / GRID_S))
+        # the first grid point at or after t_s, found on the grid itself: (t_s + warmup) / GRID_S
+        # rounds onto a grid point when t_s is a few ulp above it, and ceil would then stop one
+        # step short of t_s
+        k = int(np.searchsorted(self.t_grid, t_s, side="left"))
         if k >= self.t_grid.size:
-            raise ValueError(f"time {t_s:.0f} s is beyond the scenario's horizon "
-                             f"({self.t_grid[-1]:.0f} s): raise campaign.horizon_s")
+            raise ValueError(f"time {t_s:.6g} s is beyond the twin's time horizon "
+                             f"({self.t_grid[-1]:.6g} s, the longest campaign its scenario, "
+                             "scale and seed plan for)")
         self.schedule = schedule
         if k <= self._done:
             return
@@ -184,10 +188,12 @@ class Twin:
         t_s = np.asarray(t_s, dtype=np.float64)
         if t_s.size and t_s.max() > self.t_grid[self._done]:
             raise ValueError("temperatures asked beyond the integrated time; call advance()")
-        x = (t_s - self.t_grid[0]) / GRID_S
-        i = np.clip(np.floor(x).astype(int), 0, self.t_grid.size - 2)
-        f = (x - i)[:, None]
-        T = self._T[i] * (1 - f) + self._T[i + 1] * f
+        # the interval t_grid[i] < t_s <= t_grid[i + 1], located on the grid itself (not by
+        # rounding (t_s - t0) / GRID_S), so it never reaches past the integrated point
+        i = np.clip(np.searchsorted(self.t_grid, t_s, side="left") - 1, 0, self.t_grid.size - 2)
+        f = ((t_s - self.t_grid[i]) / (self.t_grid[i + 1] - self.t_grid[i]))[:, None]
+        # f == 0 only at the grid's first point, whose successor may not be integrated yet
+        T = np.where(f > 0, self._T[i] * (1 - f) + self._T[i + 1] * f, self._T[i])
         out = {name: T[:, j] for j, name in enumerate(self.network.nodes)}
         out.update({alias: out[part] for alias, part in self.network.aliases.items()})
         return out

@@ -10,7 +10,6 @@ dataset is written (atomically) once every point is in the journal, which is kep
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 import sys
 import time
@@ -20,6 +19,7 @@ from deltatwin.commands.output import strict_json
 
 # exit code of a campaign stopped by an instrument fault (2 = bad input, see deltatwin.cli)
 EXIT_INSTRUMENT_FAULT = 3
+EXIT_INTERRUPTED = 130      # Ctrl-C, as deltatwin.cli
 
 
 def register(sub) -> None:
@@ -49,8 +49,38 @@ def register(sub) -> None:
 
 def journal_header(sc, scale: float, n_points: int, instruments: str) -> dict:
     """What identifies a campaign: a journal is only resumed by the same one."""
-    return {"scenario": sc.name, "scenario_sha256": hashlib.sha256(sc.text.encode()).hexdigest(),
-            "seed": sc.seed, "scale": scale, "points": n_points, "instruments": instruments}
+    return {**sc.identity(scale), "points": n_points, "instruments": instruments}
+
+
+def check_world(instruments, sc, scale) -> None:
+    """An emulated laboratory says on its clock port which world it simulates: refuse to run a
+    campaign of another scenario, seed or scale through it (its data would say one seed and be
+    another's). A laboratory without a clock port, or one that does not say, is not checked."""
+    if getattr(instruments, "clock", None) is None or not hasattr(instruments.clock, "world"):
+        return
+    world = instruments.clock.world()
+    if not world:
+        return
+    ours = sc.identity(scale)
+    differ = [f"{k}: emulator {world.get(k)!r}, campaign {v!r}" for k, v in ours.items()
+              if world.get(k) != v]
+    if differ:
+        raise ValueError("the emulated laboratory simulates another campaign ("
+                         + "; ".join(differ) + "): start `deltatwin emulate` with the "
+                         "campaign's scenario, --seed and --scale (or run this campaign with "
+                         "the emulator's)")
+
+
+def resumed_wall_clock_s(path: Path) -> float:
+    """Campaign time for a wall clock after a resume: the last journaled point's time plus the
+    wall time since it was journaled (the journal file's modification time); 0 without one."""
+    from deltatwin.twin.journal import read_journal
+    if not path.exists():
+        return 0.0
+    _, points = read_journal(path)
+    if not points:
+        return 0.0
+    return points[max(points)]["t_s"] + max(0.0, time.time() - path.stat().st_mtime)
 
 
 def zeros_taken(plan, points: dict) -> list[dict]:
@@ -63,16 +93,6 @@ def zeros_taken(plan, points: dict) -> list[dict]:
                         "t_s": p["zero_t_s"], "after_resume": bool(p["rezero"])})
             last = p["zero_t_s"]
     return out
-
-
-def resumed_wall_clock_s(journal) -> float:
-    """Campaign time for a wall clock after a resume: the last journaled point's time plus the
-    wall time since it was journaled (the journal file's modification time)."""
-    points = journal.points()
-    if not points:
-        return 0.0
-    last = points[max(points)]["t_s"]
-    return last + max(0.0, time.time() - journal.path.stat().st_mtime)
 
 
 def run(args) -> int:
@@ -110,36 +130,61 @@ def run(args) -> int:
     twin, plan = sc.build(scale)
     header = journal_header(sc, 1.0 if scale is None else float(scale), len(plan),
                             args.instruments)
-    with Journal.open(journal_path, header) as journal:
+    if args.instruments == "sim":
+        instruments = SimulatedLab(twin, sc.settings).instrument_set()
+        described = {"kind": "sim", "world": "the scenario's twin (simulated instruments)"}
+    else:
+        from deltatwin.hw.lab import open_lab
+        instruments = open_lab(ports, wall_clock_start_s=resumed_wall_clock_s(journal_path))
+        described = {"kind": "serial", "ports_file": str(args.ports), "lab": ports.lab,
+                     "clock": "wall" if ports.clock is None else "clock port",
+                     "ports": {name: getattr(ports, name).url for name in
+                               ("robot", "interferometers", "thermometers", "coils", "clock")
+                               if getattr(ports, name) is not None}
+                     | {f"autocollimator{k + 1}": port.url
+                        for k, (port, _) in enumerate(ports.autocollimators)}}
+    journal = None
+    try:
+        if args.instruments == "serial":
+            # before the journal exists: a wrong port, a missing instrument or an emulator of
+            # another scenario is reported and leaves nothing behind that blocks a rerun
+            try:
+                instruments.connect()
+                check_world(instruments, sc, scale)
+            except InstrumentError as exc:
+                print(f"deltatwin campaign: cannot start: {exc}\n  nothing was measured"
+                      f"{'' if args.resume else ' and no journal written'}; fix the cause and "
+                      "run the same command again", file=sys.stderr)
+                return EXIT_INSTRUMENT_FAULT
+        journal = Journal.open(journal_path, header)
         before = len(journal.done())
-        if args.instruments == "sim":
-            instruments = SimulatedLab(twin, sc.settings).instrument_set()
-            described = {"kind": "sim", "world": "the scenario's twin (simulated instruments)"}
-        else:
-            from deltatwin.hw.lab import open_lab
-            instruments = open_lab(ports, wall_clock_start_s=resumed_wall_clock_s(journal))
-            described = {"kind": "serial", "ports_file": str(args.ports), "lab": ports.lab,
-                         "clock": "wall" if ports.clock is None else "clock port",
-                         "ports": {name: getattr(ports, name).url for name in
-                                   ("robot", "interferometers", "thermometers", "coils", "clock")
-                                   if getattr(ports, name) is not None}
-                         | {f"autocollimator{k + 1}": port.url
-                            for k, (port, _) in enumerate(ports.autocollimators)}}
         try:
-            if args.instruments == "serial":
-                instruments.connect()          # a wrong port is reported before anything moves
             df = run_campaign(plan, instruments, sc.settings, sc.cosine, sc.dead_path(),
                               progress=not args.quiet, journal=journal,
                               replay=args.instruments == "sim")
-        except InstrumentError as exc:
+        except (InstrumentError, KeyboardInterrupt) as exc:
             done = len(journal.done())
-            print(f"deltatwin campaign: stopped by an instrument fault at point {done} of "
-                  f"{len(plan)}: {exc}\n  {done} point(s) are safe in the journal {journal_path};"
-                  f" fix the cause and run the same command with --resume", file=sys.stderr)
-            return EXIT_INSTRUMENT_FAULT
-        finally:
-            instruments.close()
+            if isinstance(exc, KeyboardInterrupt):
+                what, code = "interrupted", EXIT_INTERRUPTED
+            else:
+                what, code = f"stopped by an instrument fault at point {done} of {len(plan)}: " \
+                             f"{exc}", EXIT_INSTRUMENT_FAULT
+            safe = (f"{done} point(s) are safe in the journal {journal_path} ({len(plan) - done}"
+                    " to go); run the same command with --resume to continue" if done else
+                    f"no point was journaled yet ({journal_path} removed): run the same "
+                    "command again")
+            print(f"deltatwin campaign: {what}\n  {safe}"
+                  + ("" if code == EXIT_INTERRUPTED else " (fix the cause first)"),
+                  file=sys.stderr)
+            if not done and not args.resume:
+                journal.close()
+                journal_path.unlink()
+            return code
         points = journal.points()
+    finally:
+        instruments.close()
+        if journal is not None:
+            journal.close()
     zeros = zeros_taken(plan, points)
     meta = sc.metadata(twin, scale)
     meta["source"] = "twin" if args.instruments == "sim" else "lab"

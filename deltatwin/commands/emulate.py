@@ -41,25 +41,31 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+# the twin's parasitic rotations stay within +-95 arcsec over the workspace (paper-thermal,
+# paper-force; steps between points <= 19 arcsec): a step above 200 arcsec is a damaged reply
+TWIN_AC_MAX_STEP_ARCSEC = 200.0
+
 def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None):
     """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it."""
     from deltatwin.twin.instruments.simulated import SimulatedLab
     from deltatwin.twin.scenario import Scenario
 
     sc = Scenario.load(scenario, seed=seed)
-    twin, _ = sc.build(sc.reduced_scale if reduced else scale)
-    return sc, SimulatedLab(twin, sc.settings).instrument_set()
+    scale = sc.reduced_scale if reduced else scale
+    twin, _ = sc.build(scale)
+    return sc, scale, SimulatedLab(twin, sc.settings).instrument_set()
 
 
 def serve(instruments, *, name: str, directory: Path | None, ports_out: Path | None,
           tcp: bool, realtime: bool, timeout_s: float | None, as_json: bool,
-          stop: threading.Event) -> int:
+          stop: threading.Event, world: dict | None = None) -> int:
     """Run the emulated laboratory until ``stop`` is set; prints the devices, then ``ready``."""
     from deltatwin.hw.emulators.lab import EmulatedLab
     from deltatwin.hw.ports import write_ports
 
     with EmulatedLab(instruments, directory, link="tcp" if tcp else "pty", realtime=realtime,
-                     timeout_s=timeout_s, name=name) as lab:
+                     timeout_s=timeout_s, name=name, world=world,
+                     ac_max_step_arcsec=TWIN_AC_MAX_STEP_ARCSEC) as lab:
         devices = lab.devices()
         if ports_out is not None:
             write_ports(ports_out, lab.ports(),
@@ -84,7 +90,8 @@ def serve(instruments, *, name: str, directory: Path | None, ports_out: Path | N
 def run(args) -> int:
     if args.timeout_s is not None and not args.timeout_s > 0:
         raise ValueError(f"--timeout-s must be > 0, got {args.timeout_s}")
-    sc, instruments = simulated_instruments(args.scenario, args.seed, args.reduced, args.scale)
+    sc, scale, instruments = simulated_instruments(args.scenario, args.seed, args.reduced,
+                                                   args.scale)
     stop = threading.Event()
     # SIGINT is handled explicitly too: a process started in the background by a shell (`&`)
     # inherits SIGINT ignored, and Ctrl-C / kill -INT would then never stop the emulator
@@ -93,7 +100,8 @@ def run(args) -> int:
     try:
         return serve(instruments, name=f"{sc.name} (seed {sc.seed})", directory=args.dir,
                      ports_out=args.ports_out, tcp=args.tcp, realtime=args.realtime,
-                     timeout_s=args.timeout_s, as_json=args.json, stop=stop)
+                     timeout_s=args.timeout_s, as_json=args.json, stop=stop,
+                     world=sc.identity(scale))
     except KeyboardInterrupt:
         return 0
     finally:

@@ -213,6 +213,9 @@ class LineEmulator:
     protocol: Protocol
     default_error_code: str | int = 5
     instrument_faults: tuple[str, ...] = ()
+    # longest request line (terminator excluded) the input buffer holds: the LDS1000 manual's
+    # 255 characters, used for every emulator; a longer line is discarded and refused
+    max_line = 255
 
     def __init__(self, backing: BackingLab, link, *, name: str, terminator: str | None = None,
                  seed: int = 0):
@@ -224,6 +227,7 @@ class LineEmulator:
         self._fault_lock = threading.Lock()
         self._back_at: float | None = None
         self._buffer = bytearray()
+        self._overrun = False       # the line being received is too long: drop it to its end
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name=f"emulator-{name}",
                                         daemon=True)
@@ -241,6 +245,16 @@ class LineEmulator:
     def fail(self, error: InstrumentError, request: tuple[str, dict] | None) -> str | None:
         """Report ``error`` (raised while serving ``request``, the parsed request or None)."""
         raise NotImplementedError
+
+    def overlong(self) -> str | None:
+        """Report a request line longer than ``max_line`` (discarded unread)."""
+        raise NotImplementedError
+
+    def parse_request(self, line: str) -> tuple[tuple[str, dict] | None, bool]:
+        """(the request parsed as (command, values) or None, whether the instrument answers
+        it)."""
+        parsed = self.protocol.parse_request(line)
+        return parsed, parsed is None or self.protocol.commands[parsed[0]].reply is not None
 
     # ---- control
     @property
@@ -275,6 +289,7 @@ class LineEmulator:
         """Take the port away for ``down_s`` seconds (call with the fault lock held)."""
         self.link.down()
         self._buffer.clear()
+        self._overrun = False
         self._back_at = time.monotonic() + down_s
         self.faults_applied["vanish"] += 1
         log.info("%s: port vanished for %.2f s", self.name, down_s)
@@ -345,12 +360,27 @@ class LineEmulator:
             while (end := self._buffer.find(self.terminator)) >= 0:
                 line = bytes(self._buffer[:end]).decode("latin-1")
                 del self._buffer[:end + len(self.terminator)]
-                self._answer(line)
+                if self.terminator == b"\n" and line.endswith("\r"):
+                    line = line[:-1]                # CR LF: the CR is part of the terminator
+                if self._overrun or len(line) > self.max_line:
+                    self._overrun = False
+                    self._refuse_overlong()
+                else:
+                    self._answer(line)
+            if len(self._buffer) > self.max_line:  # no terminator in sight: bounded buffer
+                self._buffer.clear()
+                self._overrun = True
+
+    def _refuse_overlong(self) -> None:
+        self.requests += 1
+        log.info("%s: request line longer than %d characters refused", self.name, self.max_line)
+        reply = self.overlong()
+        if reply is not None:
+            self.link.write(reply.encode("latin-1") + self.terminator)
 
     def _answer(self, line: str) -> None:
         self.requests += 1
-        parsed = self.protocol.parse_request(line)
-        answers = parsed is None or self.protocol.commands[parsed[0]].reply is not None
+        parsed, answers = self.parse_request(line)
         fault = self._next_fault(answers, None if parsed is None else parsed[0])
         if fault is not None and fault.kind == "no_reply":
             log.info("%s: fault no_reply for %r", self.name, line)

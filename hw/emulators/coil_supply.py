@@ -24,8 +24,11 @@ class CoilSupplyEmulator(GenericEmulator):
                 return self.protocol.error_reply(4, "busy: settling")
             currents = np.array(values["currents"])
             if currents.shape != (coils.n_coils,):
-                return self.protocol.error_reply(2, f"{coils.n_coils} currents expected, got "
-                                                    f"{currents.size}")
+                return self.bad_argument(f"{coils.n_coils} currents expected, got "
+                                         f"{currents.size}")
+            if not np.all(np.isfinite(currents)):
+                return self.bad_argument(f"currents must be finite numbers (A), got "
+                                         f"{currents.tolist()}")
             self.ramp.start(self.backing.call, coils.set_currents, currents)
             return self.protocol.reply("set")
         if command == "settled":

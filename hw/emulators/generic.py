@@ -25,7 +25,17 @@ class GenericEmulator(LineEmulator):
         if payload is None:
             return self.protocol.error_reply(3, GENERIC_ERRORS[3])
         shown = "".join(c if " " <= c <= "~" else "?" for c in payload[:40])
+        command = self.protocol.command_with_header(line)
+        if command is not None:
+            return self.protocol.error_reply(2, f"{GENERIC_ERRORS[2]}: {shown}")
         return self.protocol.error_reply(1, f"{GENERIC_ERRORS[1]}: {shown}")
+
+    def overlong(self) -> str | None:
+        return self.protocol.error_reply(2, f"{GENERIC_ERRORS[2]}: request longer than "
+                                            f"{self.max_line} characters")
+
+    def bad_argument(self, reason: str) -> str:
+        return self.protocol.error_reply(2, f"{GENERIC_ERRORS[2]}: {reason}")
 
     def fail(self, error: InstrumentError, request) -> str | None:
         code = error.code if isinstance(error.code, int) and error.code in GENERIC_ERRORS else 5

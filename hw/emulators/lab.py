@@ -31,12 +31,16 @@ class EmulatedLab:
     """``link``: "pty" (symlinks in ``directory``) or "tcp"; ``realtime`` paces the backing
     clock by the wall clock; ``timeout_s`` per reply line goes to the ports file; ``ac_unit``
     is the LDS1000s' display unit (``sec``: arcsec to 0.01, which holds the twin's 0.02 arcsec
-    steps exactly; ``µrad`` to 0.1)."""
+    steps exactly; ``µrad`` to 0.1); ``world``: what the backing simulates (scenario,
+    scenario_sha256, seed, scale), answered on the clock port (``WORLD?``) so that a campaign
+    checks it runs against the same scenario and seed; ``ac_max_step_arcsec`` goes to the ports
+    file (the autocollimator drivers' continuity check)."""
 
     def __init__(self, instruments: InstrumentSet, directory: str | Path | None = None, *,
                  link: str = "pty", realtime: bool = False, timeout_s: float | None = None,
                  retry: RetryPolicy = RetryPolicy(), name: str = "emulated laboratory",
-                 ac_unit: str = "sec"):
+                 ac_unit: str = "sec", world: dict | None = None,
+                 ac_max_step_arcsec: float | None = None):
         if link not in ("pty", "tcp"):
             raise ValueError(f"link must be 'pty' or 'tcp', got {link!r}")
         sensors = tuple(instruments.thermometers.sensors)
@@ -51,13 +55,14 @@ class EmulatedLab:
             self.directory.mkdir(parents=True, exist_ok=True)
         self.backing = BackingLab(instruments, realtime=realtime)
         self.link_kind, self.timeout_s, self.retry, self.name = link, timeout_s, retry, name
+        self.ac_max_step_arcsec = ac_max_step_arcsec
 
         def make_link(port_name):
             return PtyLink(self.directory, port_name) if link == "pty" else TcpLink()
 
         b = self.backing
         self.emulators = {
-            "clock": ClockEmulator(b, make_link("clock"), name="clock"),
+            "clock": ClockEmulator(b, make_link("clock"), name="clock", world=world),
             "robot": RobotControllerEmulator(b, make_link("robot"), name="robot"),
             "interferometers": SP2000Emulator(b, make_link("interferometers"),
                                               name="interferometers"),
@@ -99,7 +104,9 @@ class EmulatedLab:
             thermometer_channels=self.thermometer_channels,
             coils=self._port("coils", "coils") if "coils" in self.emulators else None,
             n_coils=ins.coils.n_coils if ins.coils is not None else 3,
-            retry=self.retry)
+            retry=self.retry,
+            autocollimator_max_step_arcsec=(self.ac_max_step_arcsec,)
+            * len(self.autocollimator_axes))
 
     def devices(self) -> dict[str, tuple[str, str]]:
         """name -> (URL for the ports file, device behind it)."""

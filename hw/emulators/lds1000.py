@@ -12,10 +12,8 @@ from __future__ import annotations
 import math
 
 from deltatwin.hw.emulators.base import LineEmulator
-from deltatwin.hw.lds1000 import ERROR_CODES, PROTOCOL, UNIT_DECIMALS, UNIT_RAD
+from deltatwin.hw.lds1000 import ERROR_CODES, PROTOCOL, RANGE_RAD, UNIT_RAD, format_value
 from deltatwin.twin.instruments.interface import InstrumentError
-
-RANGE_ARCSEC = 400.0   # the LDS-1000 measures +-400 arcsec
 
 
 class AngleSource:
@@ -47,10 +45,10 @@ class LDS1000Emulator(LineEmulator):
         self.axes, self.source, self.unit = dict(axes), source, unit
         self.remote = False
         self.last_error = "@"
-        self._last_value = {a: 0.0 for a in self.axes}
+        self._last_value = {a: format_value(0.0, unit) for a in self.axes}
 
-    def _format(self, angle_rad: float) -> float:
-        return round(angle_rad / UNIT_RAD[self.unit], UNIT_DECIMALS[self.unit])
+    def _format(self, angle_rad: float) -> str:
+        return format_value(angle_rad / UNIT_RAD[self.unit], self.unit)
 
     def handle(self, command: str, values: dict) -> str | None:
         p = self.protocol
@@ -77,7 +75,7 @@ class LDS1000Emulator(LineEmulator):
             return None
         angle, in_range = self.source.angle(self.axes[axis])
         if not in_range or not math.isfinite(angle):
-            limit = RANGE_ARCSEC * math.pi / 648000.0
+            limit = RANGE_RAD
             angle = math.copysign(limit, angle if math.isfinite(angle) else 1.0)
             self.last_error = "O"
         value = self._format(angle)
@@ -86,6 +84,10 @@ class LDS1000Emulator(LineEmulator):
 
     def unknown(self, line: str) -> str | None:
         self.last_error = "A"
+        return None
+
+    def overlong(self) -> str | None:
+        self.last_error = "A"        # the manual's input buffer holds 255 characters
         return None
 
     def fail(self, error: InstrumentError, request) -> str | None:

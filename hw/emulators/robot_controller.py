@@ -23,7 +23,10 @@ class RobotControllerEmulator(GenericEmulator):
         if command == "move":
             if self.motion.busy:
                 return self.protocol.error_reply(4, "busy: moving")
-            self.motion.start(self.backing.call, robot.move_to, np.array(values["q"]))
+            q = np.array(values["q"])
+            if not np.all(np.isfinite(q)):
+                return self.bad_argument(f"target must be finite numbers (rad), got {q.tolist()}")
+            self.motion.start(self.backing.call, robot.move_to, q)
             return self.protocol.reply("move")
         if command == "in_position":
             return self.protocol.reply("in_position", state=int(self.motion.done()))

@@ -251,12 +251,13 @@ def test_wall_clock_continues_after_a_resume(tmp_path):
     from deltatwin.hw.clock import WallClock
     from deltatwin.twin.journal import Journal
 
+    assert resumed_wall_clock_s(tmp_path / "j") == 0.0              # no journal yet
     with Journal.open(tmp_path / "j", {"scenario": "s"}) as journal:
-        assert resumed_wall_clock_s(journal) == 0.0
+        assert resumed_wall_clock_s(journal.path) == 0.0
         journal.append(0, {"t_s": 100.0})
         stamp = time.time() - 50.0
         os.utime(journal.path, (stamp, stamp))
-        start = resumed_wall_clock_s(journal)
+        start = resumed_wall_clock_s(journal.path)
     assert 150.0 <= start < 155.0
     clock = WallClock(start)
     assert start <= clock.now() < start + 5.0
@@ -284,3 +285,62 @@ def test_sim_resume_replays_the_journal_and_refuses_a_world_that_differs(tmp_pat
     assert "point 1 taken again in the rebuilt simulated world differs from the journal" in \
         capsys.readouterr().err
     assert not out.exists()
+
+
+def world_lab(tmp_path, seed):
+    """paper-thermal of ``seed`` behind emulators that say so on the clock port (WORLD?)."""
+    sc = Scenario.load("paper-thermal", seed=seed)
+    twin, _ = sc.build(FAULT_SCALE)
+    return EmulatedLab(SimulatedLab(twin, sc.settings).instrument_set(), tmp_path / "dev",
+                       timeout_s=FAULT_LINE_TIMEOUT_S, retry=CAMPAIGN_RETRY,
+                       world=sc.identity(FAULT_SCALE))
+
+
+def test_emulator_of_another_seed_is_refused(tmp_path, capsys):
+    """`emulate --seed 7` and a campaign of the default seed (1): refused before anything is
+    measured, naming the seed; no journal is left behind; with --seed 7 the same command runs."""
+    with world_lab(tmp_path, seed=7) as lab:
+        write_ports(tmp_path / "ports.toml", lab.ports())
+        assert serial_campaign(tmp_path, tmp_path / "ports.toml") == 2
+        err = capsys.readouterr().err
+        assert "simulates another campaign (seed: emulator 7, campaign 1)" in err, err
+        assert not (tmp_path / "run.parquet.journal").exists()
+        assert serial_campaign(tmp_path, tmp_path / "ports.toml", "--seed", "7") == 0
+    df, meta = read_dataset(tmp_path / "run.parquet")
+    assert meta["seed"] == 7 and len(df) == 8
+
+
+def test_connect_failure_leaves_no_journal_and_a_plain_rerun_works(lab, tmp_path, capsys):
+    emulated, ports = lab
+    good = ports.read_text()
+    robot_url = emulated.emulators["robot"].url
+    ports.write_text(good.replace(robot_url, str(tmp_path / "no-such-device")))
+    assert serial_campaign(tmp_path, ports) == 3
+    err = capsys.readouterr().err
+    assert "cannot start" in err and "no-such-device" in err and "no journal written" in err
+    assert not (tmp_path / "run.parquet.journal").exists()
+    ports.write_text(good)
+    assert serial_campaign(tmp_path, ports) == 0                # no --resume needed
+
+
+def test_ctrl_c_says_how_many_points_are_safe_and_to_resume(tmp_path, capsys, monkeypatch):
+    """Ctrl-C (KeyboardInterrupt) after 3 journaled points: exit 130, the message counts the
+    safe points and names --resume; the resume completes every point once."""
+    from deltatwin.twin.journal import Journal
+    append = Journal.append
+
+    def append_then_interrupt(self, index, point):
+        append(self, index, point)
+        if index == 2:
+            raise KeyboardInterrupt
+    monkeypatch.setattr(Journal, "append", append_then_interrupt)
+    out = tmp_path / "run.parquet"
+    assert main([*campaign_cmd(out, FAULT_SCALE), "--instruments", "sim"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "3 point(s) are safe in the journal" in err, err
+    assert "(5 to go)" in err
+    assert "run the same command with --resume" in err
+    monkeypatch.setattr(Journal, "append", append)
+    assert main([*campaign_cmd(out, FAULT_SCALE), "--instruments", "sim", "--resume"]) == 0
+    _, points = read_journal(tmp_path / "run.parquet.journal")
+    assert sorted(points) == list(range(8))

@@ -130,7 +130,7 @@ def test_keithley_reports_a_queued_error_by_code_and_text(emulated, drivers, cap
     assert "scan attempt 1/4 failed (InstrumentError: Data corrupt or stale)" in caplog.text
     assert len(scan.temperatures_C) == 4
     # an instrument that was reset (set-up lost) is set up again by the retry
-    emu.state.clear()
+    emu.reset()
     drivers.thermometers.scan()
 
 

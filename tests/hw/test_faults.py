@@ -159,17 +159,48 @@ def test_port_vanishes_over_tcp(tmp_path, caplog):
         inst.close()
 
 
+def lds_driver(unit):
+    from deltatwin.hw.lds1000 import ARCSEC_RAD, LDS1000, UNIT_RAD
+    # no line: only its reply checks are used; the step limit deltatwin emulate writes
+    driver = LDS1000(None, {1: "ac1_ry"}, max_step_rad=200 * ARCSEC_RAD)
+    driver.unit[1], driver.scale_rad[1] = unit, UNIT_RAD[unit]
+    return driver
+
+
+def accepted(driver, reply, previous_rad):
+    """The angle (rad) the driver takes from ``reply`` after a reading ``previous_rad``, or
+    None when it refuses the reply."""
+    driver.previous_rad[1] = previous_rad
+    try:
+        text = LDS.parse_reply("position", reply, {"axis": 1}, "ac")["value"]
+        return driver._plausible(1, text)
+    except (ReplyError, InstrumentError):
+        return None
+
+
 def test_lds1000_dropped_bytes_detection():
-    """What a driver can and cannot detect when bytes are lost from an LDS1000 reply: losing
-    the axis, the command letters, the sign or the point breaks the reply; losing a digit of
-    the integer part (or the only decimal's neighbour in a way that keeps a number) does not
-    -- the protocol has neither fixed width nor checksum (documented in docs/hardware.md)."""
-    reply = "1TP-1596.3"
+    """What a driver can and cannot detect when one byte is lost from an LDS1000 reply (no
+    checksum, no fixed width): the axis, the letters, the point and every decimal (fixed count
+    per unit) always; beyond the range; a jump of more than 200 arcsec from the previous
+    reading. What passes: a lost integer digit or sign whose error is below the 200 arcsec
+    step limit (documented in docs/hardware.md)."""
+    from deltatwin.hw.lds1000 import ARCSEC_RAD, format_value
+    driver = lds_driver("µrad")
+    assert accepted(driver, "1TP-1596.3", -1596.3e-6) == pytest.approx(-1596.3e-6)
+    reply = "1TP-1596.3"     # the reference's example: every single drop is now detected
+    assert [reply[i] for i in range(len(reply))
+            if accepted(driver, reply[:i] + reply[i + 1:], -1596.3e-6) is not None] == []
+    driver = lds_driver("sec")
     undetected = []
-    for i in range(len(reply)):
-        try:
-            LDS.parse_reply("position", reply[:i] + reply[i + 1:], {"axis": 1}, "ac")
-        except (ReplyError, InstrumentError):
-            continue
-        undetected.append(reply[i])
-    assert undetected == ["-", "1", "5", "9", "6", ".", "3"]
+    for arcsec in (-350.12, -95.5, -28.3, -0.47, 0.47, 18.3, 120.0, 399.99):
+        reply = "1TP" + format_value(arcsec, "sec")
+        for i in range(len(reply)):
+            got = accepted(driver, reply[:i] + reply[i + 1:], arcsec * ARCSEC_RAD)
+            if got is not None:
+                assert reply[i] in "-0123456789" and i < reply.index("."), (reply, i)
+                undetected.append((reply, reply[i], abs(got / ARCSEC_RAD - arcsec)))
+    worst = max(e for *_, e in undetected)
+    assert worst < 200.0
+    # e.g. -28.30 -> 28.30 (sign, 56.6 arcsec) and 18.30 -> 8.30 (10 arcsec) pass unnoticed
+    assert ("1TP-28.30", "-", pytest.approx(56.6)) in undetected
+    assert ("1TP18.30", "1", pytest.approx(10.0)) in undetected

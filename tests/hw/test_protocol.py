@@ -68,7 +68,7 @@ def test_keithley_fixed_width_reply_detects_every_dropped_byte():
     assert line.startswith("+2.01234568E+01C,+1.250SECS,+00001RDNG#,101INTCHAN,")
     assert line.endswith("+9.9E37C,+1.250SECS,+00003RDNG#,103INTCHAN")
     parsed = KEITHLEY.parse_reply("read", line, {}, "k")["readings"]
-    assert parsed == [(101, 20.1234568), (102, -0.5), (103, 9.9e37)]
+    assert parsed == [(101, 20.1234568, 1), (102, -0.5, 2), (103, 9.9e37, 3)]
     for i in range(len(line)):
         with pytest.raises(ReplyError):
             KEITHLEY.parse_reply("read", line[:i] + line[i + 1:], {}, "k")

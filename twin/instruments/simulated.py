@@ -177,7 +177,15 @@ class SimClock(Clock):
         return self.lab.t
 
     def sleep(self, seconds):
-        self.lab.t += float(seconds)
+        s = float(seconds)
+        horizon = self.lab.twin.t_grid[-1]
+        if not (np.isfinite(s) and s >= 0):
+            raise ValueError(f"clock: sleep must be a finite number of seconds >= 0, got {s!r}")
+        if self.lab.t + s > horizon:
+            raise ValueError(f"clock: sleeping {s:g} s would take the simulated world to "
+                             f"{self.lab.t + s:.6g} s, past the end of its time ({horizon:.6g} s, "
+                             "the longest campaign its scenario, scale and seed plan for)")
+        self.lab.t += s
 
 
 class SimRobot(Robot):
@@ -263,7 +271,7 @@ class SimCoils(CoilSupply):
     def set_currents(self, currents_A, timeout_s=30.0):
         lab = self.lab
         I = np.asarray(currents_A, dtype=np.float64)
-        if I.shape != (3,) or np.any(np.abs(I) > 2.0 + 1e-12):
+        if I.shape != (3,) or not np.all(np.abs(I) <= 2.0 + 1e-12):     # NaN too
             raise InstrumentError(self.name, f"currents {I.tolist()} A outside +-2 A", code="RANGE")
         lab.schedule.set_currents(lab.t, I)
         lab.currents = I.copy()
