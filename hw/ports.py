@@ -54,6 +54,7 @@ DEFAULTS = {
     "thermometers": (19200, "LF", 5.0),
     "coils": (9600, "LF", 1.0),
 }
+MAX_TIMEOUT_S = 3600.0      # longer is no reply wait but a hang (and overflows serial timeouts)
 PORT_KEYS = ("url", "baud", "terminator", "timeout_s", "xonxoff")
 EXTRA_KEYS = {"clock": (), "robot": (), "interferometers": ("axes",),
               "autocollimators": ("channels", "max_step_arcsec"), "thermometers": ("channels",),
@@ -120,8 +121,9 @@ def _port(path, where: str, kind: str, table) -> Port:
                            f"{terminator!r}")
     timeout_s = table.get("timeout_s", timeout_s)
     if (not isinstance(timeout_s, (int, float)) or isinstance(timeout_s, bool)
-            or not math.isfinite(timeout_s) or timeout_s <= 0):
-        _fail(path, where, f"timeout_s: must be a positive number of seconds, got {timeout_s!r}")
+            or not math.isfinite(timeout_s) or not 0 < timeout_s <= MAX_TIMEOUT_S):
+        _fail(path, where, f"timeout_s: must be a number of seconds in (0, {MAX_TIMEOUT_S:g}], "
+                           f"got {timeout_s!r}")
     xonxoff = table.get("xonxoff", False)
     if not isinstance(xonxoff, bool):
         _fail(path, where, f"xonxoff: must be true or false, got {xonxoff!r}")
@@ -141,6 +143,8 @@ def _channel_map(path, where: str, table, valid, what: str) -> dict[int, str]:
     for key, name in table.items():
         if not re.fullmatch(r"\d+", key) or not valid(int(key)):
             _fail(path, where, f"channels: key {key!r} is not {what}")
+        if int(key) in out:
+            _fail(path, where, f"channels: key {key!r} is channel {int(key)} again")
         _names(path, where, [name], f"channels.{key}: name")
         out[int(key)] = name
     if len(set(out.values())) != len(out):
@@ -153,8 +157,10 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
     path = Path(path)
     if not path.exists():
         raise PortsFileError(f"{path}: no such ports file")
+    if path.is_dir():
+        raise PortsFileError(f"{path}: is a folder, not a ports file")
     try:
-        doc = tomllib.loads(path.read_text())
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PortsFileError(f"{path}: not valid TOML: {exc}") from exc
     known = {"lab", "retry", *DEFAULTS}
@@ -164,6 +170,12 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
     for required in ("robot", "interferometers", "autocollimators", "thermometers"):
         if required not in doc:
             raise PortsFileError(f"{path}: [{required}] missing")
+    for key, value in doc.items():
+        tables = value if key == "autocollimators" and isinstance(value, list) else [value]
+        if key != "lab" and not all(isinstance(t, dict) for t in tables):
+            raise PortsFileError(f"{path}: {key} = {value!r}: expected a table"
+                                 + (" per controller ([[autocollimators]])"
+                                    if key == "autocollimators" else f" [{key}]"))
     lab = doc.get("lab", path.stem)
     if not isinstance(lab, str):
         raise PortsFileError(f"{path}: lab: must be a string, got {lab!r}")

@@ -80,7 +80,17 @@ def test_emulated_lab_ports_round_trip(emulated, tmp_path):
     (lambda t: t.replace('terminator = "CR"', 'terminator = "NUL"'),
      r"\[thermometers\] terminator: must be one of \['CR', 'CRLF', 'LF'\], got 'NUL'"),
     (lambda t: t.replace("timeout_s = 3", "timeout_s = 0"),
-     r"\[interferometers\] timeout_s: must be a positive number"),
+     r"\[interferometers\] timeout_s: must be a number of seconds in \(0, 3600\]"),
+    (lambda t: t.replace("timeout_s = 3", "timeout_s = 1e300"),
+     r"\[interferometers\] timeout_s: must be a number of seconds in \(0, 3600\], got 1e\+300"),
+    (lambda t: t.replace('102 = "air_y"', '"0101" = "air_y"'),
+     r"\[thermometers\] channels: key '0101' is channel 101 again"),
+    (lambda t: t.replace("[retry]\nattempts = 6\nfirst_delay_s = 0.1\nfactor = 2.0\n"
+                         "max_delay_s = 5.0\n", "retry = 5\n"),
+     r"retry = 5: expected a table \[retry\]"),
+    (lambda t: t.replace('[robot]\nurl = "/dev/ttyUSB0"\nbaud = 115200\n', "").replace(
+        'lab = "ETH micro-nano lab"', 'lab = "ETH micro-nano lab"\nrobot = 1'),
+     r"robot = 1: expected a table \[robot\]"),
     (lambda t: t.replace("110 = ", "150 = "),
      r"\[thermometers\] channels: key '150' is not a multiplexer channel \(101-140, 201-240\)"),
     (lambda t: t.replace('110 = "base"', '110 = "air_x"'),
@@ -106,6 +116,11 @@ def test_mistakes_are_named(tmp_path, edit, message):
     path.write_text(edit(LAB))
     with pytest.raises(PortsFileError, match=str(path).replace(".", r"\.") + ": " + message):
         load_ports(path)
+
+
+def test_a_folder_is_not_a_ports_file(tmp_path):
+    with pytest.raises(PortsFileError, match="is a folder"):
+        load_ports(tmp_path)
 
 
 def test_missing_file(tmp_path):
