@@ -92,6 +92,16 @@ def _configure_logging(args) -> None:
     log.setLevel(level)           # records still propagate: a host's own handlers see them too
 
 
+def _check_outputs(args) -> None:
+    """Every command's output (``-o FILE``, ``--out FOLDER``) is checked before it computes."""
+    from deltatwin.files import check_writable
+
+    if getattr(args, "output", None):
+        check_writable(args.output)
+    if getattr(args, "out", None):
+        check_writable(args.out, folder=True)
+
+
 def _is_instrument_fault(exc: BaseException) -> bool:
     interface = sys.modules.get("deltatwin.twin.instruments.interface")
     return interface is not None and isinstance(exc, interface.InstrumentError)
@@ -102,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     _configure_logging(args)
     try:
+        _check_outputs(args)
         return int(args.func(args) or EXIT_DONE)
     except KeyboardInterrupt:
         print(f"deltatwin {args.command}: interrupted", file=sys.stderr)

@@ -31,6 +31,28 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     return path
 
 
+def check_writable(path: str | os.PathLike, folder: bool = False) -> Path:
+    """Fail early (OSError naming the place) if ``path`` (a file, or with ``folder`` a folder to
+    fill) cannot be written: a file in its nearest existing folder is made and removed, nothing
+    else is created. Commands call it before computing, so an unwritable output costs a message,
+    not the computation."""
+    path = Path(path)
+    if not folder and path.is_dir():
+        raise IsADirectoryError(f"{path}: is a folder; give a file name")
+    existing = path if folder else path.parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise NotADirectoryError(f"{existing}: is a file, so {path} cannot be made")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".deltatwin-", suffix=".probe", dir=existing)
+    except OSError as exc:
+        raise OSError(f"{path}: cannot be written ({existing}: {exc.strerror or exc})") from exc
+    os.close(fd)
+    os.unlink(probe)
+    return path
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 

@@ -81,3 +81,13 @@ def test_json_commands_print_one_strict_json_object(argv):
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     json.loads(r.stdout, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+
+
+def test_an_unwritable_output_is_refused_before_computing(tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    rc = main(["simulate", "paper-thermal", "-o", str(blocker / "sub" / "x.parquet")])
+    err = capsys.readouterr().err
+    assert rc == EXIT_BAD_INPUT and "a-file: is a file" in err
+    rc = main(["demo", "--out", str(blocker / "demo")])
+    assert rc == EXIT_BAD_INPUT and "a-file: is a file" in capsys.readouterr().err

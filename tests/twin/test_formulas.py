@@ -149,7 +149,11 @@ def test_interferometer_noise_statistics_match_their_textbook_values():
     E[sigma^2] = sample_noise^2 exp(2 spread^2) (log-normal moment); the reported sample std
     squared has mean E[sigma^2] (chi-square with N-1 degrees of freedom / (N-1)); rounding to the
     resolution adds step^2 / 12 (uniform). 200k windows: each within 1 %."""
-    from deltatwin.twin.instruments.simulated import InstrumentSettings, interferometer_bank, quantize
+    from deltatwin.twin.instruments.simulated import (
+        InstrumentSettings,
+        interferometer_bank,
+        quantize,
+    )
 
     s = InstrumentSettings()
     rows = interferometer_bank(np.random.default_rng(21), s).take(0, 200_000)

@@ -8,9 +8,16 @@ from scipy.spatial.transform import Rotation
 from deltatwin.models.kinematics import Pose
 from deltatwin.models.mjcf import FOLD_MIRROR_Z, INSTRUMENT_SITES
 from deltatwin.twin.campaign import COSINE_ANGLES
-from deltatwin.twin.instruments.optics import (AXES, FACE_NORMALS, Optics, autocollimator_angles,
-                                               cosine_correction, cosine_factor,
-                                               nominal_dead_path, optical_path)
+from deltatwin.twin.instruments.optics import (
+    AXES,
+    FACE_NORMALS,
+    Optics,
+    autocollimator_angles,
+    cosine_correction,
+    cosine_factor,
+    nominal_dead_path,
+    optical_path,
+)
 
 from .raytrace import Mirror, make_head, trace_reading
 
