@@ -54,6 +54,7 @@ DEFAULTS = {
     "thermometers": (19200, "LF", 5.0),
     "coils": (9600, "LF", 1.0),
 }
+FORMAT_VERSION = 1          # of the ports files written here (and read: a laboratory's may omit it)
 MAX_TIMEOUT_S = 3600.0      # longer is no reply wait but a hang (and overflows serial timeouts)
 PORT_KEYS = ("url", "baud", "terminator", "timeout_s", "xonxoff")
 EXTRA_KEYS = {"clock": (), "robot": (), "interferometers": ("axes",),
@@ -163,6 +164,10 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PortsFileError(f"{path}: not valid TOML: {exc}") from exc
+    version = doc.pop("format_version", FORMAT_VERSION)     # a laboratory's own file may omit it
+    if not isinstance(version, int) or isinstance(version, bool) or version > FORMAT_VERSION:
+        raise PortsFileError(f"{path}: format_version = {version!r}; this deltatwin reads ports "
+                             f"files up to version {FORMAT_VERSION}")
     known = {"lab", "retry", *DEFAULTS}
     unknown = sorted(set(doc) - known)
     if unknown:
@@ -248,7 +253,7 @@ def _port_table(port: Port, **extra) -> dict:
 
 def format_ports(ports: LabPorts, comment: str = "") -> str:
     r = ports.retry
-    doc: dict = {"lab": ports.lab,
+    doc: dict = {"format_version": FORMAT_VERSION, "lab": ports.lab,
                  "retry": {"attempts": r.attempts, "first_delay_s": r.first_delay_s,
                            "factor": r.factor, "max_delay_s": r.max_delay_s}}
     if ports.clock is not None:

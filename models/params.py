@@ -17,6 +17,7 @@ import numpy as np
 
 from deltatwin.files import toml_text
 
+FORMAT_VERSION = 1             # of the parameter TOML files this module writes and reads
 DEFAULT_PARAMS_PATH = Path(__file__).with_name("delta_agietron") / "params.toml"
 
 
@@ -151,7 +152,7 @@ class RobotParams:
 
     def to_toml(self) -> str:
         """The parameter set as TOML text that ``load_params`` reads back identically."""
-        doc: dict[str, dict] = {}
+        doc: dict = {"format_version": FORMAT_VERSION}
         for key, attr, _, _rule in _SCHEMA:
             sec, name = key.split(".")
             doc.setdefault(sec, {})[name] = getattr(self, attr)
@@ -223,6 +224,11 @@ def _check_consistency(p: RobotParams) -> None:
 def params_from_dict(data: dict, source: str = "<dict>") -> RobotParams:
     """Build RobotParams from the nested TOML structure; every key is checked."""
     known = {k for k, *_ in _SCHEMA}
+    data = dict(data)
+    version = data.pop("format_version", FORMAT_VERSION)    # hand-written files may omit it
+    if not isinstance(version, int) or isinstance(version, bool) or version > FORMAT_VERSION:
+        raise ParameterError(f"{source}: format_version = {version!r}; this deltatwin reads "
+                             f"parameter files up to version {FORMAT_VERSION}")
     kwargs = {}
     for sec, table in data.items():
         if sec == "materials":
@@ -261,9 +267,11 @@ def load_params(path: str | Path | None = None) -> RobotParams:
     """Load a parameter TOML file (default: the nominal Agietron Micro-Nano set)."""
     path = Path(path) if path is not None else DEFAULT_PARAMS_PATH
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise ParameterError(f"{path}: parameter file not found")
-    except tomllib.TOMLDecodeError as exc:
-        raise ParameterError(f"{path}: malformed TOML ({exc})")
+        raise ParameterError(f"{path}: parameter file not found") from None
+    except IsADirectoryError:
+        raise ParameterError(f"{path}: is a folder, not a parameter file") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ParameterError(f"{path}: malformed TOML ({exc})") from None
     return params_from_dict(data, str(path))

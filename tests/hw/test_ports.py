@@ -59,7 +59,7 @@ def test_a_laboratory_file_loads_with_defaults(tmp_path):
     assert p.thermometer_channels == {101: "air_x", 102: "air_y", 110: "base", 201: "arm1"}
     # written back and read again: the same
     out = write_ports(tmp_path / "copy.toml", p, comment="copied\nby the test")
-    assert out.read_text().startswith("# copied\n# by the test\nlab = ")
+    assert out.read_text().startswith("# copied\n# by the test\nformat_version = 1\nlab = ")
     assert load_ports(out) == p
     assert not list(tmp_path.glob(".copy.toml.*"))          # no temporary left behind
 
@@ -126,3 +126,10 @@ def test_a_folder_is_not_a_ports_file(tmp_path):
 def test_missing_file(tmp_path):
     with pytest.raises(PortsFileError, match="no such ports file"):
         load_ports(tmp_path / "nope.toml")
+
+
+def test_a_future_format_version_is_refused(tmp_path):
+    path = tmp_path / "lab.toml"
+    path.write_text("format_version = 7\n" + LAB)
+    with pytest.raises(PortsFileError, match="format_version = 7"):
+        load_ports(path)

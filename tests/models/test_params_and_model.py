@@ -100,3 +100,15 @@ def test_model_cli_bad_file_is_a_clear_error(tmp_path, capsys):
     out = tmp_path / "x.xml"
     assert main(["model", "export", "-o", str(out), "--params", str(bad)]) == 2
     assert not out.exists()
+
+
+def test_parameter_files_carry_a_format_version(tmp_path):
+    from deltatwin.models.params import ParameterError, load_params
+    text = load_params().to_toml()
+    assert text.startswith("format_version = 1\n")
+    path = tmp_path / "p.toml"
+    path.write_text(text.replace("format_version = 1", "format_version = 2"))
+    with pytest.raises(ParameterError, match="format_version = 2"):
+        load_params(path)
+    with pytest.raises(ParameterError, match="is a folder"):
+        load_params(tmp_path)
