@@ -30,9 +30,9 @@ WIDTH = 100
 
 def _run(command: str, cwd: Path) -> str:
     env = {**os.environ, "TQDM_DISABLE": "1", "COLUMNS": "100"}
-    r = subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True,
-                       text=True, timeout=900)
-    text = (r.stdout + r.stderr).rstrip("\n")
+    r = subprocess.run(["bash", "-c", command], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                       stderr=subprocess.STDOUT, text=True, timeout=900)
+    text = r.stdout.rstrip("\n")           # results and progress, in the order they came
     m = FIRST_LINES.search(command)
     lines = text.splitlines()
     if m:
@@ -72,8 +72,11 @@ def regenerate(text: str, cwd: Path, progress=print) -> str:
     return "".join(out)
 
 
+ELAPSED = re.compile(r"\[\s*[\d.]+ s\]")      # the demo's elapsed-time stamps: not figures
+
+
 def _figures(text: str) -> list[list[float]]:
-    return [[float(x) for x in NUMBER.findall(body)]
+    return [[float(x) for x in NUMBER.findall(ELAPSED.sub("", body))]
             for lang, body in BLOCK.findall(text) if lang in ("text", "json")]
 
 

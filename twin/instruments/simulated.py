@@ -67,15 +67,16 @@ class InstrumentSettings:
 
     # the physically meaningful range of each setting: (lowest, highest, lowest allowed itself);
     # a scenario outside it is refused (a zero speed divides by zero, a zero range reads NaN,
+    # a zero resolution is a perfect instrument, allowed;
     # a zero acceptance limit never accepts a window, a 1e12 s gap allocates terabytes)
     RANGES: ClassVar[dict] = {
         "noise_floor_m": (0.0, 1e-6, True), "sample_noise_m": (0.0, 1e-6, True),
         "sample_noise_spread": (0.0, 3.0, True), "samples_per_window": (1, 10**6, True),
         "window_s": (0.0, 60.0, False), "std_limit_m": (0.0, 1e-6, False),
-        "max_rereads": (0, 1000, True), "resolution_m": (0.0, 1e-6, False),
-        "ac_noise_rad": (0.0, 1e-3, True), "ac_resolution_rad": (0.0, 1e-3, False),
+        "max_rereads": (0, 1000, True), "resolution_m": (0.0, 1e-6, True),
+        "ac_noise_rad": (0.0, 1e-3, True), "ac_resolution_rad": (0.0, 1e-3, True),
         "ac_range_rad": (0.0, 0.1, False), "ac_read_s": (0.0, 60.0, True),
-        "T_noise_C": (0.0, 1.0, True), "T_resolution_C": (0.0, 1.0, False),
+        "T_noise_C": (0.0, 1.0, True), "T_resolution_C": (0.0, 1.0, True),
         "scan_period_s": (0.0, 3600.0, False), "move_base_s": (0.0, 600.0, True),
         "speed_rad_s": (0.0, 10.0, False), "coil_settle_s": (0.0, 600.0, True),
         "wait_s": (0.0, 3600.0, True), "overhead_s": (0.0, 600.0, True),
