@@ -1,31 +1,34 @@
 """A Rerun recording of a campaign: the robot, its workspace and the error fields of a ladder
-of models (docs/view.md).
+of models, laid out for a researcher on a 1600 x 1000 screen (docs/view.md).
 
-The recording holds
+The recording holds (all static unless said)
+* ``world/workspace/hull`` (+ ``hull_edges``): the hexagonal double pyramid;
+  ``world/workspace/cal`` / ``world/workspace/val``: the commanded positions by split, all
+  drawn where the mirror cube's centre is (the measured point), and the error arrows there;
+* ``world/error/<k>_<step>``: model k's residual field, per position the arrow of the residual
+  (model minus measurement, mean over the position's readings), at that model's own arrow
+  scale, coloured by magnitude;
+* ``world/step/<k>_<step>/after`` (k >= 1): model k's residual field at model k-1's scale, to
+  set beside ``world/error/<k-1>_...``: the residual before and after the step shown the same
+  way;
 * ``world/robot/<geom>``: every geom of the MuJoCo model (``models.mjcf``) as a mesh, posed
-  along the campaign (an evenly spaced subsample of the readings, ``max_poses``);
+  along the campaign (``max_poses`` evenly spaced readings) on ``campaign_time``;
   ``world/instruments/<site>``: the interferometer and autocollimator beams;
-* ``world/workspace/hull`` (the hexagonal double pyramid) and ``world/workspace/cal`` /
-  ``world/workspace/val``: the commanded positions coloured by split, all drawn where the
-  mirror cube's centre is (the measured point), and the error arrows there too;
-* ``world/error/residual``: per position, the arrow of the residual (model minus measurement,
-  mean over the position's readings) coloured by magnitude, one ``ladder`` step per model;
-  from the second model on, ``world/error/added_effect`` (what the model adds to the previous
-  one) beside ``world/error/to_explain`` (measurement minus the previous model);
-* ``timeseries/...``: every temperature sensor, coil currents, force, reading std
-  (acceptance) and the residual per axis of every model, on the ``campaign_time`` timeline;
-* ``ladder/rms_nm`` (bar chart), ``ladder/table`` and ``info`` (text), and a default blueprint.
+* ``timeseries/...``: the residual per axis of each model, every temperature, the coil
+  currents, the force, the reading std (acceptance) and the autocollimator angles, as points
+  (one per reading) on ``campaign_time`` (s since the campaign's start);
+* ``ladder/rms_nm/<k>_<step>`` (one bar per model), ``ladder/table``, ``info`` (text), and the
+  default blueprint (``_blueprint``): opens paused on the first model's field.
+
+Ladder steps are named after their effects (``step_labels``): the first by its effects, each
+later one by the effects it adds ("+ magnetic_force").
 
 Units and frames (Rerun stores positions and vectors as float32): the 3D scene is in
 millimetres, z up, relative to a local origin, the centre of the workspace's bounding box, so
-positions keep ~1 nm; an arrow of 1 mm stands for ``arrow_scale_nm_per_mm`` nm of residual
-(a power of ten, stated in the 3D view's name and in ``info``), so its vector is the residual
-in units of ``arrow_scale_nm_per_mm`` nm, kept to float32's relative precision (2^-24).
-
-Two timelines: ``campaign_time`` (s since the campaign's start) and ``ladder`` (step k = the
-k-th model).  The error-field rows also carry ``campaign_time`` = the first reading's time, so
-the campaign timeline shows the last model's field; the robot has one ``ladder`` row (its
-first pose) so it is drawn on the ladder timeline too.
+positions keep ~1 nm.  Each field's arrows are drawn at ``1 mm = s nm`` with s a 1-2-5 step
+chosen (``arrow_scale_nm_per_mm``) so the 90th-95th percentile arrow spans 15-20 % of the
+workspace; the stored vector is the residual in units of s nm (float32's relative precision,
+2^-24), and s is stated in the view's name, the table and ``info``.
 """
 from __future__ import annotations
 
@@ -38,21 +41,29 @@ import numpy as np
 import pandas as pd
 
 from deltatwin.files import atomic_write
-from deltatwin.twin.dataset import AXES, temperature_columns, validate
+from deltatwin.twin.dataset import AXES, SPLITS, temperature_columns, validate
 
 __all__ = ["LadderStep", "RecordingSummary", "calibration_step", "model_file_step",
            "residuals_m", "position_field", "robot_meshes", "arrow_scale_nm_per_mm",
-           "write_recording", "CAMPAIGN_TIMELINE", "LADDER_TIMELINE"]
+           "step_labels", "write_recording", "CAMPAIGN_TIMELINE", "ARROW_SPAN_SHARE",
+           "ARROW_SPAN_PERCENTILES", "SCREEN_PX"]
 
 CAMPAIGN_TIMELINE = "campaign_time"
-LADDER_TIMELINE = "ladder"
 MM_PER_M = 1e3
 NM_PER_M = 1e9
-ARROW_SHARE_OF_WORKSPACE = 0.2     # the largest arrow is at most this share of the extent
-SPLIT_COLOURS = {"cal": (40, 110, 230), "val": (250, 140, 20)}
-EFFECT_COLOUR = (230, 60, 160)
-TO_EXPLAIN_COLOUR = (150, 150, 150)
+# The arrow scale: the 90th-95th percentile arrow of a field spans 15-20 % of the workspace's
+# extent, with 1 mm of arrow = a 1-2-5 step of nm (a scale a reader can multiply in the head).
+ARROW_SPAN_SHARE = (0.15, 0.20)
+ARROW_SPAN_PERCENTILES = (90.0, 95.0)
+_ARROW_STEPS = (1.0, 2.0, 5.0)
+# Colours: the points are cool (blue, teal), the field's colour map warm (dark red for small,
+# through orange, to light yellow for arrows at or above the 20 % span), so arrows never blend
+# with points; time series cycle a qualitative palette (matplotlib tab10).
+SPLIT_COLOURS = {"cal": (60, 120, 255), "val": (0, 200, 190)}
+FIELD_COLOURMAP = ("YlOrRd_r", 0.0, 0.85)          # matplotlib name, used part of its range
 BEAM_COLOURS = {"interferometer": (255, 40, 40), "autocollimator": (40, 200, 60)}
+SCREEN_PX = (1600, 1000)     # the layout (shares, legend room) is planned for this window
+_ERROR_TAB_SHARES = (0.5, 0.5)                     # 3D field | residual series and ladder
 _COIL_COLUMNS = ("coil1_A", "coil2_A", "coil3_A")
 _STD_COLUMN = re.compile(r"^(.+)_std_([A-Za-z]+)$")
 _AUTOCOLLIMATOR_COLUMN = re.compile(r"^ac\d+_r[xyz]_arcsec$")
@@ -60,28 +71,33 @@ _AUTOCOLLIMATOR_COLUMN = re.compile(r"^ac\d+_r[xyz]_arcsec$")
 
 @dataclass(frozen=True)
 class LadderStep:
-    """One model of the ladder: its name and the interferometer readings it predicts for every
+    """One model of the ladder: its name, the interferometer readings it predicts for every
     row of the dataset, ``reading_m`` (n_rows, 3) in m for x, y, z (NaN where it predicts
-    none).  The residual is ``reading_m`` minus the measured readings."""
+    none), and the effects (or feature families) it contains, which name it in the recording
+    (``step_labels``).  The residual is ``reading_m`` minus the measured readings."""
     name: str
     reading_m: np.ndarray
+    effects: tuple[str, ...] = ()
 
 
 @dataclass
 class RecordingSummary:
-    """What was written: file, frames and scales, and the ladder's figures."""
+    """What was written: file, frames, and per ladder step its figures and arrow scale."""
     path: Path
     origin_m: np.ndarray                 # local origin of the 3D scene (world frame, m)
-    arrow_scale_nm_per_mm: float         # 1 mm of arrow = this many nm of residual
+    extent_mm: float                     # largest extent of the workspace's bounding box
     pose_rows: np.ndarray                # dataset rows at which the robot is posed
     position_ids: np.ndarray             # pos_id of every commanded position (sorted)
-    ladder: list[dict] = field(default_factory=list)   # per step: name, entity, rms_*_nm, ...
+    ladder: list[dict] = field(default_factory=list)   # per step: label, entity, rms_*_nm,
+    #                                                     arrow_scale_nm_per_mm, ...
+    blueprint: object = None             # the default rerun.blueprint.Blueprint written
 
 
 # ----- ladder steps -------------------------------------------------------------------------
 
 def calibration_step(name: str, model, df: pd.DataFrame) -> LadderStep:
-    """A ladder step from a fitted calibration model (``calibration.models``).
+    """A ladder step from a fitted calibration model (``calibration.blackbox``), its effects
+    being the model's feature families.
 
     DGM: its per-axis predictions.  DirectIGM (q = f(X, Y, Z, F)): the measured readings plus
     its end-effector error ``J^-1 (q_pred - q_meas)``, the reading its motor-coordinate error
@@ -96,11 +112,12 @@ def calibration_step(name: str, model, df: pd.DataFrame) -> LadderStep:
     else:
         raise TypeError(f"ladder step {name!r}: {type(model).__name__} is not a calibration "
                         "model (DGM or DirectIGM)")
-    return LadderStep(name, reading)
+    return LadderStep(name, reading, tuple(f.name for f in model.features_.families))
 
 
 def model_file_step(path: str | os.PathLike, df: pd.DataFrame, meta: dict | None) -> LadderStep:
-    """A ladder step named after the model file's stem.
+    """A ladder step from a model file, named after the model's effects (a physics model) or
+    feature families (a calibration model), not after the file.
 
     ``.json``: a saved calibration model (``calibration_step``).  ``.toml``: a fitted physics
     model (``deltatwin fit -o``), evaluated on the dataset's conditions (``meta['sensors']``
@@ -118,10 +135,31 @@ def model_file_step(path: str | os.PathLike, df: pd.DataFrame, meta: dict | None
     model = load_model(path) if suffix == ".json" else load_model_file(path)
     try:
         if suffix == ".json":
-            return calibration_step(path.stem, model, df)
-        return LadderStep(path.stem, evaluate(df, meta, model).reading_m)
+            step = calibration_step(path.stem, model, df)
+            return LadderStep(" + ".join(step.effects), step.reading_m, step.effects)
+        effects = tuple(e.name for e in model.effects)
+        return LadderStep(" + ".join(effects) or "nominal robot",
+                          evaluate(df, meta, model).reading_m, effects)
     except CalibrationInputError as exc:
         raise ValueError(f"{path}: cannot be evaluated on this dataset: {exc}") from exc
+
+
+def step_labels(ladder) -> list[str]:
+    """The name of each step in the recording: a step with effects is named by them, "+ e"
+    for the effects it adds when it holds all of the previous step's; without effects, by its
+    ``name``."""
+    labels, previous = [], ()
+    for step in ladder:
+        effects = tuple(step.effects)
+        added = [e for e in effects if e not in previous]
+        if not effects:
+            labels.append(str(step.name))
+        elif previous and added and set(previous) <= set(effects):
+            labels.append("+ " + " + ".join(added))
+        else:
+            labels.append(" + ".join(effects))
+        previous = effects
+    return labels
 
 
 def measured_m(df: pd.DataFrame) -> np.ndarray:
@@ -154,7 +192,7 @@ def position_field(pos_id: np.ndarray, residual: np.ndarray):
         return ids, np.where(counts > 0, sums / counts, np.nan)
 
 
-# ----- geometry -----------------------------------------------------------------------------
+# ----- geometry and scales ------------------------------------------------------------------
 
 def robot_meshes(model) -> list[tuple[str, object, np.ndarray]]:
     """Every visible geom of a compiled MuJoCo model as ``(name, trimesh in the geom frame (m),
@@ -192,19 +230,58 @@ def robot_meshes(model) -> list[tuple[str, object, np.ndarray]]:
     return out
 
 
-def arrow_scale_nm_per_mm(max_residual_nm: float, extent_mm: float) -> float:
-    """The power of ten (nm of residual per mm of arrow) that keeps the largest arrow within
-    ``ARROW_SHARE_OF_WORKSPACE`` of the workspace extent."""
-    if not np.isfinite(max_residual_nm) or max_residual_nm <= 0.0:
+def arrow_scale_nm_per_mm(magnitude_nm, extent_mm: float) -> float:
+    """nm of residual per mm of arrow for a field of arrow magnitudes ``magnitude_nm`` (nm),
+    in a workspace of ``extent_mm``: the 1-2-5 step (1, 2, 5 x 10^n) for which the
+    90th-95th percentile arrows span ``ARROW_SPAN_SHARE`` (15-20 %) of the extent.
+
+    The percentiles' lengths form an interval and so does the target; the chosen step is one
+    where they overlap (the most central one if several do) or, when no 1-2-5 step makes them
+    overlap (steps are 2-2.5x apart, the target band 1.33x wide), the nearest in log length."""
+    m = np.asarray(magnitude_nm, dtype=float)
+    m = m[np.isfinite(m)]
+    if m.size == 0 or not np.max(m) > 0.0:
         return 1.0
-    return float(10.0 ** np.ceil(np.log10(max_residual_nm / (ARROW_SHARE_OF_WORKSPACE
-                                                             * extent_mm))))
+    if not (np.isfinite(extent_mm) and extent_mm > 0):
+        raise ValueError(f"workspace extent must be a positive number of mm, got {extent_mm}")
+    lo_nm, hi_nm = np.percentile(m, ARROW_SPAN_PERCENTILES)
+    if not hi_nm > 0.0:              # most positions exactly zero: scale on the largest
+        lo_nm = hi_nm = float(np.max(m))
+    lo_nm = max(lo_nm, hi_nm * 1e-12)
+    share_lo, share_hi = ARROW_SPAN_SHARE
+    decades = np.arange(np.floor(np.log10(lo_nm / (share_hi * extent_mm))) - 1,
+                        np.ceil(np.log10(hi_nm / (share_lo * extent_mm))) + 2)
+    best = None
+    for step in (s * 10.0 ** d for d in decades for s in _ARROW_STEPS):
+        span_lo, span_hi = lo_nm / step / extent_mm, hi_nm / step / extent_mm
+        gap = max(0.0, np.log(share_lo / span_hi), np.log(span_lo / share_hi))
+        off_centre = abs(np.log(np.sqrt(span_lo * span_hi) / np.sqrt(share_lo * share_hi)))
+        if best is None or (gap, off_centre) < best[0]:
+            best = ((gap, off_centre), step)
+    return float(best[1])
 
 
-def _magnitude_colours(mag: np.ndarray, vmax: float) -> np.ndarray:
+def _field_colours(magnitude_nm: np.ndarray, scale: float, extent_mm: float) -> np.ndarray:
+    """RGB of each arrow: the colour map from 0 to the magnitude whose arrow spans the top of
+    ``ARROW_SPAN_SHARE`` at ``scale`` (saturating above), so colour and length agree."""
     import matplotlib
-    c = matplotlib.colormaps["viridis"](np.clip(mag / vmax if vmax > 0 else 0 * mag, 0, 1))
+    name, lo, hi = FIELD_COLOURMAP
+    top = scale * ARROW_SPAN_SHARE[1] * extent_mm
+    c = matplotlib.colormaps[name](lo + (hi - lo) * np.clip(magnitude_nm / top, 0.0, 1.0))
     return (c[:, :3] * 255).round().astype(np.uint8)
+
+
+def _marker_sizes(n: int) -> np.ndarray:
+    """Point sizes of a plot's n series, from 3 down to 1.5 (the later drawn over the earlier:
+    series with equal values, such as three coils fed one current, show as nested dots)."""
+    return np.linspace(3.0, 1.5, n) if n > 1 else np.array([2.0])
+
+
+def _palette(n: int) -> list[tuple[int, int, int]]:
+    """n distinct colours (tab10, or tab20 beyond ten)."""
+    import matplotlib
+    cmap = matplotlib.colormaps["tab10" if n <= 10 else "tab20"]
+    return [tuple(int(round(255 * v)) for v in cmap(i % cmap.N)[:3]) for i in range(n)]
 
 
 def _pose_robot(geom, model, q: np.ndarray, names: list[str], progress: bool):
@@ -255,7 +332,7 @@ def _beams(model, data, params, cube_centre: np.ndarray, cube_home: np.ndarray) 
     return out
 
 
-# ----- the recording ------------------------------------------------------------------------
+# ----- what is drawn ------------------------------------------------------------------------
 
 def _slug(k: int, name: str) -> str:
     return f"{k}_" + (re.sub(r"[^A-Za-z0-9]+", "_", name).strip("_") or "model")
@@ -266,13 +343,43 @@ def _rms_nm(res: np.ndarray) -> float:
     return float(np.sqrt(np.mean(v ** 2)) * NM_PER_M) if v.size else float("nan")
 
 
+@dataclass
+class _Field:
+    """One model's residual field: per position (ids sorted) the mean residual (nm) on the
+    axes the model has (0 elsewhere), which positions have it, and its arrow scale."""
+    vector_nm: np.ndarray
+    keep: np.ndarray
+    axes: np.ndarray
+    scale: float
+
+    @property
+    def magnitude_nm(self) -> np.ndarray:
+        return np.linalg.norm(self.vector_nm, axis=1)
+
+
+@dataclass
+class _Series:
+    entity: str
+    name: str
+    values: np.ndarray
+    colour: tuple
+    marker_size: float       # the first of a plot's series largest: coincident ones stay seen
+
+
+@dataclass
+class _Panel:
+    origin: str
+    title: str
+    series: list[_Series]
+
+
 def _check_ladder(df: pd.DataFrame, ladder) -> list[LadderStep]:
     ladder = list(ladder)
     for k, step in enumerate(ladder):
         if not isinstance(step, LadderStep):
             raise TypeError(f"ladder entry {k} is a {type(step).__name__}, not a LadderStep")
-        if not str(step.name).strip():
-            raise ValueError(f"ladder entry {k} has an empty name")
+        if not str(step.name).strip() and not step.effects:
+            raise ValueError(f"ladder entry {k} has an empty name and no effects")
         r = np.asarray(step.reading_m)
         if r.shape != (len(df), 3):
             raise ValueError(f"ladder step {step.name!r}: reading_m has shape {r.shape}, "
@@ -283,6 +390,63 @@ def _check_ladder(df: pd.DataFrame, ladder) -> list[LadderStep]:
     return ladder
 
 
+def _fields(pos_id, residuals, extent_mm, arrow_scale) -> list[_Field]:
+    out = []
+    for res in residuals:
+        mean_nm = position_field(pos_id, res)[1] * NM_PER_M
+        axes = np.isfinite(mean_nm).any(axis=0)          # axes this model has residuals on
+        keep = np.all(np.isfinite(mean_nm[:, axes]), axis=1)
+        vec = np.where(axes, mean_nm, 0.0)
+        scale = (float(arrow_scale) if arrow_scale is not None else
+                 arrow_scale_nm_per_mm(np.linalg.norm(vec[keep], axis=1), extent_mm))
+        out.append(_Field(vec, keep, axes, scale))
+    return out
+
+
+def _residual_panels(df, labels, slugs, residuals) -> list[_Panel]:
+    colours = {"x": (214, 39, 40), "y": (44, 160, 44), "z": (31, 119, 180)}
+    panels = []
+    for label, slug, res in zip(labels, slugs, residuals):
+        series = [_Series(f"timeseries/residual_nm/{slug}/{a}", f"{a} (nm)",
+                          res[:, k] * NM_PER_M, colours[a], size)
+                  for (k, a), size in zip(enumerate(AXES), _marker_sizes(3))
+                  if np.isfinite(res[:, k]).any()]
+        panels.append(_Panel(f"timeseries/residual_nm/{slug}",
+                             f"{label}: residual per reading (nm)", series))
+    return panels
+
+
+def _campaign_panels(df: pd.DataFrame) -> list[_Panel]:
+    """The campaign's recorded signals, one panel per unit."""
+    def panel(origin, title, cols, names):
+        cols = [c for c in cols if np.isfinite(df[c].to_numpy(dtype=float)).any()]
+        if not cols:
+            return []
+        return [_Panel(origin, title, [
+            _Series(f"{origin}/{names(c)}", c, df[c].to_numpy(dtype=float), colour, size)
+            for c, colour, size in zip(cols, _palette(len(cols)), _marker_sizes(len(cols)))])]
+
+    std_units = {}
+    for c in df.columns:
+        m = _STD_COLUMN.match(c)
+        if m:
+            std_units.setdefault(m.group(2), []).append(c)
+    return (panel("timeseries/temperature_C", "temperatures (degC)", temperature_columns(df),
+                  lambda c: c[2:-2])
+            + panel("timeseries/coil_current_A", "coil currents (A)",
+                    [c for c in _COIL_COLUMNS if c in df.columns], lambda c: c[:-2])
+            + panel("timeseries/force_N", "force simulator: nominal force (N)",
+                    [c for c in ("F_N",) if c in df.columns], lambda c: c[:-2])
+            + [p for unit, cols in std_units.items()
+               for p in panel(f"timeseries/std_{unit}", f"std of each reading ({unit})", cols,
+                              lambda c: c)]
+            + panel("timeseries/autocollimator_arcsec", "autocollimator angles (arcsec)",
+                    [c for c in df.columns if _AUTOCOLLIMATOR_COLUMN.match(c)],
+                    lambda c: c[:-7]))
+
+
+# ----- the recording ------------------------------------------------------------------------
+
 def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, params=None,
                     max_poses: int = 500, arrow_scale: float | None = None,
                     progress: bool = False) -> RecordingSummary:
@@ -292,8 +456,9 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     the order the effects are added.  ``params``: robot parameters (default: the nominal set)
     for the MuJoCo model and the kinematics placing the positions.  ``max_poses``: the robot
     is posed at this many readings at most, evenly spaced over the campaign.
-    ``arrow_scale``: nm of residual per mm of arrow (default: a power of ten chosen from the
-    largest residual).  The file is written to a temporary name and renamed when complete.
+    ``arrow_scale``: nm of residual per mm of arrow for every field (default: per field, the
+    1-2-5 step of ``arrow_scale_nm_per_mm``).  The file is written to a temporary name and
+    renamed when complete.
     """
     import rerun as rr
 
@@ -328,38 +493,42 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     pos_mm = (forward(geom, q_mean).point(geom.cube_offset) - origin) * MM_PER_M
     split = df["split"].astype(str).to_numpy()[first]
 
-    # error fields of the ladder
+    # the ladder's fields and the panels of time series
+    labels = step_labels(ladder)
+    slugs = [_slug(k, label) for k, label in enumerate(labels)]
     residuals = [residuals_m(df, s) for s in ladder]
-    fields = [position_field(pos_id, r)[1] * NM_PER_M for r in residuals]
-    peak = max((float(np.nanmax(np.linalg.norm(np.nan_to_num(f), axis=1))) for f in fields),
-               default=0.0)
-    scale = float(arrow_scale) if arrow_scale is not None else arrow_scale_nm_per_mm(peak,
-                                                                                     extent_mm)
+    fields = _fields(pos_id, residuals, extent_mm, arrow_scale)
+    residual_panels = _residual_panels(df, labels, slugs, residuals)
+    campaign_panels = _campaign_panels(df)
+
     # the robot along the campaign
-    spec, model = build_model(params)
+    _, model = build_model(params)
     meshes = robot_meshes(model)
     names = [n for n, _, _ in meshes]
     rows = np.unique(np.linspace(0, len(df) - 1, min(max_poses, len(df))).round().astype(int))
     gpos, gmat, cube, data = _pose_robot(geom, model, q[rows], names, progress)
     cube_home = forward(geom, np.zeros((1, 3))).point(geom.cube_offset)[0]
     beams = _beams(model, data, params, cube, cube_home)
+    fixed = np.array([model.body_weldid[model.geom(n).bodyid[0]] == 0 for n in names])
 
     path = Path(path)
-    summary = RecordingSummary(path=path, origin_m=origin, arrow_scale_nm_per_mm=scale,
+    summary = RecordingSummary(path=path, origin_m=origin, extent_mm=extent_mm,
                                pose_rows=rows, position_ids=ids)
+    summary.ladder = _ladder_rows(df, ladder, labels, slugs, residuals, fields)
+    summary.blueprint = _blueprint(summary, fields, residual_panels, campaign_panels, t_s)
 
     def write(tmp):
         rec = rr.RecordingStream("deltatwin")
         try:
             rec.set_log_time_enabled(False)
-            has_effect = len(ladder) >= 2
-            rec.save(tmp, default_blueprint=_blueprint(df, scale, has_effect, bool(ladder)))
+            rec.save(tmp, default_blueprint=summary.blueprint)
             _log_scene(rec, meshes, ws, origin, ids, pos_mm, split)
-            _log_robot(rec, names, gpos, gmat, beams, origin, t_s[rows])
-            summary.ladder = _log_ladder(rec, df, ladder, residuals, fields, pos_mm, scale,
-                                         peak, t_s, float(t_s.min()))
-            _log_time_series(rec, df, t_s)
-            _log_info(rec, df, meta, summary, extent_mm, peak, len(df))
+            _log_robot(rec, names, fixed, gpos, gmat, beams, origin, t_s[rows])
+            _log_fields(rec, summary.ladder, fields, pos_mm, extent_mm)
+            for p in residual_panels + campaign_panels:
+                _log_panel(rec, p, t_s)
+            _log_ladder(rec, summary.ladder)
+            _log_info(rec, df, meta, summary, len(df))
             rec.flush()
         finally:
             rec.disconnect()
@@ -368,39 +537,75 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     return summary
 
 
-def _blueprint(df: pd.DataFrame, scale: float, has_effect: bool, has_ladder: bool):
-    import rerun.blueprint as rrb
-    main = rrb.Spatial3DView(
-        origin="world", name=f"robot, workspace, residual (arrow 1 mm = {scale:g} nm)",
-        contents=["$origin/**", "- $origin/error/added_effect", "- $origin/error/to_explain"])
-    spatial = [main]
-    if has_effect:
-        spatial.append(rrb.Spatial3DView(
-            origin="world", name=f"added effect vs. what it explains (1 mm = {scale:g} nm)",
-            contents=["$origin/workspace/**", "$origin/error/added_effect",
-                      "$origin/error/to_explain"]))
-    lower = [rrb.TextDocumentView(origin="info", name="info")]
-    if has_ladder:
-        lower = [rrb.BarChartView(origin="ladder/rms_nm", name="ladder: RMS residual (nm)"),
-                 rrb.TextDocumentView(origin="ladder/table", name="ladder")] + lower
-    series = [rrb.TimeSeriesView(origin="timeseries/temperature_C", name="temperatures (degC)")]
-    if has_ladder:
-        series.append(rrb.TimeSeriesView(origin="timeseries/residual_nm",
-                                         name="residual, model - measurement (nm)"))
-    if any(c in df.columns for c in _COIL_COLUMNS) or "F_N" in df.columns:
-        series.append(rrb.TimeSeriesView(
-            origin="timeseries", contents=["$origin/coil_A/**", "$origin/force_N"],
-            name="coil currents (A), force (N)"))
-    if any(_STD_COLUMN.match(c) for c in df.columns):
-        series.append(rrb.TimeSeriesView(origin="timeseries/acceptance_std",
-                                         name="std of each reading (acceptance)"))
-    if any(_AUTOCOLLIMATOR_COLUMN.match(c) for c in df.columns):
-        series.append(rrb.TimeSeriesView(origin="timeseries/autocollimator_arcsec",
-                                         name="autocollimator angles (arcsec)"))
-    left = rrb.Vertical(rrb.Tabs(*spatial) if len(spatial) > 1 else main,
-                        rrb.Horizontal(*lower), row_shares=[3, 1])
-    return rrb.Blueprint(rrb.Horizontal(left, rrb.Vertical(*series), column_shares=[3, 2]),
-                         rrb.TimePanel(timeline=CAMPAIGN_TIMELINE), collapse_panels=False)
+def _ladder_rows(df, ladder, labels, slugs, residuals, fields) -> list[dict]:
+    split = df["split"].astype(str).to_numpy()
+    rows = []
+    for k, (step, label, slug, res, f) in enumerate(zip(ladder, labels, slugs, residuals,
+                                                        fields)):
+        mag = f.magnitude_nm[f.keep]
+        entry = {"step": k, "name": step.name, "label": label, "effects": list(step.effects),
+                 "entity": slug, "axes": [a for a, on in zip(AXES, f.axes) if on],
+                 "n_positions": int(f.keep.sum()), "rms_nm": _rms_nm(res),
+                 "arrow_scale_nm_per_mm": f.scale,
+                 "p95_position_nm": float(np.percentile(mag, 95)) if mag.size else float("nan"),
+                 "max_position_nm": float(mag.max()) if mag.size else float("nan")}
+        for s in SPLITS:
+            entry[f"rms_{s}_nm"] = _rms_nm(res[split == s])
+        rows.append(entry)
+    return rows
+
+
+def _arrows(vector_nm, keep, pos_mm, scale, extent_mm):
+    import rerun as rr
+    mag = np.linalg.norm(vector_nm, axis=1)
+    return rr.Arrows3D(origins=pos_mm[keep], vectors=vector_nm[keep] / scale,
+                       colors=_field_colours(mag[keep], scale, extent_mm),
+                       radii=rr.Radius.ui_points(2.0))
+
+
+def _log_fields(rec, rows, fields, pos_mm, extent_mm) -> None:
+    """Each model's field at its own scale; from the second model on, its field again at the
+    previous model's scale, to set beside the previous field (before / after the step)."""
+    for k, (row, f) in enumerate(zip(rows, fields)):
+        rec.log(f"world/error/{row['entity']}",
+                _arrows(f.vector_nm, f.keep, pos_mm, f.scale, extent_mm), static=True)
+        if k == 0:
+            continue
+        rec.log(f"world/step/{row['entity']}/after",
+                _arrows(f.vector_nm, f.keep, pos_mm, fields[k - 1].scale, extent_mm), static=True)
+
+
+def _log_panel(rec, panel: _Panel, t_s: np.ndarray) -> None:
+    import rerun as rr
+    for s in panel.series:
+        ok = np.isfinite(s.values)
+        if not ok.any():
+            continue
+        # every value is a reading (taken at one position, at one time): points, not lines
+        # drawn between positions
+        rec.log(s.entity, rr.SeriesPoints(names=s.name, colors=[s.colour],
+                                          marker_sizes=[s.marker_size]), static=True)
+        rec.send_columns(s.entity, indexes=[rr.TimeColumn(CAMPAIGN_TIMELINE, duration=t_s[ok])],
+                         columns=rr.Scalars.columns(scalars=s.values[ok]))
+
+
+def _log_ladder(rec, rows) -> None:
+    import rerun as rr
+    if not rows:
+        return
+    key = "rms_val_nm" if np.isfinite(rows[0]["rms_val_nm"]) else "rms_nm"
+    for r, colour in zip(rows, _palette(len(rows))):
+        rec.log(f"ladder/{r['entity']}",
+                rr.BarChart([r[key]], abscissa=[r["step"]], color=colour), static=True)
+    lines = [f"Bars: RMS of model - measurement, every reading and axis of the "
+             f"{'validation split' if key == 'rms_val_nm' else 'dataset'}.", "",
+             "| # | model | RMS val nm | RMS cal nm | 1 mm of arrow |",
+             "|---:|---|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['step']} | {r['label']} | {r['rms_val_nm']:.3g} | "
+                     f"{r['rms_cal_nm']:.3g} | {r['arrow_scale_nm_per_mm']:g} nm |")
+    rec.log("ladder/table", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN),
+            static=True)
 
 
 def _log_scene(rec, meshes, ws, origin, ids, pos_mm, split) -> None:
@@ -414,11 +619,11 @@ def _log_scene(rec, meshes, ws, origin, ids, pos_mm, split) -> None:
     rec.log("world/workspace/hull",
             rr.Mesh3D(vertex_positions=(ws.vertices - origin) * MM_PER_M,
                       triangle_indices=ws.faces, vertex_normals=ws.vertex_normals,
-                      albedo_factor=[120, 170, 255, 50]), static=True)
+                      albedo_factor=[150, 160, 190, 35]), static=True)
     sharp = ws.face_adjacency_edges[ws.face_adjacency_angles > 0.1]
     rec.log("world/workspace/hull_edges",
             rr.LineStrips3D((ws.vertices[sharp] - origin) * MM_PER_M,
-                            radii=rr.Radius.ui_points(1.0), colors=[90, 130, 220]), static=True)
+                            radii=rr.Radius.ui_points(1.0), colors=[150, 160, 190]), static=True)
     for s, colour in SPLIT_COLOURS.items():
         sel = split == s
         rec.log(f"world/workspace/{s}",
@@ -427,129 +632,124 @@ def _log_scene(rec, meshes, ws, origin, ids, pos_mm, split) -> None:
                 static=True)
 
 
-def _log_robot(rec, names, gpos, gmat, beams, origin, t_rows) -> None:
+def _log_robot(rec, names, fixed, gpos, gmat, beams, origin, t_rows) -> None:
+    """Geoms on moving bodies and the beams along the campaign; those fixed to the room
+    (base, coils, instruments) once."""
     import rerun as rr
     campaign = [rr.TimeColumn(CAMPAIGN_TIMELINE, duration=t_rows)]
-    first = [rr.TimeColumn(LADDER_TIMELINE, sequence=[0])]
     for g, name in enumerate(names):
         trans = (gpos[:, g] - origin) * MM_PER_M
-        for idx, sl in ((campaign, slice(None)), (first, slice(0, 1))):
-            rec.send_columns(f"world/robot/{name}", indexes=idx,
-                             columns=rr.Transform3D.columns(translation=trans[sl],
-                                                            mat3x3=gmat[sl, g]))
+        if fixed[g]:
+            rec.log(f"world/robot/{name}", rr.Transform3D(translation=trans[0],
+                                                          mat3x3=gmat[0, g]), static=True)
+        else:
+            rec.send_columns(f"world/robot/{name}", indexes=campaign,
+                             columns=rr.Transform3D.columns(translation=trans, mat3x3=gmat[:, g]))
     for name, pts in beams.items():
         kind = name.split("_")[0]
         strips = list((pts - origin) * MM_PER_M)
-        colour = BEAM_COLOURS.get(kind, (200, 200, 200))
         rec.log(f"world/instruments/{name}", rr.LineStrips3D.from_fields(
-            colors=colour, radii=rr.Radius.ui_points(1.5)), static=True)
-        for idx, sl in ((campaign, slice(None)), (first, slice(0, 1))):
-            rec.send_columns(f"world/instruments/{name}", indexes=idx,
-                             columns=rr.LineStrips3D.columns(strips=strips[sl]).partition(
-                                 [1] * len(strips[sl])))
-
-
-def _log_ladder(rec, df, ladder, residuals, fields, pos_mm, scale, peak, t_s, t_first):
-    import rerun as rr
-
-    from deltatwin.twin.dataset import SPLITS
-    split = df["split"].astype(str).to_numpy()
-    rows = []
-    prev = None
-    for k, (step, res, fld) in enumerate(zip(ladder, residuals, fields)):
-        slug = _slug(k, step.name)
-        rec.set_time(LADDER_TIMELINE, sequence=k)
-        rec.set_time(CAMPAIGN_TIMELINE, duration=t_first)
-        axes = np.isfinite(fld).any(axis=0)             # axes this model has residuals on
-        keep = np.all(np.isfinite(fld[:, axes]), axis=1)
-        vec = np.where(axes, fld, 0.0)
-        mag = np.linalg.norm(vec, axis=1)
-        rec.log("world/error/residual",
-                rr.Arrows3D(origins=pos_mm[keep], vectors=vec[keep] / scale,
-                            colors=_magnitude_colours(mag[keep], peak),
-                            radii=rr.Radius.ui_points(1.5)))
-        if prev is not None:
-            both = keep & prev[1]
-            rec.log("world/error/added_effect",
-                    rr.Arrows3D(origins=pos_mm[both], vectors=(vec - prev[0])[both] / scale,
-                                colors=EFFECT_COLOUR, radii=rr.Radius.ui_points(1.5)))
-            rec.log("world/error/to_explain",
-                    rr.Arrows3D(origins=pos_mm[both], vectors=-prev[0][both] / scale,
-                                colors=TO_EXPLAIN_COLOUR, radii=rr.Radius.ui_points(1.5)))
-        rec.reset_time()
-        prev = (vec, keep)
-        entry = {"step": k, "name": step.name, "entity": slug,
-                 "axes": [a for a, on in zip(AXES, axes) if on],
-                 "n_positions": int(keep.sum()), "rms_nm": _rms_nm(res),
-                 "max_position_nm": float(mag[keep].max()) if keep.any() else float("nan")}
-        for s in SPLITS:
-            entry[f"rms_{s}_nm"] = _rms_nm(res[split == s])
-        rows.append(entry)
-        for a, axis in enumerate(AXES):
-            _send_series(rec, f"timeseries/residual_nm/{axis}/{slug}", t_s,
-                         res[:, a] * NM_PER_M, f"{axis}: {step.name}")
-    if not ladder:
-        return rows
-    key = "rms_val_nm" if np.isfinite(rows[0]["rms_val_nm"]) else "rms_nm"
-    rec.log("ladder/rms_nm", rr.BarChart([r[key] for r in rows]), static=True)
-    lines = [f"RMS of model - measurement over every reading and axis of the "
-             f"{'validation split' if key == 'rms_val_nm' else 'dataset'} (bar chart); "
-             "arrows: mean per position.", "",
-             "| step | model | axes | RMS cal nm | RMS val nm | largest arrow nm | positions |",
-             "|---:|---|---|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['step']} | {r['name']} | {','.join(r['axes'])} | "
-                     f"{r['rms_cal_nm']:.3g} | {r['rms_val_nm']:.3g} | "
-                     f"{r['max_position_nm']:.3g} | {r['n_positions']} |")
-    rec.log("ladder/table", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN),
+            colors=BEAM_COLOURS.get(kind, (200, 200, 200)), radii=rr.Radius.ui_points(1.5)),
             static=True)
-    return rows
+        rec.send_columns(f"world/instruments/{name}", indexes=campaign,
+                         columns=rr.LineStrips3D.columns(strips=strips).partition(
+                             [1] * len(strips)))
 
 
-def _send_series(rec, entity: str, t_s: np.ndarray, values: np.ndarray, name: str) -> None:
-    import rerun as rr
-    ok = np.isfinite(values)
-    if not ok.any():
-        return
-    rec.log(entity, rr.SeriesLines(names=name), static=True)
-    rec.send_columns(entity, indexes=[rr.TimeColumn(CAMPAIGN_TIMELINE, duration=t_s[ok])],
-                     columns=rr.Scalars.columns(scalars=values[ok]))
-
-
-def _log_time_series(rec, df: pd.DataFrame, t_s: np.ndarray) -> None:
-    for c in temperature_columns(df):
-        _send_series(rec, f"timeseries/temperature_C/{c[2:-2]}", t_s,
-                     df[c].to_numpy(dtype=float), c)
-    for c in _COIL_COLUMNS:
-        if c in df.columns:
-            _send_series(rec, f"timeseries/coil_A/{c[:-2]}", t_s, df[c].to_numpy(dtype=float), c)
-    if "F_N" in df.columns:
-        _send_series(rec, "timeseries/force_N", t_s, df["F_N"].to_numpy(dtype=float), "F_N")
-    for c in df.columns:
-        if _STD_COLUMN.match(c):
-            _send_series(rec, f"timeseries/acceptance_std/{c}", t_s,
-                         df[c].to_numpy(dtype=float), c)
-        elif _AUTOCOLLIMATOR_COLUMN.match(c):
-            _send_series(rec, f"timeseries/autocollimator_arcsec/{c[:-7]}", t_s,
-                         df[c].to_numpy(dtype=float), c)
-
-
-def _log_info(rec, df, meta, summary: RecordingSummary, extent_mm, peak, n_rows) -> None:
+def _log_info(rec, df, meta, summary: RecordingSummary, n_rows) -> None:
     import rerun as rr
     o = summary.origin_m * MM_PER_M
+    name, lo, hi = FIELD_COLOURMAP
+    splits = ", ".join(f"{s} {n}" for s, n in df.groupby("split")["pos_id"].nunique().items())
     text = "\n".join([
-        f"# {meta.get('scenario', 'dataset')} ({meta.get('source', 'unknown source')})", "",
-        f"* {n_rows} readings, {summary.position_ids.size} positions "
-        f"({', '.join(f'{s}: {n}' for s, n in df.groupby('split')['pos_id'].nunique().items())}).",
-        f"* 3D scene: mm, z up, relative to the workspace centre at "
-        f"({o[0]:.3f}, {o[1]:.3f}, {o[2]:.3f}) mm in the base frame; workspace extent "
-        f"{extent_mm:.2f} mm.",
-        (f"* Residual arrows (model - measurement, mean per position): "
-         f"**1 mm of arrow = {summary.arrow_scale_nm_per_mm:g} nm**; colour = magnitude, "
-         f"viridis from 0 to {peak:.3g} nm." if summary.ladder else
-         "* No model given: no residual arrows."),
-        f"* Robot posed at {summary.pose_rows.size} of {n_rows} readings, evenly spaced "
-        f"(timeline `{CAMPAIGN_TIMELINE}`); the `{LADDER_TIMELINE}` timeline steps through "
-        "the models and shows the robot at its first pose.",
-        "* Points: calibration blue, validation orange."])
+        f"**{meta.get('scenario', 'dataset')}** ({meta.get('source', 'unknown source')}): "
+        f"{n_rows} readings, {summary.position_ids.size} positions ({splits}).", "",
+        "* Arrows: model - measurement, mean per position; **1 mm of arrow = the view's "
+        "scale** (in its name), chosen so the 90-95th percentile arrow spans "
+        f"{ARROW_SPAN_SHARE[0]:.0%}-{ARROW_SPAN_SHARE[1]:.0%} of the "
+        f"{summary.extent_mm:.1f} mm workspace. Colour: dark red (small) to light yellow "
+        f"(spans {ARROW_SPAN_SHARE[1]:.0%} or more).",
+        "* Points: calibration blue, validation teal.",
+        f"* mm, z up, from the workspace centre ({o[0]:.2f}, {o[1]:.2f}, {o[2]:.2f}) mm. "
+        f"Robot posed at {summary.pose_rows.size} readings along `{CAMPAIGN_TIMELINE}`."])
     rec.log("info", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
+
+
+# ----- the default layout -------------------------------------------------------------------
+
+def _field_view(name: str, entities: list[str]):
+    """A 3D view of the workspace (hull, points) and ``entities`` only, so the viewer frames
+    it on them (the robot, 20 times larger, would shrink them to a few pixels)."""
+    import rerun.blueprint as rrb
+    return rrb.Spatial3DView(origin="world", name=name,
+                             contents=["$origin/workspace/**"] + [f"$origin/{e}" for e in entities],
+                             line_grid=rrb.LineGrid3D(visible=False))
+
+
+def _series_view(panel: _Panel, t_s: np.ndarray, width_px: float):
+    """A time-series view spanning the whole campaign, with room on the right for the legend
+    (the x range goes on past the last reading by the legend's width), so it covers no data."""
+    import rerun.blueprint as rrb
+    t0, t1 = float(np.min(t_s)), float(np.max(t_s))
+    legend_px = 7.5 * max(len(s.name) for s in panel.series) + 45.0
+    plot_px = max(width_px - 70.0, 2.0 * legend_px)               # minus the y axis labels
+    room = legend_px / (plot_px - legend_px)
+    span = max(t1 - t0, 1.0)
+    return rrb.TimeSeriesView(
+        origin=panel.origin, name=panel.title,
+        axis_x=rrb.TimeAxis(view_range=rrb.TimeRange(
+            start=rrb.TimeRangeBoundary.absolute(seconds=t0 - 0.01 * span),
+            end=rrb.TimeRangeBoundary.absolute(seconds=t1 + (0.01 + room) * span))),
+        plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True))
+
+
+def _blueprint(summary, fields, residual_panels, campaign_panels, t_s):
+    """Two top tabs: "error fields" (the 3D fields on the left, one tab per model, then one per
+    step showing the residual before and after it at one scale, then the robot; residual series, the
+    ladder and the info on the right) and "campaign" (the recorded signals, one unit per
+    plot).  Opens paused on the first model's field, side and time panels collapsed."""
+    import rerun.blueprint as rrb
+    width = SCREEN_PX[0]
+    right_px = width * _ERROR_TAB_SHARES[1]
+    rows = summary.ladder
+    spatial = []
+    for r, f in zip(rows, fields):
+        spatial.append(_field_view(f"{r['label']}: 1 mm = {f.scale:g} nm",
+                                   [f"error/{r['entity']}"]))
+    for k in range(1, len(rows)):
+        prev, r, s = rows[k - 1], rows[k], fields[k - 1].scale
+        # one above the other: the viewer frames a 3D view on its height, a narrow view would
+        # cut the workspace at its sides
+        spatial.append(rrb.Vertical(
+            _field_view(f"before: {prev['label']}, 1 mm = {s:g} nm", [f"error/{prev['entity']}"]),
+            _field_view(f"after: {r['label']}, 1 mm = {s:g} nm", [f"step/{r['entity']}/after"]),
+            name=f"before/after {r['label']}"))
+    if not rows:
+        spatial.append(_field_view("workspace: calibration and validation positions", []))
+    spatial.append(rrb.Spatial3DView(
+        origin="world", name="robot and beams",
+        contents=["$origin/robot/**", "$origin/instruments/**", "$origin/workspace/**"]))
+    # right column, heights planned in px at SCREEN_PX: text at ~22 px a line
+    side = [rrb.TextDocumentView(origin="info", name="info")]
+    heights = [190.0]
+    if rows:
+        residuals = [_series_view(p, t_s, right_px) for p in residual_panels]
+        side = [rrb.Tabs(*residuals, active_tab=0),
+                rrb.BarChartView(origin="ladder", contents=["$origin/**", "- $origin/table"],
+                                 name="RMS residual per model (nm)",
+                                 plot_legend=rrb.Corner2D.RightTop),
+                rrb.TextDocumentView(origin="ladder/table", name="ladder")] + side
+        table_px = 22.0 * (len(rows) + 4) + 40.0
+        heights = [SCREEN_PX[1] - 120.0 - 190.0 - 200.0 - table_px, 200.0, table_px] + heights
+    error_tab = rrb.Horizontal(rrb.Tabs(*spatial, active_tab=0),
+                               rrb.Vertical(*side, row_shares=heights),
+                               column_shares=list(_ERROR_TAB_SHARES), name="error fields")
+    columns = 2 if len(campaign_panels) > 2 else 1
+    campaign_tab = rrb.Grid(*[_series_view(p, t_s, width / columns) for p in campaign_panels],
+                            grid_columns=columns, name="campaign")
+    tabs = [error_tab] + ([campaign_tab] if campaign_panels else [])
+    return rrb.Blueprint(rrb.Tabs(*tabs, active_tab=0),
+                         rrb.TimePanel(state="collapsed", timeline=CAMPAIGN_TIMELINE,
+                                       play_state="paused"),
+                         rrb.BlueprintPanel(state="collapsed"),
+                         rrb.SelectionPanel(state="collapsed"), collapse_panels=True)

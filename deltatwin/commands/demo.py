@@ -80,7 +80,8 @@ def run(args) -> int:
     recording = None
     if not args.no_recording:
         say("writing the Rerun recording")
-        steps = [LadderStep(row["model"], fit.reading_m_) for row, fit in zip(ladder, fits)]
+        steps = [LadderStep(row["model"], fit.reading_m_, tuple(row["effects"]))
+                 for row, fit in zip(ladder, fits)]
         recording = out / "recording.rrd"
         write_recording(df, meta, steps, recording)
     report = write_report(out, df, meta, ladder, diagnoses, fits, sc.hidden, recording)

@@ -6,7 +6,7 @@
 Writes the recording (no viewer or display needed); ``--spawn`` then opens the Rerun viewer
 on it.  Each ``--model`` (a calibration model .json, or a fitted physics model .toml whose
 session zeros are re-estimated on DATA as ``deltatwin compare`` does) adds one step to the
-ladder, in the order given.  See docs/view.md.
+ladder, in the order given, named after the model's effects.  See docs/view.md.
 """
 from __future__ import annotations
 
@@ -34,8 +34,9 @@ def register(sub) -> None:
     p.add_argument("--max-poses", type=int, default=500,
                    help="pose the robot at most at this many readings, evenly spaced (500)")
     p.add_argument("--arrow-scale", type=float, metavar="NM_PER_MM",
-                   help="nm of residual per mm of arrow (default: a power of ten that keeps "
-                        "the largest arrow within a fifth of the workspace)")
+                   help="nm of residual per mm of arrow for every model (default: per model, "
+                        "the 1-2-5 step for which the 90-95th percentile arrow spans 15-20 %% "
+                        "of the workspace)")
     p.add_argument("--params", metavar="PARAMS.toml",
                    help="robot parameter file (default: the nominal set)")
     p.set_defaults(func=run)
@@ -54,11 +55,11 @@ def run(args) -> int:
                         arrow_scale=args.arrow_scale, progress=True)
     print(f"deltatwin view: wrote {s.path} ({len(df)} readings, {s.position_ids.size} "
           f"positions, robot posed at {s.pose_rows.size} readings)")
-    print("  3D scene in mm relative to the workspace centre"
-          + (f"; residual arrows: 1 mm = {s.arrow_scale_nm_per_mm:g} nm" if s.ladder else ""))
+    print("  3D scene in mm relative to the workspace centre")
     for r in s.ladder:
-        print(f"  ladder {r['step']}: {r['name']}: RMS residual cal {r['rms_cal_nm']:.3g} nm, "
-              f"val {r['rms_val_nm']:.3g} nm")
+        print(f"  ladder {r['step']}: {r['label']}: RMS residual cal {r['rms_cal_nm']:.3g} nm, "
+              f"val {r['rms_val_nm']:.3g} nm; residual arrows: 1 mm = "
+              f"{r['arrow_scale_nm_per_mm']:g} nm")
     if args.spawn:
         subprocess.Popen([sys.executable, "-m", "rerun_cli", str(s.path)],
                          start_new_session=True)

@@ -1,8 +1,10 @@
 """``deltatwin view``: real .rrd files written from a small synthetic campaign and a ladder of
-fitted DGMs, read back with rerun.chunk.RrdReader and compared with the data."""
+fitted DGMs, read back with rerun.chunk.RrdReader and compared with the data; the default
+blueprint read back from the file (views, names, scales, ranges), not from the pixels."""
 import os
 import re
 import subprocess
+import uuid
 from collections import defaultdict
 from pathlib import Path
 
@@ -42,7 +44,7 @@ def read_rrd(path):
         times, comps = {}, {}
         for name in b.schema.names:
             col = b.column(name)
-            if name in (view.CAMPAIGN_TIMELINE, view.LADDER_TIMELINE):
+            if name == view.CAMPAIGN_TIMELINE:
                 v = col.to_numpy()
                 times[name] = (v.astype("timedelta64[ns]").astype(np.int64) / 1e9
                                if v.dtype.kind == "m" else v)
@@ -50,6 +52,58 @@ def read_rrd(path):
                 comps[name] = col.to_pylist()
         out[chunk.entity_path].append((times, comps))
     return out
+
+
+def timelines_of(path):
+    """Every timeline column in the recording's chunks (not Rerun's own row ids)."""
+    names = set()
+    for chunk in RrdReader(str(path)).stream().to_chunks():
+        names |= {n for n in chunk.to_record_batch().schema.names
+                  if ":" not in n and not n.startswith("rerun.")}
+    return names
+
+
+class Layout:
+    """The default blueprint stored in a recording, by blueprint entity: views are
+    ``view/<uuid>`` (kind, name, origin; sub-entities hold contents, axes, legend),
+    containers ``container/<uuid>`` (kind, contents, active tab, name)."""
+
+    TABS, HORIZONTAL, VERTICAL, GRID = 1, 2, 3, 4
+
+    def __init__(self, path):
+        reader = RrdReader(str(path))
+        (store,) = reader.blueprints()
+        self.parts = defaultdict(dict)
+        for chunk in reader.stream(store=store).to_chunks():
+            b = chunk.to_record_batch()
+            for name in b.schema.names:
+                if ":" in name:
+                    v = b.column(name).to_pylist()[-1]
+                    self.parts[chunk.entity_path[1:]][name.split(":")[1]] = (
+                        v[0] if isinstance(v, list) and len(v) == 1 else v)
+        self.root = "container/" + str(uuid.UUID(bytes=bytes(
+            self.parts["viewport"]["root_container"])))
+
+    def __getitem__(self, ref):
+        return self.parts[ref]
+
+    def children(self, ref):
+        return self.parts[ref]["contents"]
+
+    def active(self, ref):
+        return self.parts[ref].get("active_tab")
+
+    def contents(self, view_ref):
+        return self.parts[f"{view_ref}/ViewContents"]["query"]
+
+    def views(self, kind=None):
+        return {ref: p for ref, p in self.parts.items() if ref.startswith("view/")
+                and ref.count("/") == 1 and kind in (None, p["class_identifier"])}
+
+    def named(self, name):
+        (ref,) = [r for r, p in self.parts.items() if r.count("/") == 1
+                  and p.get("display_name") == name]
+        return ref
 
 
 def rows_of(rrd, entity, component, timeline=None):
@@ -95,6 +149,18 @@ def written(campaign, tmp_path_factory):
     return df, ladder, summary, read_rrd(path)
 
 
+def field_entity(summary, k):
+    return f"/world/error/{summary.ladder[k]['entity']}"
+
+
+def static_arrows(rrd, entity):
+    """(origins, vectors) of a static Arrows3D, float64."""
+    _, origins = rows_of(rrd, entity, "Arrows3D:origins")
+    _, vectors = rows_of(rrd, entity, "Arrows3D:vectors")
+    assert len(vectors) == 1, entity
+    return (np.array(origins[0], dtype=np.float64), np.array(vectors[0], dtype=np.float64))
+
+
 def expected_field_nm(df, step):
     """Mean residual (model - measurement) per position, nm, computed with pandas."""
     res = pd.DataFrame({a: step.reading_m[:, k] * 1e9 - df[f"{a}_nm"].to_numpy()
@@ -110,12 +176,20 @@ def test_entities_exist(written):
     geoms = {model.geom(g).name for g in range(model.ngeom)} - {"table"}
     assert {f"/world/robot/{g}" for g in geoms} <= set(rrd)
     assert {f"/world/instruments/{s}" for s in INSTRUMENT_SITES} <= set(rrd)
+    entities = [r["entity"] for r in summary.ladder]
+    # each model's field its own entity; the ladder is named after the models' effects
+    assert entities == ["0_geometric", "1_temperatures_geometric_x_temperature_temperature_"
+                        "rates_temperature_accelerations"]
+    assert [r["label"] for r in summary.ladder] == [
+        "geometric", "+ temperatures + geometric x temperature + temperature rates + "
+        "temperature accelerations"]
     for e in ("/world/workspace/hull", "/world/workspace/cal", "/world/workspace/val",
-              "/world/error/residual", "/world/error/added_effect", "/world/error/to_explain",
-              "/ladder/rms_nm", "/ladder/table", "/info"):
+              f"/world/error/{entities[0]}", f"/world/error/{entities[1]}",
+              f"/world/step/{entities[1]}/after", f"/ladder/{entities[0]}",
+              f"/ladder/{entities[1]}", "/ladder/table", "/info"):
         assert e in rrd, e
-    text = rows_of(rrd, "/info", "TextDocument:text")[1][0][0]
-    assert f"1 mm of arrow = {summary.arrow_scale_nm_per_mm:g} nm" in text
+    # one timeline, the campaign's: comparing models never leaves the time series blank
+    assert timelines_of(summary.path) == {view.CAMPAIGN_TIMELINE}
 
 
 def test_rerun_verifies_the_file(written):
@@ -129,17 +203,15 @@ def test_rerun_verifies_the_file(written):
 
 
 def test_arrows_are_the_residuals_in_the_stated_unit(written):
-    """Arrow vector x scale = mean residual per position, to float32's relative precision:
-    no nm detail is lost, even for the few-nm residuals of the complete model."""
+    """Arrow vector x the model's scale = mean residual per position, to float32's relative
+    precision: no nm detail is lost, even for the few-nm residuals of the complete model."""
     df, ladder, summary, rrd = written
-    scale = summary.arrow_scale_nm_per_mm
-    assert np.log10(scale) == round(np.log10(scale))            # a power of ten
-    steps, vecs = rows_of(rrd, "/world/error/residual", "Arrows3D:vectors", view.LADDER_TIMELINE)
-    assert steps.tolist() == list(range(len(ladder)))            # one ladder step per model
     small = []
     for k, step in enumerate(ladder):
+        scale = summary.ladder[k]["arrow_scale_nm_per_mm"]
         exp = expected_field_nm(df, step)
-        got = np.array(vecs[k], dtype=np.float64) * scale
+        _, vec = static_arrows(rrd, field_entity(summary, k))
+        got = vec * scale
         assert got.shape == exp.shape
         norm = np.linalg.norm(exp.to_numpy(), axis=1, keepdims=True)
         assert np.all(np.abs(got - exp.to_numpy()) <= F32_REL * norm)
@@ -152,51 +224,118 @@ def test_arrows_are_the_residuals_in_the_stated_unit(written):
     exp = expected_field_nm(df, ladder[0])
     q = df.groupby("pos_id")[["q1_rad", "q2_rad", "q3_rad"]].mean().loc[exp.index].to_numpy()
     p_m = forward(geom, q).point(geom.cube_offset)      # the measured point, the cube's centre
-    _, origins = rows_of(rrd, "/world/error/residual", "Arrows3D:origins", view.LADDER_TIMELINE)
-    got_mm = np.array(origins[0], dtype=np.float64)
+    got_mm, _ = static_arrows(rrd, field_entity(summary, 0))
     assert np.max(np.abs(got_mm - (p_m - origin) * 1e3)) < 1e-6           # < 1 nm
     # what the local origin avoids: absolute metres in float32 lose more than 1 nm here
     assert np.max(np.abs(p_m.astype(np.float32).astype(np.float64) - p_m)) > 1e-9
 
 
-def test_effect_field_beside_the_residual_it_explains(written):
+def one_two_five(scale):
+    mantissa = scale / 10.0 ** np.floor(np.log10(scale) + 1e-12)
+    return any(np.isclose(mantissa, m, rtol=1e-9) for m in (1.0, 2.0, 5.0))
+
+
+def span_gap(magnitude_nm, scale, extent_mm):
+    """How far (log) the 90th-95th percentile arrows' span misses 15-20 % of the extent."""
+    lo, hi = np.percentile(magnitude_nm, [90, 95]) / scale / extent_mm
+    return max(0.0, np.log(0.15 / hi), np.log(lo / 0.20))
+
+
+def best_possible_gap(magnitude_nm, extent_mm):
+    steps = [m * 10.0 ** d for d in range(-6, 9) for m in (1.0, 2.0, 5.0)]
+    return min(span_gap(magnitude_nm, s, extent_mm) for s in steps)
+
+
+def test_each_field_has_its_own_readable_scale(written):
+    """Per model, 1 mm of arrow = a 1-2-5 step of nm for which the 90th-95th percentile
+    arrow spans 15-20 % of the workspace (or the nearest step when none does), stated in its
+    view's name; the 18.6 mm workspace shows the complete model's few-nm field too."""
     df, ladder, summary, rrd = written
-    scale = summary.arrow_scale_nm_per_mm
-    f0, f1 = (expected_field_nm(df, s) for s in ladder)
-    both = f0.index.intersection(f1.index)
-    steps, eff = rows_of(rrd, "/world/error/added_effect", "Arrows3D:vectors",
-                         view.LADDER_TIMELINE)
-    assert steps.tolist() == [1]
-    _, target = rows_of(rrd, "/world/error/to_explain", "Arrows3D:vectors", view.LADDER_TIMELINE)
-    exp_eff = (f1.loc[both] - f0.loc[both]).to_numpy()
-    exp_tgt = -f0.loc[both].to_numpy()
-    for got, exp in ((eff[0], exp_eff), (target[0], exp_tgt)):
-        got = np.array(got, dtype=np.float64) * scale
-        assert np.all(np.abs(got - exp) <= F32_REL * np.linalg.norm(exp, axis=1, keepdims=True))
+    layout = Layout(summary.path)
+    geom = build_geometry(load_params())
+    extent_mm = float(np.max(hull(geom, point=geom.cube_offset).extents) * 1e3)
+    assert summary.extent_mm == pytest.approx(extent_mm, rel=1e-12)
+    scales = []
+    for k, step in enumerate(ladder):
+        r = summary.ladder[k]
+        scale = r["arrow_scale_nm_per_mm"]
+        mag = np.linalg.norm(expected_field_nm(df, step).to_numpy(), axis=1)
+        assert one_two_five(scale)
+        assert span_gap(mag, scale, extent_mm) == pytest.approx(
+            best_possible_gap(mag, extent_mm), abs=1e-12)
+        lengths_mm = np.linalg.norm(static_arrows(rrd, field_entity(summary, k))[1], axis=1)
+        p95_share = np.percentile(lengths_mm, 95) / extent_mm
+        assert 0.15 / 2.5 < p95_share < 0.20 * 2.5          # readable, never 1 % of it
+        layout.named(f"{r['label']}: 1 mm = {scale:g} nm")
+        scales.append(scale)
+    assert scales[1] < scales[0]                 # the second model's field gets a finer scale
+
+
+def test_arrow_scale_rule_on_random_fields():
+    """``arrow_scale_nm_per_mm`` against a brute force over 1-2-5 steps, on fields with a
+    span of 1 nm to 100 um and spreads from none to wide."""
+    rng = np.random.default_rng(18)
+    hit = 0
+    for _ in range(300):
+        extent = rng.uniform(5.0, 50.0)
+        mag = rng.lognormal(rng.uniform(0, 11), rng.uniform(0, 1.5), rng.integers(5, 400))
+        scale = view.arrow_scale_nm_per_mm(mag, extent)
+        assert one_two_five(scale)
+        best = best_possible_gap(mag, extent)
+        assert span_gap(mag, scale, extent) == pytest.approx(best, abs=1e-12)
+        hit += best == 0.0
+    assert 50 < hit < 300                 # both cases (a step in the band, none) were met
+    assert view.arrow_scale_nm_per_mm(np.zeros(4), 10.0) == 1.0
+    assert view.arrow_scale_nm_per_mm([np.nan], 10.0) == 1.0
+    with pytest.raises(ValueError, match="extent"):
+        view.arrow_scale_nm_per_mm([1.0, 2.0], 0.0)
+
+
+def test_residual_before_and_after_a_step_shown_the_same_way(written):
+    """The step's tab sets the previous model's field beside the new model's, both at the
+    previous model's scale (the error falls as the arrows shrink)."""
+    df, ladder, summary, rrd = written
+    scale0 = summary.ladder[0]["arrow_scale_nm_per_mm"]
+    e0, e1 = (r["entity"] for r in summary.ladder)
+    f1 = expected_field_nm(df, ladder[1]).to_numpy()
+    _, after = static_arrows(rrd, f"/world/step/{e1}/after")
+    assert np.all(np.abs(after * scale0 - f1) <= F32_REL * np.linalg.norm(f1, axis=1,
+                                                                            keepdims=True))
+    layout = Layout(summary.path)
+    label = summary.ladder[1]["label"]
+    step = layout.named(f"before/after {label}")
+    assert layout[step]["container_kind"] == Layout.VERTICAL
+    before, after_view = layout.children(step)
+    assert layout.contents(before) == ["$origin/workspace/**", f"$origin/error/{e0}"]
+    assert layout.contents(after_view) == ["$origin/workspace/**", f"$origin/step/{e1}/after"]
+    assert layout[before]["display_name"].endswith(f"1 mm = {scale0:g} nm")
+    assert layout[after_view]["display_name"].endswith(f"1 mm = {scale0:g} nm")
 
 
 def test_ladder_bar_chart_and_table(written):
     df, ladder, summary, rrd = written
     val = (df["split"] == "val").to_numpy()
-    bars = rows_of(rrd, "/ladder/rms_nm", "BarChart:values")[1][0][0]["buffer"]
-    assert len(bars) == len(ladder)
+    bars = [rows_of(rrd, f"/ladder/{r['entity']}", "BarChart:values")[1][0][0]["buffer"]
+            for r in summary.ladder]
     for k, step in enumerate(ladder):
         r = (step.reading_m[val] * 1e9 - df.loc[val, ["x_nm", "y_nm", "z_nm"]].to_numpy())
         r = r[np.isfinite(r)]
-        assert bars[k] == pytest.approx(np.sqrt(np.mean(r ** 2)), rel=1e-9)
-        assert summary.ladder[k]["rms_val_nm"] == pytest.approx(bars[k], rel=1e-12)
-    assert bars[1] < bars[0]
+        assert bars[k] == [pytest.approx(np.sqrt(np.mean(r ** 2)), rel=1e-9)]
+        assert summary.ladder[k]["rms_val_nm"] == pytest.approx(bars[k][0], rel=1e-12)
+    assert bars[1][0] < bars[0][0]
     table = rows_of(rrd, "/ladder/table", "TextDocument:text")[1][0][0]
-    assert all(step.name in table for step in ladder)
+    for r in summary.ladder:
+        assert f"| {r['label']} |" in table
+        assert f"{r['arrow_scale_nm_per_mm']:g} nm |" in table
 
 
 def test_time_series_match_the_dataset(written):
     df, ladder, summary, rrd = written
     t = df["t_s"].to_numpy()
     cols = {f"/timeseries/temperature_C/{c[2:-2]}": c for c in df.columns if c.startswith("T_")}
-    cols.update({f"/timeseries/coil_A/coil{i}": f"coil{i}_A" for i in (1, 2, 3)})
-    cols["/timeseries/force_N"] = "F_N"
-    cols.update({f"/timeseries/acceptance_std/{a}_std_nm": f"{a}_std_nm" for a in "xyz"})
+    cols.update({f"/timeseries/coil_current_A/coil{i}": f"coil{i}_A" for i in (1, 2, 3)})
+    cols["/timeseries/force_N/F"] = "F_N"
+    cols.update({f"/timeseries/std_nm/{a}_std_nm": f"{a}_std_nm" for a in "xyz"})
     cols.update({f"/timeseries/autocollimator_arcsec/{c[:-7]}": c
                  for c in ("ac1_ry_arcsec", "ac2_rx_arcsec")})
     assert len(cols) == 4 + 3 + 1 + 3 + 2
@@ -207,13 +346,74 @@ def test_time_series_match_the_dataset(written):
         np.testing.assert_allclose(ts, t[ok], rtol=0, atol=1e-9)
     for k, step in enumerate(ladder):
         for a, axis in enumerate("xyz"):
-            entity = f"/timeseries/residual_nm/{axis}/{summary.ladder[k]['entity']}"
+            entity = f"/timeseries/residual_nm/{summary.ladder[k]['entity']}/{axis}"
             ts, vals = rows_of(rrd, entity, "Scalars:scalars", view.CAMPAIGN_TIMELINE)
             r = step.reading_m[:, a] * 1e9 - df[f"{axis}_nm"].to_numpy()
             ok = np.isfinite(r)
             # m <-> nm conversions of cm-sized readings round at ~1e-9 nm
             np.testing.assert_allclose(np.array(vals)[:, 0], r[ok], rtol=0, atol=1e-6)
             np.testing.assert_allclose(ts, t[ok], rtol=0, atol=1e-9)
+
+
+def test_layout_opens_on_the_first_field(written):
+    """What the viewer shows on opening: the first model's field alone (workspace, points,
+    arrows; the robot in another tab), paused, the side and time panels collapsed."""
+    df, ladder, summary, rrd = written
+    layout = Layout(summary.path)
+    root = layout.root
+    assert layout[root]["container_kind"] == Layout.TABS
+    error_tab, campaign_tab = layout.children(root)
+    assert layout.active(root) == error_tab
+    assert layout[error_tab]["display_name"] == "error fields"
+    assert layout[campaign_tab]["display_name"] == "campaign"
+    fields, side = layout.children(error_tab)
+    assert layout[fields]["container_kind"] == Layout.TABS
+    first = layout.active(fields)
+    assert first == layout.children(fields)[0]
+    r0 = summary.ladder[0]
+    assert layout[first]["display_name"] == (f"{r0['label']}: 1 mm = "
+                                             f"{r0['arrow_scale_nm_per_mm']:g} nm")
+    assert layout[first]["class_identifier"] == "3D"
+    assert layout.contents(first) == ["$origin/workspace/**", f"$origin/error/{r0['entity']}"]
+    robot = layout.named("robot and beams")
+    assert robot in layout.children(fields)
+    assert "$origin/robot/**" in layout.contents(robot)
+    assert layout["time_panel"]["play_state"] == 1                 # PlayState.Paused
+    assert layout["time_panel"]["timeline"] == view.CAMPAIGN_TIMELINE
+    for panel in ("time_panel", "blueprint_panel", "selection_panel"):
+        assert layout[panel]["state"] == 2                          # PanelState.Collapsed
+    # the ladder: bar chart (one entity per model: the legend names them) and table
+    bars = layout.named("RMS residual per model (nm)")
+    assert layout[bars]["space_origin"] == "ladder"
+    assert layout[f"{bars}/PlotLegend"]["corner"] == 2              # Corner2D.RightTop
+
+
+def test_time_series_views_span_the_campaign(written):
+    """Every plot spans the whole campaign, one unit per plot, explicit and distinct colours,
+    readings as points, and x room after the last reading for the legend (top right), so the
+    legend covers no data."""
+    df, ladder, summary, rrd = written
+    layout = Layout(summary.path)
+    t0, t1 = df["t_s"].min() * 1e9, df["t_s"].max() * 1e9
+    plots = layout.views("TimeSeries")
+    assert len(plots) == len(ladder) + 5      # residual per model; T, coils, force, std, ac
+    units = re.compile(r"_(C|A|N|nm|arcsec)$")
+    for ref, p in plots.items():
+        rng = layout[f"{ref}/TimeAxis"]["view_range"]
+        assert rng["start"] <= t0 and rng["end"] >= t1 + 0.1 * (t1 - t0), p["display_name"]
+        assert layout[f"{ref}/PlotLegend"] == {"corner": 2, "visible": True}
+        origin = "/" + p["space_origin"]
+        assert units.search(origin.split("/")[2]), origin      # one unit per plot
+        series = [e for e in rrd if e.startswith(origin + "/") or e == origin]
+        assert series, origin
+        colours = []
+        for e in series:
+            assert not any("SeriesLines" in c for _, comps in rrd[e] for c in comps), e
+            _, colour = rows_of(rrd, e, "SeriesPoints:colors")      # readings as points,
+            colours.append(colour[0][0])                             # explicit colour
+        assert len(set(colours)) == len(colours), origin            # distinct in a plot
+    origins = {p["space_origin"] for p in plots.values()}
+    assert {"timeseries/coil_current_A", "timeseries/force_N"} <= origins   # A apart from N
 
 
 def test_robot_posed_along_the_campaign(written):
@@ -228,9 +428,8 @@ def test_robot_posed_along_the_campaign(written):
     cube_mm = (forward(geom, q).point(geom.cube_offset) - summary.origin_m) * 1e3
     got = np.array([v[0] for v in trans], dtype=np.float64)
     np.testing.assert_allclose(got, cube_mm, rtol=0, atol=1e-4)
-    steps, _ = rows_of(rrd, "/world/robot/mirror_cube", "Transform3D:translation",
-                       view.LADDER_TIMELINE)
-    assert steps.tolist() == [0]                          # drawn on the ladder timeline too
+    _, fixed = rows_of(rrd, "/world/robot/base_plate", "Transform3D:translation")
+    assert len(fixed) == 1                                # fixed to the room: logged once
     # the X interferometer's beam ends on the cube's -x face
     _, strips = rows_of(rrd, "/world/instruments/interferometer_x", "LineStrips3D:strips",
                         view.CAMPAIGN_TIMELINE)
@@ -261,9 +460,10 @@ def test_direct_igm_step_is_its_end_effector_error(tmp_path):
     np.testing.assert_allclose(res, igm.position_error(df), rtol=1e-9, atol=1e-15)
     summary = write_recording(df, meta, [step], tmp_path / "force.rrd", max_poses=3)
     rrd = read_rrd(tmp_path / "force.rrd")
-    _, vecs = rows_of(rrd, "/world/error/residual", "Arrows3D:vectors", view.LADDER_TIMELINE)
+    _, vec = static_arrows(rrd, field_entity(summary, 0))
+    assert summary.ladder[0]["label"] == "geometric + force + geometric x force"
     ids, field = view.position_field(df["pos_id"].to_numpy(), igm.position_error(df))
-    got = np.array(vecs[0], dtype=np.float64) * summary.arrow_scale_nm_per_mm
+    got = vec * summary.ladder[0]["arrow_scale_nm_per_mm"]
     exp = field * 1e9
     assert np.all(np.abs(got - exp) <= F32_REL * np.linalg.norm(exp, axis=1, keepdims=True))
     with pytest.raises(TypeError, match="not a calibration model"):
@@ -277,7 +477,7 @@ def test_nothing_half_written(campaign, tmp_path, monkeypatch):
 
     def fail(*a, **k):
         raise RuntimeError("disk full")
-    monkeypatch.setattr(view, "_log_time_series", fail)
+    monkeypatch.setattr(view, "_log_panel", fail)
     with pytest.raises(RuntimeError, match="disk full"):
         write_recording(df, meta, [], path, max_poses=2)
     assert path.read_bytes() == b"previous recording"
@@ -309,10 +509,11 @@ def test_cli_writes_a_recording_without_a_viewer(campaign, tmp_path, capsys, mon
     out, err = capsys.readouterr()
     assert code == 0, err
     rrd = read_rrd(tmp_path / "campaign.rrd")                   # default: next to the data
-    steps, _ = rows_of(rrd, "/world/error/residual", "Arrows3D:vectors", view.LADDER_TIMELINE)
-    assert steps.tolist() == [0, 1]
-    assert "/timeseries/residual_nm/x/0_geometric" in rrd and "/timeseries/residual_nm/x/1_C" in rrd
-    assert "1 mm =" in out
+    # named after the models' feature families, not after the files
+    assert "/world/error/0_geometric" in rrd and "/timeseries/residual_nm/0_geometric/x" in rrd
+    assert "ladder 1: + temperatures + geometric x temperature" in out
+    assert "C.json" not in out and "/world/error/1_C" not in rrd
+    assert out.count("residual arrows: 1 mm =") == 2
     (tmp_path / "fitted.toml").write_text("")
     code = main(["view", str(data), "--model", str(tmp_path / "fitted.toml"),
                  "-o", str(tmp_path / "x.rrd")])
@@ -341,23 +542,24 @@ def test_fitted_toml_arrows_are_its_residuals(fitted_model, capsys):
                  "-o", str(d / "fit.rrd"), "--max-poses", "3"])
     out, err = capsys.readouterr()
     assert code == 0, err
-    m = re.search(r"residual arrows: 1 mm = ([0-9.e+-]+) nm", out)
+    m = re.search(r"ladder 0: geometric_errors: .* residual arrows: 1 mm = ([0-9.e+-]+) nm",
+                  out)                                     # named after its effects
     scale = float(m.group(1))
     rrd = read_rrd(d / "fit.rrd")
-    steps, vecs = rows_of(rrd, "/world/error/residual", "Arrows3D:vectors", view.LADDER_TIMELINE)
-    assert steps.tolist() == [0]
+    assert [e for e in rrd if e.startswith("/world/error/")] == ["/world/error/0_geometric_errors"]
+    _, vec = static_arrows(rrd, "/world/error/0_geometric_errors")
     res_nm = -fit.residual_ * 1e9                          # model minus measurement, nm
     exp = pd.DataFrame(res_nm, columns=list("xyz")).groupby(df["pos_id"].to_numpy()).mean()
-    got = np.array(vecs[0], dtype=np.float64) * scale
+    got = vec * scale
     assert got.shape == exp.shape == (df["pos_id"].nunique(), 3)
     norm = np.linalg.norm(exp.to_numpy(), axis=1, keepdims=True)
     assert np.all(np.abs(got - exp.to_numpy()) <= F32_REL * norm)
     assert np.median(norm) > 20.0                           # the hidden force is left in it
     for a, axis in enumerate("xyz"):
-        ts, vals = rows_of(rrd, f"/timeseries/residual_nm/{axis}/0_fitted", "Scalars:scalars",
-                           view.CAMPAIGN_TIMELINE)
+        ts, vals = rows_of(rrd, f"/timeseries/residual_nm/0_geometric_errors/{axis}",
+                           "Scalars:scalars", view.CAMPAIGN_TIMELINE)
         np.testing.assert_allclose(np.array(vals)[:, 0], res_nm[:, a], rtol=0, atol=1e-6)
-    assert re.search(r"ladder 0: fitted: RMS residual cal [0-9.]+ nm, val "
+    assert re.search(r"ladder 0: geometric_errors: RMS residual cal [0-9.]+ nm, val "
                      f"{np.sqrt(np.mean(res_nm[(df['split'] == 'val').to_numpy()] ** 2)):.3g} nm",
                      out)
 
