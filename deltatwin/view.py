@@ -403,7 +403,9 @@ def _fields(pos_id, residuals, extent_mm, arrow_scale) -> list[_Field]:
     return out
 
 
-def _residual_panels(df, labels, slugs, residuals) -> list[_Panel]:
+def _residual_panels(labels, slugs, residuals) -> list[_Panel]:
+    """One plot per model: its residual per reading, x, y, z in their usual red, green, blue
+    (tab10's)."""
     colours = {"x": (214, 39, 40), "y": (44, 160, 44), "z": (31, 119, 180)}
     panels = []
     for label, slug, res in zip(labels, slugs, residuals):
@@ -498,7 +500,7 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     slugs = [_slug(k, label) for k, label in enumerate(labels)]
     residuals = [residuals_m(df, s) for s in ladder]
     fields = _fields(pos_id, residuals, extent_mm, arrow_scale)
-    residual_panels = _residual_panels(df, labels, slugs, residuals)
+    residual_panels = _residual_panels(labels, slugs, residuals)
     campaign_panels = _campaign_panels(df)
 
     # the robot along the campaign

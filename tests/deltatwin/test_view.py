@@ -88,13 +88,15 @@ class Layout:
         return self.parts[ref]
 
     def children(self, ref):
-        return self.parts[ref]["contents"]
+        contents = self.parts[ref]["contents"]
+        return contents if isinstance(contents, list) else [contents]
 
     def active(self, ref):
         return self.parts[ref].get("active_tab")
 
     def contents(self, view_ref):
-        return self.parts[f"{view_ref}/ViewContents"]["query"]
+        query = self.parts[f"{view_ref}/ViewContents"]["query"]
+        return query if isinstance(query, list) else [query]
 
     def views(self, kind=None):
         return {ref: p for ref, p in self.parts.items() if ref.startswith("view/")
@@ -482,6 +484,21 @@ def test_nothing_half_written(campaign, tmp_path, monkeypatch):
         write_recording(df, meta, [], path, max_poses=2)
     assert path.read_bytes() == b"previous recording"
     assert sorted(os.listdir(tmp_path)) == ["run.rrd"]
+
+
+def test_without_models_the_workspace_and_the_campaign(campaign, tmp_path):
+    df, meta, _ = campaign
+    summary = write_recording(df, meta, [], tmp_path / "plain.rrd", max_poses=2)
+    layout = Layout(summary.path)
+    error_tab, campaign_tab = layout.children(layout.root)
+    fields, side = layout.children(error_tab)
+    (info,) = layout.children(side)
+    first = layout.active(fields)
+    assert layout[first]["display_name"] == "workspace: calibration and validation positions"
+    assert layout.contents(first) == ["$origin/workspace/**"]
+    assert layout[info]["space_origin"] == "info"
+    assert len(layout.children(campaign_tab)) == 5
+    assert not [e for e in read_rrd(summary.path) if e.startswith(("/world/error", "/ladder"))]
 
 
 def test_bad_input_is_named(campaign, tmp_path):
