@@ -17,7 +17,7 @@ The recording holds (all static unless said)
 * ``timeseries/...``: the residual per axis of each model, every temperature, the coil
   currents, the force, the reading std (acceptance) and the autocollimator angles, as points
   (one per reading) on ``campaign_time`` (s since the campaign's start);
-* ``ladder/rms_nm/<k>_<step>`` (one bar per model), ``ladder/table``, ``info`` (text), and the
+* ``ladder/<k>_<step>`` (a bar chart each: the RMS residual), ``ladder/table``, ``info`` (text), and the
   default blueprint (``_blueprint``): opens paused on the first model's field.
 
 Ladder steps are named after their effects (``step_labels``): the first by its effects, each
@@ -28,7 +28,7 @@ millimetres, z up, relative to a local origin, the centre of the workspace's bou
 positions keep ~1 nm.  Each field's arrows are drawn at ``1 mm = s nm`` with s a 1-2-5 step
 chosen (``arrow_scale_nm_per_mm``) so the 90th-95th percentile arrow spans 15-20 % of the
 workspace; the stored vector is the residual in units of s nm (float32's relative precision,
-2^-24), and s is stated in the view's name, the table and ``info``.
+2^-24), and s is stated in the view's name and the ladder table.
 """
 from __future__ import annotations
 
