@@ -116,10 +116,16 @@ def test_igm_reports_points_that_do_not_converge(thermal_data, thermal_dgm):
     dgm = DGM.from_outputs(fs, [mk("x", Term((("q1", 2),)), 1.0),
                                 mk("y", Term((("q2", 1),)), 0.1),
                                 mk("z", Term((("q3", 1),)), 0.1)])
+    # the first pass stops at q0 = 0 (singular); the in-stroke starts find q1 = +-0.01
     res = IGM(dgm).solve(np.array([[1e-4, 1e-3, 1e-3]]))
-    assert not res.converged[0]
+    assert res.converged[0] and abs(res.q[0, 0]) == pytest.approx(0.01, abs=1e-12)
+    assert res.iterations[0] == 0
     res = IGM(dgm).solve(np.array([[1e-4, 1e-3, 1e-3]]), q0=[0.02, 0.0, 0.0])
     assert res.converged[0] and res.q[0, 0] == pytest.approx(0.01, abs=1e-12)
+    # x = q1^2 cannot be negative: out of reach from every start, never "converged"
+    res = IGM(dgm).solve(np.array([[-1e-4, 1e-3, 1e-3]]))
+    assert res.status[0] == "out_of_reach" and not res.converged[0]
+    assert res.residual_m[0] >= 1e-4 - 1e-12 and "out of reach" in res.reason(0)
 
 
 def test_json_export_load_predicts_identically(tmp_path, thermal_data, thermal_dgm,
