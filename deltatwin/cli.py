@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "deltatwin.commands.view",
     "deltatwin.commands.emulate",
     "deltatwin.commands.campaign",
+    "deltatwin.commands.compensate",
 )
 
 EXIT_DONE = 0

@@ -155,7 +155,7 @@ def known_state(inst: InstrumentSet) -> None:
 
 def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, cosine: bool,
                  dead_path: dict, progress: bool = True, journal=None,
-                 replay: bool = False) -> pd.DataFrame:
+                 replay: bool = False, controller=None) -> pd.DataFrame:
     """Execute ``plan`` through the instrument interface, point by point.
 
     ``journal`` (a ``twin.journal.Journal``, optional): each accepted point's raw readings are
@@ -172,6 +172,15 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
     survived): the journaled points are taken again, with the zeros of earlier resumes where they
     were, to bring that world (clock, heat, noise streams) to where it was, and each must give
     exactly the journaled values (else ``JournalError``); then the campaign resumes as above.
+
+    ``controller`` (optional; compensation in the loop): decides each point's motor coordinates
+    from what the instruments read at that moment, in place of ``plan.q``. At every zero the
+    temperature scan is recorded with it (``zero_T_C``); per point, after the coil currents
+    are set and before the move, ``controller.command(k, inst, zero)`` returns ``(q (3,) rad,
+    record)``. The commanded q (``q_cmd_rad``) and the record (``control``: what it read and
+    decided) are journaled with the point and give the dataset's motor coordinates. Journaled
+    points are handed to ``controller.replayed(k, point)`` in order instead (resume, replay),
+    so that its state (e.g. the temperature history) is what it was.
     """
     import json
     import logging
@@ -195,6 +204,8 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
     bar = tqdm(total=n, initial=len(done), desc="campaign", unit="pt", disable=not progress)
     for k in range(n):
         if k in done and not replay:
+            if controller is not None:
+                controller.replayed(k, done[k])
             continue
         session = plan.session[k]
         new_session = k == 0 or session != plan.session[k - 1]
@@ -213,6 +224,9 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
             inst.interferometers.zero()
             ac0 = inst.autocollimators.read()
             zero = {"zero_t_s": zero_t, "zero_ac_rad": [ac0.angles_rad[c] for c in AC_CHANNELS]}
+            if controller is not None:          # the conditions the zero was taken in
+                scan0 = inst.thermometers.scan()
+                zero["zero_T_C"] = [scan0.temperatures_C[s] for s in sensors]
             if rezero and not new_session:
                 log.warning("point %d: interferometers zeroed again at home at t = %.1f s (the "
                             "zero of session %r did not survive the interruption)", k, zero_t,
@@ -220,7 +234,15 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
         if np.any(plan.currents_A[k] != currents):
             inst.coils.set_currents(plan.currents_A[k])
             currents = plan.currents_A[k].copy()
-        inst.robot.move_to(plan.q[k])
+        q_k, control = plan.q[k], None
+        if controller is not None:
+            if k in done:                         # decided before: the journal holds it
+                q_k, control = np.asarray(done[k]["q_cmd_rad"], float), done[k]["control"]
+                controller.replayed(k, done[k])
+            else:
+                q_k, control = controller.command(k, inst, zero)
+                q_k = np.asarray(q_k, dtype=np.float64)
+        inst.robot.move_to(q_k)
         inst.clock.sleep(settings.wait_s)
         axes = plan.sessions[session][1]
         ifm = np.full((R, 3), np.nan)
@@ -249,6 +271,8 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
         point = {"pos_id": int(plan.pos_id[k]), "t_s": t_end, **zero, "rezero": bool(rezero),
                  "ifm_m": ifm, "ifm_std_m": ifm_std, "ac_rad": ac,
                  "T_C": [scan.temperatures_C[s] for s in sensors]}
+        if controller is not None:
+            point.update(q_cmd_rad=q_k, control=control)
         if k in done:                             # replay: the rebuilt world must agree
             if canonical_json(point) != canonical_json(done[k]):
                 raise JournalError(f"{journal.path}: point {k} taken again in the rebuilt "
@@ -263,6 +287,8 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
     bar.close()
     pts = [done[k] for k in range(n)]
     arr = lambda key: np.array([p[key] for p in pts], dtype=np.float64)
+    if controller is not None:
+        plan = dataclasses.replace(plan, q=arr("q_cmd_rad"))
     return _rows(plan, arr("t_s"), arr("ifm_m"), arr("ifm_std_m"), arr("ac_rad"), arr("T_C"),
                  sensors, arr("zero_ac_rad"), cosine, dead_path)
 

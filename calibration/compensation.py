@@ -1,0 +1,338 @@
+"""Compensation in the loop: a fitted model turns a Cartesian target and the conditions read at
+that moment (temperature scans, coil currents) into motor coordinates, as the papers' controller
+did.
+
+A target is an interferometer reading (m, per axis x, y, z) counted from the session's zero,
+taken at home (q = 0) with the coils off at the start of the session. Each model kind is a
+``Compensator``:
+
+* ``nominal``: the robot's nominal kinematics (and nominal optics and statics), no effect, no
+  condition: what the robot does uncompensated;
+* ``stepwise``: the first paper's DGM inverted by Newton (blackbox/igm.py);
+* ``direct_igm``: the second paper's direct IGM, q = f(X, Y, Z, F [, T]);
+* ``physics``: a fitted physics model inverted (physics/inverse.py).
+
+A black-box model predicts readings counted from its calibration session's zero; the zero of a
+compensation session is taken in other conditions, so the model's own reading at that zero (home,
+coils off, the zero's temperatures) is added to every target ("zero transfer"). The physics model
+counts from the session's zero itself.
+
+``ConditionLog`` keeps what the controller has read (the zero's scan, one scan per decision) and
+gives it as dataset rows, so that every model derives its temperatures, rates and smoothing from
+them exactly as from its calibration data. ``LoopController`` is what ``twin.campaign.
+run_campaign`` calls at each point. Units: m, rad, s, N, A, degC in the temperature columns.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from deltatwin.calibration.blackbox.dgm import DGM
+from deltatwin.calibration.blackbox.direct_igm import DirectIGM
+from deltatwin.calibration.blackbox.igm import IGM
+from deltatwin.calibration.blackbox.model_file import load_model
+from deltatwin.calibration.blackbox.validation import evaluate
+from deltatwin.calibration.errors import CalibrationInputError, ModelFileError
+from deltatwin.calibration.metrics import error_figures
+from deltatwin.calibration.physics.inverse import PhysicsInverse
+from deltatwin.calibration.physics.measurements import measurements
+from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
+from deltatwin.calibration.physics.model_file import load_fitted
+from deltatwin.models.params import RobotParams, load_params
+from deltatwin.twin.instruments.optics import AXES
+
+SESSION = "compensation"
+HISTORY_S = 900.0     # scans kept: longer than every model's smoothing / derivative window (600 s)
+
+
+@dataclass
+class Command:
+    """One decision: motor coordinates (3,) rad, the solver's status and residual (m)."""
+    q: np.ndarray
+    status: str
+    residual_m: float
+    reason: str
+
+
+class ConditionLog:
+    """The session's zero scan and the scans read at each decision, as dataset rows."""
+
+    def __init__(self, sensors, history_s: float = HISTORY_S):
+        self.sensors = tuple(sensors)
+        self.history_s = float(history_s)
+        self.zero_t_s = None
+        self._zero_T = None
+        self._scans: dict[float, list] = {}
+
+    def zero(self, t_s: float, T_C) -> None:
+        """A new session zero (its time and scan): the history starts again."""
+        self.zero_t_s, self._zero_T, self._scans = float(t_s), list(T_C), {}
+
+    def add(self, t_s: float, T_C) -> None:
+        """A scan completed at ``t_s`` (a scan read twice is kept once)."""
+        self._scans[float(t_s)] = list(T_C)
+
+    def frame(self, currents_A=None, force_N: float = 0.0, target_m=None) -> pd.DataFrame:
+        """Rows in the dataset format: the zero (home, coils off), then the scans of the last
+        ``history_s``; the last row carries the present currents, force and target (m)."""
+        if self.zero_t_s is None:
+            raise CalibrationInputError("ConditionLog: no session zero recorded yet")
+        times = sorted(t for t in self._scans if t > self.zero_t_s)
+        if times:
+            times = [t for t in times if t >= times[-1] - self.history_s]
+        t = np.array([self.zero_t_s] + times)
+        T = np.array([self._zero_T] + [self._scans[x] for x in times], dtype=np.float64)
+        n = t.size
+        df = pd.DataFrame({"t_s": t, "pos_id": np.arange(n), "split": "val", "session": SESSION,
+                           "q1_rad": 0.0, "q2_rad": 0.0, "q3_rad": 0.0})
+        target = np.full(3, np.nan) if target_m is None else np.asarray(target_m, float)
+        for k, a in enumerate(AXES):
+            col = np.full(n, np.nan)
+            col[-1] = target[k] * 1e9
+            df[f"{a}_nm"] = col
+        for j, s in enumerate(self.sensors):
+            df[f"T_{s}_C"] = T[:, j]
+        I = np.zeros((n, 3))
+        if currents_A is not None and n > 1:
+            I[-1] = currents_A
+        for i in range(3):
+            df[f"coil{i + 1}_A"] = I[:, i]
+        F = np.zeros(n)
+        F[-1] = force_N if n > 1 else 0.0
+        df["F_N"] = F
+        df["cosine_corrected"] = False
+        return df
+
+
+class Compensator:
+    """A model kind that commands the robot. ``zero(frame)`` at each session zero (a frame of
+    the zero row only); ``command(target_m, frame)``: the motor coordinates for the last row."""
+    kind = "?"
+    model_path: str | None = None
+
+    def zero(self, frame: pd.DataFrame) -> None:
+        """Nothing to transfer by default."""
+
+    def command(self, target_m: np.ndarray, frame: pd.DataFrame) -> Command:
+        raise NotImplementedError
+
+    def predicted(self, df: pd.DataFrame, meta: dict | None) -> dict:
+        """The model's validation figures per axis on its calibration data (nm):
+        {axis: {"err_p90": ..., "err_1645sigma": ...}}."""
+        raise NotImplementedError
+
+
+def _figures(fig: dict) -> dict:
+    return {"err_p90": fig.get("err_p90"), "err_1645sigma": fig.get("err_1645sigma"),
+            "n": fig.get("n")}
+
+
+class PhysicsCompensator(Compensator):
+    """A physics model inverted (target + temperatures + currents -> q)."""
+    kind = "physics"
+
+    def __init__(self, model: PhysicsModel, sensors: dict, q0=None, **inverse_kw):
+        self.model = model
+        self.sensors = dict(sensors)
+        self.inverse = PhysicsInverse(model, **inverse_kw)
+
+    def measurements(self, frame: pd.DataFrame):
+        return measurements(frame, {"sensors": self.sensors}, self.model.params,
+                            where="compensation conditions")
+
+    def command(self, target_m, frame, q0=None) -> Command:
+        meas = self.measurements(frame)
+        r = self.inverse.solve(meas, np.asarray(target_m, float)[None], [meas.n - 1], q0=q0)
+        return Command(r.q[0], str(r.status[0]), float(r.residual_m[0]), r.reason(0))
+
+    def forward(self, q: np.ndarray, frame: pd.DataFrame) -> np.ndarray:
+        """Readings (n, 3) m the model predicts at motor coordinates q (n, 3) in the conditions
+        of the frame's last row."""
+        q = np.atleast_2d(q)
+        rows = pd.concat([frame] + [frame.iloc[[-1]]] * (q.shape[0] - 1), ignore_index=True)
+        rows["pos_id"] = np.arange(len(rows))
+        meas = self.measurements(rows)
+        idx = np.arange(len(frame) - 1, len(rows))
+        return self.inverse.predict(meas, idx, q)
+
+    def predicted(self, df, meta):
+        meas = measurements(df, meta, self.model.params, where="calibration data")
+        pred = self.model.predict_path(meas)
+        res = residuals(meas, pred, group_offsets(meas, pred, meas.cal))
+        fig = figures_nm(res, meas.val)
+        return {a: _figures(fig[a]) for a in AXES if a in fig}
+
+
+class NominalCompensator(PhysicsCompensator):
+    """The nominal robot (no effect: nominal kinematics, statics and optics): uncompensated."""
+    kind = "nominal"
+
+    def __init__(self, params: RobotParams | None = None, **inverse_kw):
+        super().__init__(PhysicsModel([], params), {}, **inverse_kw)
+
+    def predicted(self, df, meta):
+        return None
+
+
+class StepwiseCompensator(Compensator):
+    """The first paper's stepwise DGM, inverted by Newton within the stroke."""
+    kind = "stepwise"
+
+    def __init__(self, dgm: DGM, stroke_rad=None):
+        self.dgm = dgm
+        self.igm = IGM(dgm, stroke_rad=stroke_rad)
+        self.order = [dgm.output_names_.index(a) for a in AXES]
+        self.zero_reading_m = None
+
+    def zero(self, frame):
+        v = self.dgm.variables(frame.iloc[[0]])
+        v.update(q1=np.zeros(1), q2=np.zeros(1), q3=np.zeros(1))
+        self.zero_reading_m = self.dgm.predict_values(v)[0, self.order]
+
+    def command(self, target_m, frame) -> Command:
+        v = self.dgm.variables(frame)
+        aux = {k: v[k][-1:] for k in self.igm.aux_variables}
+        r = self.igm.solve((np.asarray(target_m, float) + self.zero_reading_m)[None], aux)
+        return Command(r.q[0], str(r.status[0]), float(r.residual_m[0]), r.reason(0))
+
+    def predicted(self, df, meta):
+        ev = evaluate(self.dgm, df)["outputs"]
+        return {a: _figures(ev[a]["val"]) for a in AXES if a in ev}
+
+
+class DirectIGMCompensator(Compensator):
+    """The second paper's direct IGM, q = f(X, Y, Z, F [, T]): evaluated, not solved; the zero
+    transfer solves f(X0, F = 0, T_zero) = 0 for X0 by Newton on the model's Jacobian."""
+    kind = "direct_igm"
+
+    def __init__(self, model: DirectIGM, stroke_rad=None, tol_m: float = 1e-12,
+                 max_iter: int = 30):
+        if model.output_names_ != ["q1", "q2", "q3"]:
+            raise ModelFileError(f"a direct IGM commands q1, q2, q3; this one has outputs "
+                                 f"{model.output_names_}")
+        self.model = model
+        lo, hi = load_params(None).stroke_rad if stroke_rad is None else stroke_rad
+        self.stroke_rad = (float(lo), float(hi))
+        self.tol_m, self.max_iter = tol_m, max_iter
+        self.zero_reading_m = None
+
+    def zero(self, frame):
+        v = self.model.variables(frame.iloc[[0]].assign(x_nm=0.0, y_nm=0.0, z_nm=0.0, F_N=0.0))
+        X = np.zeros(3)
+        for _ in range(self.max_iter):
+            v.update(X=X[0:1], Y=X[1:2], Z=X[2:3])
+            q = self.model.predict_values(v)[0]
+            J = self.model.jacobian(v)[0]                       # dq/dX (3, 3) rad/m
+            dX = np.linalg.solve(J, q)
+            X = X - dX
+            if np.max(np.abs(dX)) <= self.tol_m:
+                break
+        else:
+            raise CalibrationInputError(f"direct IGM: the home reading at the zero did not "
+                                        f"converge (last step {np.max(np.abs(dX)):.3g} m)")
+        self.zero_reading_m = X
+
+    def command(self, target_m, frame) -> Command:
+        X = np.asarray(target_m, float) + self.zero_reading_m
+        f = frame.copy()
+        for k, a in enumerate(AXES):
+            f.loc[f.index[-1], f"{a}_nm"] = X[k] * 1e9
+        v = self.model.variables(f)
+        q = self.model.predict_values({k: a[-1:] for k, a in v.items()})[0]
+        lo, hi = self.stroke_rad
+        if not np.all(np.isfinite(q)):
+            return Command(np.zeros(3), "not_finite", math.inf, "not finite: the model gave "
+                           f"q = {q.tolist()} rad")
+        if np.any((q < lo) | (q > hi)):
+            return Command(np.clip(q, lo, hi), "out_of_stroke", math.nan,
+                           f"out of stroke: the model asks q = {q.tolist()} rad, outside "
+                           f"[{lo}, {hi}] rad; commanded the nearest stroke end")
+        return Command(q, "converged", 0.0, "evaluated: q = f(X, Y, Z, F)")
+
+    def predicted(self, df, meta):
+        ev = evaluate(self.model, df).get("position") or {}
+        return {a: _figures(ev[a]["val"]) for a in AXES if a in ev}
+
+
+def load_compensator(path) -> Compensator:
+    """The compensator of a model file: a fitted physics model (TOML, ``deltatwin fit -o``)
+    or a black-box model (JSON, ``deltatwin calibrate -o``: a DGM or a direct IGM)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such model file")
+    if path.suffix.lower() == ".toml":
+        model, doc = load_fitted(path)
+        comp = PhysicsCompensator(model, doc["model"].get("sensors") or {})
+        comp.calibration_data = doc["model"].get("data")
+    else:
+        m = load_model(path)
+        comp = StepwiseCompensator(m) if isinstance(m, DGM) else DirectIGMCompensator(m)
+        comp.calibration_data = None
+    comp.model_path = str(path)
+    return comp
+
+
+class LoopController:
+    """What ``run_campaign`` calls at each point: reads the scan (and the coil currents), lets
+    the point's compensator decide, returns the motor coordinates and a record of what it read.
+
+    ``compensators``: {mode: Compensator}; ``modes`` (n,), ``targets_m`` (n, 3) per plan point;
+    ``force_per_A``: the force simulator's nominal N/A (the force a direct IGM is given)."""
+
+    def __init__(self, compensators: dict, modes, targets_m, sensors, force_per_A: float = 1.0):
+        self.compensators = compensators
+        self.modes = list(modes)
+        self.targets = np.asarray(targets_m, dtype=np.float64)
+        self.log = ConditionLog(sensors)
+        self.force_per_A = float(force_per_A)
+        self.latency_s: dict[str, list] = {m: [] for m in compensators}
+        self._nominal_q = {}
+
+    def _zero(self, zero: dict) -> None:
+        if self.log.zero_t_s != zero["zero_t_s"]:
+            self.log.zero(zero["zero_t_s"], zero["zero_T_C"])
+            frame = self.log.frame()
+            for c in self.compensators.values():
+                c.zero(frame)
+
+    def command(self, k, inst, zero):
+        self._zero(zero)
+        scan = inst.thermometers.scan()
+        T = [scan.temperatures_C[s] for s in self.log.sensors]
+        self.log.add(scan.t_s, T)
+        I = inst.coils.read_currents() if inst.coils is not None else np.zeros(3)
+        F = float(np.mean(I)) * self.force_per_A
+        frame = self.log.frame(I, F, self.targets[k])
+        comp = self.compensators[self.modes[k]]
+        t0 = time.perf_counter()
+        kw = {}
+        if isinstance(comp, PhysicsCompensator) and k in self._nominal_q:
+            kw["q0"] = self._nominal_q[k]          # start where the nominal robot went
+        cmd = comp.command(self.targets[k], frame, **kw)
+        self.latency_s[self.modes[k]].append(time.perf_counter() - t0)
+        if self.modes[k] == "nominal":
+            for j in range(k + 1, min(k + 3, len(self.modes))):
+                self._nominal_q[j] = cmd.q
+        record = {"scan_t_s": scan.t_s, "T_C": T, "currents_A": np.asarray(I, float),
+                  "force_N": F, "mode": self.modes[k], "status": cmd.status,
+                  "residual_m": cmd.residual_m, "reason": cmd.reason}
+        return cmd.q, record
+
+    def replayed(self, k, point):
+        self._zero(point)
+        c = point["control"]
+        self.log.add(c["scan_t_s"], c["T_C"])
+        if c["mode"] == "nominal":
+            for j in range(k + 1, min(k + 3, len(self.modes))):
+                self._nominal_q[j] = np.asarray(point["q_cmd_rad"], float)
+
+
+def achieved_figures(errors_m: np.ndarray, ok: np.ndarray) -> dict:
+    """Per axis error figures (nm) of reading - target over the rows ``ok``."""
+    return {a: error_figures(errors_m[ok, k]) for k, a in enumerate(AXES)
+            if np.isfinite(errors_m[ok, k]).any()}
