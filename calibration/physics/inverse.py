@@ -5,9 +5,11 @@ The model (calibration/physics/model.py) predicts what the interferometers count
 session's zero at given motor coordinates and conditions. ``PhysicsInverse.solve`` finds, for
 every row of a ``Measurements`` it is asked about, the motor coordinates q at which that
 prediction equals the target, by Newton-Raphson with the Jacobian d reading / d q taken by
-central differences of the model itself (the three columns for all rows at once: rows are
-independent). Every iterate is held inside the stroke (projected Newton): the model's kinematics
-refuse motor coordinates outside it, and the robot cannot go there. A row is converged when
+central differences of the model itself: the value and the six displaced evaluations of every row
+in one evaluation of the model (rows are independent), on those rows only (their conditions were
+derived from the whole table before). Every iterate is held inside the stroke (projected
+Newton): the model's kinematics refuse motor coordinates outside it, and the robot cannot go
+there. A row is converged when
 every axis' residual is <= ``tol_m`` (default 1e-12 m = 0.001 nm), re-evaluated at the final q;
 otherwise it is reported, with a reason, as out of reach (the closest in-stroke q is returned).
 Units: m, rad.
@@ -27,6 +29,7 @@ CONVERGED = "converged"
 OUT_OF_REACH = "out_of_reach"
 NOT_FINITE = "not_finite"
 _STROKE_SLACK_RAD = 1e-12
+_NOT_PER_ROW = ("params", "home_p", "pose")     # Points fields shared by every row
 
 
 @dataclass
@@ -50,6 +53,37 @@ class InverseResult:
             return (f"out of reach: no motor coordinates inside the stroke [{lo}, {hi}] rad give "
                     f"the target; the closest found, q = {q} rad, is {r * 1e9:.4g} nm off")
         return "not finite: the target or the conditions are NaN or infinite"
+
+
+def _take(value, idx, n_all):
+    """``value`` (an array with a leading axis of every row and zero, a dict or tuple of them)
+    at the rows ``idx``; anything else unchanged."""
+    if isinstance(value, np.ndarray) and value.ndim and value.shape[0] == n_all:
+        return value[idx]
+    if isinstance(value, dict):
+        return {k: _take(v, idx, n_all) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return tuple(_take(v, idx, n_all) for v in value)
+    return value
+
+
+def rows_only(meas: Measurements, rows: np.ndarray) -> tuple[Measurements, np.ndarray]:
+    """(the Measurements reduced to ``rows`` and the session zeros, the rows' new indices):
+    the conditions were derived (smoothed, rates) from every row already, so evaluating the
+    model needs only these; an inverse's cost then does not grow with the history."""
+    rows = np.asarray(rows, dtype=np.int64)
+    n, n_all = meas.n, meas.points.t_s.shape[0]
+    keep = np.concatenate([rows, np.arange(n, n_all)])
+    pts = dataclasses.replace(meas.points, pose=None, **{
+        f.name: _take(getattr(meas.points, f.name), keep, n_all)
+        for f in dataclasses.fields(meas.points) if f.name not in _NOT_PER_ROW})
+    m = rows.size
+    sub = dataclasses.replace(
+        meas, df=meas.df.iloc[rows], y=meas.y[rows], cos_factor=meas.cos_factor[rows],
+        group=meas.group[rows], cal=meas.cal[rows], val=meas.val[rows], points=pts,
+        zero_row=meas.zero_row[rows] - n + m,
+        sensor_node_T=_take(meas.sensor_node_T, keep, n_all), _statics=None)
+    return sub, np.arange(m)
 
 
 def with_motor_coordinates(meas: Measurements, rows: np.ndarray, q: np.ndarray) -> Measurements:
@@ -88,7 +122,26 @@ class PhysicsInverse:
     def predict(self, meas: Measurements, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
         """The model's reading (len(rows), 3) m at motor coordinates q of ``rows``."""
         self.n_evaluations += 1
-        return self.model.predict_path(with_motor_coordinates(meas, rows, q))[rows]
+        sub, idx = rows_only(meas, rows)
+        return self.model.predict_path(with_motor_coordinates(sub, idx, q))
+
+    def _value_and_jacobian(self, meas, rows, q):
+        """The readings (m, 3) at q and d reading / d q (m, 3, 3) by central differences
+        inside the stroke (one-sided within h of a stroke end), in one evaluation of the model
+        on the rows repeated seven times (q, q +- h e_j)."""
+        lo, hi = self.stroke_rad
+        h, m = self.step_rad, rows.size
+        Q = [q]
+        for j in range(3):
+            up, dn = q.copy(), q.copy()
+            up[:, j] = np.minimum(q[:, j] + h, hi)
+            dn[:, j] = np.maximum(q[:, j] - h, lo)
+            Q += [up, dn]
+        A = self.predict(meas, np.tile(rows, 7), np.concatenate(Q)).reshape(7, m, 3)
+        step = [Q[1 + 2 * j][:, j] - Q[2 + 2 * j][:, j] for j in range(3)]
+        J = np.stack([(A[1 + 2 * j] - A[2 + 2 * j]) / step[j][:, None] for j in range(3)],
+                     axis=-1)
+        return A[0], J
 
     def solve(self, meas: Measurements, target_m, rows=None, q0=None) -> InverseResult:
         """Motor coordinates for ``rows`` (default all rows of ``meas``; their conditions are
@@ -110,41 +163,33 @@ class PhysicsInverse:
         finite = np.all(np.isfinite(target), axis=1) & np.all(np.isfinite(q), axis=1)
         status[~finite] = NOT_FINITE
         active = np.flatnonzero(finite)
-        h = self.step_rad
         for it in range(self.max_iter + 1):
             if active.size == 0:
                 break
-            r = self.predict(meas, rows[active], q[active]) - target[active]
+            last = it == self.max_iter
+            if last:
+                f, J = self.predict(meas, rows[active], q[active]), None
+            else:
+                f, J = self._value_and_jacobian(meas, rows[active], q[active])
+            r = f - target[active]
             rmax = np.max(np.abs(r), axis=1)
             resid[active] = np.where(np.isfinite(rmax), rmax, np.inf)
             done = rmax <= self.tol_m
             status[active[done]] = CONVERGED
             bad = ~np.isfinite(rmax)
             status[active[bad]] = NOT_FINITE
-            active, r = active[~done & ~bad], r[~done & ~bad]
-            if it == self.max_iter or active.size == 0:
+            go = ~done & ~bad
+            active, r = active[go], r[go]
+            if last or active.size == 0:
                 break
-            J = self._jacobian(meas, rows[active], q[active], h)
+            J = J[go]
             with np.errstate(invalid="ignore", divide="ignore"):
                 ok = np.abs(np.linalg.det(J)) > 0
-            dq = np.zeros_like(r)
+            dq = np.full_like(r, np.nan)
             dq[ok] = np.linalg.solve(J[ok], r[ok][..., None])[..., 0]
-            stuck = ~ok | ~np.all(np.isfinite(dq), axis=1)
-            active = active[~stuck]
-            q[active] = np.clip(q[active] - dq[~stuck], lo, hi)
+            stuck = ~np.all(np.isfinite(dq), axis=1)
+            active, dq = active[~stuck], dq[~stuck]
+            q[active] = np.clip(q[active] - dq, lo, hi)
             iters[active] += 1
         return InverseResult(q=q, status=status.astype(str), residual_m=resid, iterations=iters,
                              stroke_rad=self.stroke_rad)
-
-    def _jacobian(self, meas, rows, q, h):
-        """d reading / d q (len(rows), 3, 3) by central differences inside the stroke (one-sided
-        where q sits within h of a stroke end)."""
-        lo, hi = self.stroke_rad
-        J = np.zeros((rows.size, 3, 3))
-        for j in range(3):
-            up, dn = q.copy(), q.copy()
-            up[:, j] = np.minimum(q[:, j] + h, hi)
-            dn[:, j] = np.maximum(q[:, j] - h, lo)
-            J[:, :, j] = ((self.predict(meas, rows, up) - self.predict(meas, rows, dn))
-                          / (up[:, j] - dn[:, j])[:, None])
-        return J

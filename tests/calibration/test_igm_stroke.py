@@ -88,10 +88,11 @@ def test_in_stroke_root_is_preferred_to_the_first_start():
                                 mk("z", [Term((("q3", 1),))], [0.1])])
     igm = IGM(dgm)
     target = np.array([[1.11e-3, 1e-3, -2e-3]])
+    root = np.sqrt(0.0025 + 1.11e-3)
     alone = IGM(dgm, stroke_rad=(-1.0, 1.0)).solve(target, q0=[0.2, 0.0, 0.0])
-    assert alone.converged[0] and alone.q[0, 0] == pytest.approx(0.05 + np.sqrt(0.0025 + 1.11e-3), abs=1e-9)
+    assert alone.converged[0] and alone.q[0, 0] == pytest.approx(0.05 + root, abs=1e-9)
     res = igm.solve(target, q0=[0.2, 0.0, 0.0])
-    assert res.converged[0] and res.q[0, 0] == pytest.approx(0.05 - np.sqrt(0.0025 + 1.11e-3), abs=1e-9)
+    assert res.converged[0] and res.q[0, 0] == pytest.approx(0.05 - root, abs=1e-9)
     assert res.residual_m[0] <= 1e-12
     # x = 0.02: roots 0.2 and -0.1, both outside the stroke
     res = igm.solve(np.array([[0.02, 1e-3, -2e-3]]), q0=[0.2, 0.0, 0.0])

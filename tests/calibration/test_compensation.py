@@ -1,0 +1,131 @@
+"""Compensation in the loop (issue 19): the physics model inverted, and each model kind's
+command with the zero transfer, checked against the models' own forward predictions."""
+import numpy as np
+import pytest
+
+from deltatwin.calibration.compensation import (
+    ConditionLog,
+    DirectIGMCompensator,
+    NominalCompensator,
+    StepwiseCompensator,
+)
+from deltatwin.calibration.physics.inverse import PhysicsInverse, with_motor_coordinates
+from deltatwin.calibration.physics.measurements import measurements
+from deltatwin.calibration.physics.model import PhysicsModel
+from deltatwin.twin.scenario import Scenario
+from tests.calibration.synthetic import STRUCTURE_SENSORS
+
+STROKE = 0.065
+
+
+@pytest.fixture(scope="module")
+def thermal_measurements():
+    sc = Scenario.load("paper-thermal")
+    df, meta = sc.simulate(sc.reduced_scale)
+    model = PhysicsModel(["geometric_errors", "thermal_expansion", "gravity_sag", "loop_drift",
+                          "air_refraction"])
+    return model, measurements(df, meta, model.params)
+
+
+def test_physics_inverse_round_trip_within_0_001_nm(thermal_measurements):
+    model, meas = thermal_measurements
+    rows = np.arange(0, meas.n, 7)                   # rows of both sessions, many conditions
+    q_true = meas.points.q[rows]
+    target = model.predict_path(meas)[rows]
+    inv = PhysicsInverse(model)
+    res = inv.solve(meas, target, rows)
+    assert res.converged.all()
+    assert res.residual_m.max() <= 1e-12
+    assert np.abs(res.q - q_true).max() < 1e-9
+    # an independent evaluation of the model at the returned q, all rows at once
+    back = model.predict_path(with_motor_coordinates(meas, rows, res.q))[rows]
+    assert np.abs(back - target).max() <= 1e-12
+
+
+def test_physics_inverse_flags_what_it_cannot_reach(thermal_measurements):
+    model, meas = thermal_measurements
+    rows = np.array([3, 10, 20])
+    target = model.predict_path(meas)[rows]
+    target[0] += [0.01, 0.0, 0.0]                      # 1 cm beyond a reachable target
+    # the corner of the stroke, a little further still
+    corner = with_motor_coordinates(meas, rows[1:2], np.full((1, 3), STROKE))
+    target[1] = model.predict_path(corner)[rows[1]] + 2e-6 * np.sign(
+        model.predict_path(corner)[rows[1]] - model.predict_path(meas)[rows[1]])
+    target[2, 1] = np.nan
+    res = PhysicsInverse(model).solve(meas, target, rows)
+    assert list(res.status) == ["out_of_reach", "out_of_reach", "not_finite"]
+    assert np.all(np.abs(res.q[:2]) <= STROKE)          # never outside the stroke
+    assert res.residual_m[0] > 1e-3 and res.residual_m[1] > 1e-7
+    assert "out of reach" in res.reason(0) and "not finite" in res.reason(2)
+
+
+def _log(sensors, rng, n=40):
+    log = ConditionLog(sensors)
+    T0 = 20.5 + rng.normal(0, 0.2, len(sensors))
+    log.zero(1000.0, T0)
+    for k in range(n):                               # a scan every 10 s, warming at 0.5 K/h
+        log.add(1000.0 + 10.0 * (k + 1), T0 + 0.5 * (k + 1) * 10 / 3600 + 0.3)
+    return log
+
+
+def test_stepwise_command_with_the_zero_transfer(thermal_dgm):
+    rng = np.random.default_rng(4)
+    log = _log(STRUCTURE_SENSORS, rng)
+    comp = StepwiseCompensator(thermal_dgm)
+    comp.zero(log.frame().iloc[[0]])
+    target = np.array([1.2e-3, -0.8e-3, 0.5e-3])
+    frame = log.frame(target_m=target)
+    cmd = comp.command(target, frame)
+    assert cmd.status == "converged" and np.all(np.abs(cmd.q) <= STROKE)
+    # the DGM at q in the present conditions, minus the DGM at home in the zero's conditions
+    v = thermal_dgm.variables(frame)
+    order = [thermal_dgm.output_names_.index(a) for a in "xyz"]
+    at = lambda q, i: thermal_dgm.predict_values(
+        {**{k: a[[i]] for k, a in v.items()}, "q1": q[:1], "q2": q[1:2], "q3": q[2:]})[0, order]
+    v0 = thermal_dgm.variables(frame.iloc[[0]])
+    home = thermal_dgm.predict_values({**v0, "q1": np.zeros(1), "q2": np.zeros(1),
+                                       "q3": np.zeros(1)})[0, order]
+    assert np.abs(at(cmd.q, -1) - home - target).max() <= 1e-12
+    # the conditions moved the model's home reading: the transfer is not zero
+    assert np.abs(at(np.zeros(3), -1) - home).max() > 1e-8
+
+
+def test_direct_igm_command_with_the_zero_transfer(force_igm):
+    log = _log((), np.random.default_rng(5))
+    comp = DirectIGMCompensator(force_igm)
+    comp.zero(log.frame().iloc[[0]])
+    X0 = comp.zero_reading_m
+    at = lambda X, F: force_igm.predict_values({"X": X[:1], "Y": X[1:2], "Z": X[2:],
+                                                "F": np.array([F])})[0]
+    assert np.abs(at(X0, 0.0)).max() < 1e-10          # home, coils off: q = 0
+    target = np.array([0.4e-3, 0.3e-3, -0.2e-3])
+    cmd = comp.command(target, log.frame(np.full(3, 1.3), 1.3, target))
+    assert cmd.status == "converged"
+    np.testing.assert_allclose(cmd.q, at(target + X0, 1.3), rtol=0, atol=1e-15)
+    far = comp.command(np.array([0.2, 0.0, 0.0]), log.frame(np.zeros(3), 0.0))
+    assert far.status == "out_of_stroke" and np.all(np.abs(far.q) <= STROKE)
+
+
+def test_condition_log_keeps_the_zero_and_the_recent_history():
+    log = ConditionLog(("a",), history_s=100.0)
+    with pytest.raises(ValueError, match="zero"):
+        log.frame()
+    log.zero(0.0, [20.0])
+    for t in (10.0, 10.0, 50.0, 200.0, 250.0):
+        log.add(t, [20.0 + t / 1000])
+    f = log.frame(np.full(3, 0.5), 0.5, np.array([1e-3, 0.0, 0.0]))
+    assert f["t_s"].tolist() == [0.0, 200.0, 250.0]    # zero + the last 100 s
+    assert f["coil1_A"].tolist() == [0.0, 0.0, 0.5] and f["F_N"].iloc[-1] == 0.5
+    assert f["x_nm"].iloc[-1] == pytest.approx(1e6) and np.isnan(f["x_nm"].iloc[0])
+
+
+def test_nominal_forward_and_inverse_agree():
+    nominal = NominalCompensator()
+    log = ConditionLog(())
+    log.zero(0.0, [])
+    q = np.random.default_rng(6).uniform(-0.05, 0.05, (4, 3))
+    x = nominal.forward(q, log.frame())
+    assert np.all(np.abs(x) > 1e-5)                    # readings of tens of micrometres and more
+    for k in range(4):
+        cmd = nominal.command(x[k], log.frame(target_m=x[k]))
+        assert cmd.status == "converged" and np.abs(cmd.q - q[k]).max() < 1e-9
