@@ -122,14 +122,34 @@ class Compensator:
         raise NotImplementedError
 
     def predicted(self, df: pd.DataFrame, meta: dict | None) -> dict:
-        """The model's validation figures per axis on its calibration data (nm):
-        {axis: {"err_p90": ..., "err_1645sigma": ...}}."""
+        """The model's validation figures per axis on its calibration data (nm): as its fit
+        reports them (``err_p90``, ``err_1645sigma``: the readings' constant per session fitted
+        on the calibration rows) and referenced to each session's zero as a compensation is
+        (``zero_err_p90``, ``zero_err_1645sigma``: the model's error at home at the zero, which
+        the fitted constant hid, included)."""
         raise NotImplementedError
 
+    def _zero_referenced(self, df, errors) -> dict:
+        """{axis: figures} of ``errors(session rows, zero frame)`` ((rows, 3) m) over the
+        validation rows of each session."""
+        err = np.full((len(df), 3), np.nan)
+        session = df["session"].astype(str).to_numpy()
+        t = df["t_s"].to_numpy(dtype=np.float64)
+        for s in dict.fromkeys(session):
+            idx = np.flatnonzero(session == s)
+            first = idx[np.argmin(t[idx])]
+            self.zero(df.iloc[[first]])
+            err[idx] = errors(df.iloc[idx])
+        val = (df["split"].astype(str) == "val").to_numpy()
+        return {a: error_figures(err[val, k]) for k, a in enumerate(AXES)}
 
-def _figures(fig: dict) -> dict:
-    return {"err_p90": fig.get("err_p90"), "err_1645sigma": fig.get("err_1645sigma"),
-            "n": fig.get("n")}
+
+def _figures(fig: dict, zero: dict | None = None) -> dict:
+    out = {"err_p90": fig.get("err_p90"), "err_1645sigma": fig.get("err_1645sigma"),
+           "n": fig.get("n")}
+    if zero is not None:
+        out.update(zero_err_p90=zero.get("err_p90"), zero_err_1645sigma=zero.get("err_1645sigma"))
+    return out
 
 
 class PhysicsCompensator(Compensator):
@@ -163,9 +183,9 @@ class PhysicsCompensator(Compensator):
     def predicted(self, df, meta):
         meas = measurements(df, meta, self.model.params, where="calibration data")
         pred = self.model.predict_path(meas)
-        res = residuals(meas, pred, group_offsets(meas, pred, meas.cal))
-        fig = figures_nm(res, meas.val)
-        return {a: _figures(fig[a]) for a in AXES if a in fig}
+        fig = figures_nm(residuals(meas, pred, group_offsets(meas, pred, meas.cal)), meas.val)
+        zero = figures_nm(residuals(meas, pred, np.zeros(len(meas.groups))), meas.val)
+        return {a: _figures(fig[a], zero[a]) for a in AXES if a in fig}
 
 
 class NominalCompensator(PhysicsCompensator):
@@ -202,7 +222,13 @@ class StepwiseCompensator(Compensator):
 
     def predicted(self, df, meta):
         ev = evaluate(self.dgm, df)["outputs"]
-        return {a: _figures(ev[a]["val"]) for a in AXES if a in ev}
+        reading = self.dgm.targets(df)[:, self.order]
+
+        def errors(rows):
+            return (self.dgm.predict(rows)[:, self.order] - self.zero_reading_m
+                    - reading[rows.index.to_numpy()])
+        zero = self._zero_referenced(df.reset_index(drop=True), errors)
+        return {a: _figures(ev[a]["val"], zero[a]) for a in AXES if a in ev}
 
 
 class DirectIGMCompensator(Compensator):
@@ -256,7 +282,16 @@ class DirectIGMCompensator(Compensator):
 
     def predicted(self, df, meta):
         ev = evaluate(self.model, df).get("position") or {}
-        return {a: _figures(ev[a]["val"]) for a in AXES if a in ev}
+        q_meas = self.model.targets(df)
+
+        def errors(rows):
+            shifted = rows.assign(**{f"{a}_nm": rows[f"{a}_nm"] + self.zero_reading_m[k] * 1e9
+                                     for k, a in enumerate(AXES)})
+            v = self.model.variables(shifted)
+            dq = self.model.predict_values(v) - q_meas[rows.index.to_numpy()]
+            return np.linalg.solve(self.model.jacobian(v), dq[:, :, None])[:, :, 0]
+        zero = self._zero_referenced(df.reset_index(drop=True), errors)
+        return {a: _figures(ev[a]["val"], zero[a]) for a in AXES if a in ev}
 
 
 def load_compensator(path) -> Compensator:
