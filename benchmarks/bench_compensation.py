@@ -1,0 +1,183 @@
+"""Benchmark: compensation in the loop (issue 19) on paper-thermal and paper-force.
+
+For each scenario (full scale by default): simulate the calibration campaign, fit the seed's
+black-box model (thermal: the stepwise DGM, inverted by Newton; force: the direct IGM) and the
+physics model (the scenario's effects that have a model form, given the laboratory's known
+constants as benchmarks/physics_vs_stepwise.py does), write both model files, then run
+``deltatwin compensate`` with each: the same robot, after its calibration campaign, at N
+Cartesian targets, each visited uncompensated (nominal kinematics) and compensated. Prints per
+axis and model kind the achieved err90 against the model's validation err90 (target: within
+1.2x), the ladder uncompensated -> black box -> physics (target: physics at least 2x better than
+the black box on every axis), and the latency of one inverse evaluation per point (a
+controller's loop budget is of the order of 100 us):
+
+    python benchmarks/bench_compensation.py                       # full scale, 60 targets
+    python benchmarks/bench_compensation.py --scale 0.25 --targets 30
+
+Every figure printed is measured here; nothing is compared with stored numbers.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from deltatwin.calibration.blackbox import reference_evaluator
+from deltatwin.calibration.blackbox.dgm import DGM
+from deltatwin.calibration.blackbox.direct_igm import DirectIGM
+from deltatwin.calibration.blackbox.igm import IGM
+from deltatwin.calibration.compensation import ConditionLog, PhysicsCompensator
+from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.model import model_effects
+from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
+from deltatwin.cli import main as cli
+from deltatwin.twin.dataset import write_dataset
+from deltatwin.twin.scenario import Scenario
+
+WITHIN = 1.2
+LADDER = 2.0
+
+
+def _fit_models(sc, df, meta, d: Path, data: Path) -> dict:
+    effects = [e.name for e in sc.effects if e.name in model_effects()]
+    known = {e.name: {p.name: e.values[p.name] for p in e.parameters if p.fit_scale is None}
+             for e in sc.effects if e.name in effects}
+    t0 = time.perf_counter()
+    fit = PhysicsFit(effects, start=known).fit(df, meta)
+    (d / "physics.toml").write_text(fitted_toml(fit, str(data)))
+    t1 = time.perf_counter()
+    black = DGM() if sc.campaign["kind"] == "thermal" else DirectIGM()
+    black.fit(df, meta)
+    black.save(d / "blackbox.json")
+    t2 = time.perf_counter()
+    print(f"  fitted physics ({', '.join(effects)}) in {t1 - t0:.0f} s; {black.kind} in "
+          f"{t2 - t1:.0f} s")
+    return {"blackbox": d / "blackbox.json", "physics": d / "physics.toml"}
+
+
+def _compensate(name, model, data, d, targets, scale) -> dict:
+    out = io.StringIO()
+    args = ["compensate", name, "--model", str(model), "--data", str(data), "--targets",
+            str(targets), "-o", str(d / f"{model.stem}-compensated.parquet"), "--json", "--quiet"]
+    if scale < 1:
+        args += ["--scale", str(scale)]
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(out):
+        code = cli(args)
+    if code != 0:
+        raise SystemExit(f"deltatwin {' '.join(args)} failed with exit code {code}")
+    rep = json.loads(out.getvalue().strip().splitlines()[-1])
+    rep["wall_s"] = time.perf_counter() - t0
+    return rep
+
+
+def _median_us(f, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        f()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)) * 1e6
+
+
+def _latency(sc, df, models) -> None:
+    """Per-point latency of one inverse evaluation, each model kind, one point at a time."""
+    row = df.iloc[[len(df) // 2]]
+    target = np.array([1e-3, -0.5e-3, 0.8e-3])
+    black = reference_evaluator.load(models["blackbox"])
+    if black["kind"] == "DGM":
+        from deltatwin.calibration.blackbox.model_file import load_model
+        dgm = load_model(models["blackbox"])
+        igm = IGM(dgm, stroke_rad=sc.params.stroke_rad)
+        aux = {k: v for k, v in dgm.variables(row).items() if k in igm.aux_variables}
+        inputs = {k: float(v[0]) for k, v in aux.items()}
+        us = _median_us(lambda: igm.solve(target[None], aux), 200)
+        ref = _median_us(lambda: reference_evaluator.inverse(black, target.tolist(), inputs,
+                                                             tuple(sc.params.stroke_rad)), 200)
+        print(f"  stepwise DGM inverse (Newton, numpy IGM, one point): {us:9.1f} us; the plain "
+              f"Python reference evaluator: {ref:9.1f} us")
+    else:
+        from deltatwin.calibration.blackbox.model_file import load_model
+        igm = load_model(models["blackbox"])
+        vals = igm.variables(row)
+        inputs = {k: float(v[0]) for k, v in vals.items()}
+        us = _median_us(lambda: igm.predict_values(vals), 200)
+        ref = _median_us(lambda: reference_evaluator.evaluate(black, inputs), 200)
+        print(f"  direct IGM evaluation (numpy, one point): {us:9.1f} us; the plain Python "
+              f"reference evaluator: {ref:9.1f} us")
+    model, doc = load_fitted(models["physics"])
+    comp = PhysicsCompensator(model, doc["model"].get("sensors") or {})
+    log = ConditionLog(tuple(comp.sensors))
+    T = [float(row[f"T_{s}_C"].iloc[0]) for s in log.sensors]
+    log.zero(0.0, T)
+    log.add(10.0, T)
+    frame = log.frame(np.zeros(3), 0.0, target)
+    us = _median_us(lambda: comp.command(target, frame), 10)
+    print(f"  physics model inverse (projected Newton, one point): {us / 1e3:9.1f} ms "
+          f"({comp.inverse.n_evaluations} model evaluations over 11 solves)")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scale", type=float, default=1.0)
+    ap.add_argument("--targets", type=int, default=60)
+    ap.add_argument("--scenarios", default="paper-thermal,paper-force")
+    args = ap.parse_args(argv)
+    t_start = time.perf_counter()
+    verdicts = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.scenarios.split(","):
+            d = Path(tmp) / name
+            d.mkdir()
+            sc = Scenario.load(name)
+            t0 = time.perf_counter()
+            df, meta = sc.simulate(None if args.scale >= 1 else args.scale)
+            data = d / "calibration.parquet"
+            write_dataset(df, meta, data)
+            print(f"{name} at scale {args.scale:g}: {len(df)} calibration rows simulated in "
+                  f"{time.perf_counter() - t0:.0f} s")
+            models = _fit_models(sc, df, meta, d, data)
+            reps = {k: _compensate(name, m, data, d, args.targets, args.scale)
+                    for k, m in models.items()}
+            kinds = {k: r["model"]["kind"] for k, r in reps.items()}
+            print(f"  compensated campaigns ({args.targets} targets): "
+                  + ", ".join(f"{kinds[k]} {r['wall_s']:.0f} s" for k, r in reps.items()))
+            out = reps["physics"]["outside_calibration_range"]
+            print("  conditions outside the calibration range: "
+                  + (", ".join(f"{c} (by {v.get('beyond_K', '-')} K)" for c, v in out.items())
+                     if out else "none"))
+            print(f"  {'axis':>4} {'model':>10} {'achieved':>9} {'1.645s':>7} {'predicted':>9} "
+                  f"{'ratio':>6} {'zero-ref.':>9}   (err90, nm)")
+            for a in "xyz":
+                for k in ("blackbox", "physics"):
+                    r = reps[k]["axes"][a]
+                    ratio = r["achieved_over_predicted"]
+                    ok = ratio <= WITHIN
+                    verdicts.append(ok)
+                    print(f"  {a:>4} {kinds[k]:>10} {r['achieved_err90_nm']:9.1f} "
+                          f"{r['achieved_1645sigma_nm']:7.1f} {r['predicted_err90_nm']:9.1f} "
+                          f"{ratio:6.2f} {r['predicted_zero_referenced_err90_nm']:9.1f}   "
+                          f"within {WITHIN:g}x: {'met' if ok else 'NOT met'}")
+            print(f"  ladder (achieved err90, nm): uncompensated -> {kinds['blackbox']} -> physics")
+            for a in "xyz":
+                u = reps["physics"]["axes"][a]["uncompensated_err90_nm"]
+                b = reps["blackbox"]["axes"][a]["achieved_err90_nm"]
+                p = reps["physics"]["axes"][a]["achieved_err90_nm"]
+                ok = b / p >= LADDER
+                verdicts.append(ok)
+                print(f"  {a:>4} {u:9.1f} -> {b:7.1f} -> {p:7.1f}   physics {b / p:.2f}x better "
+                      f"(target >= {LADDER:g}x: {'met' if ok else 'NOT met'})")
+            _latency(sc, df, models)
+    print(f"targets met: {sum(verdicts)} of {len(verdicts)}; total "
+          f"{time.perf_counter() - t_start:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
