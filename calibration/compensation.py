@@ -77,6 +77,11 @@ class ConditionLog:
         """A scan completed at ``t_s`` (a scan read twice is kept once)."""
         self._scans[float(t_s)] = list(T_C)
 
+    @property
+    def n_scans(self) -> int:
+        """Scans recorded since the zero."""
+        return len(self._scans)
+
     def frame(self, currents_A=None, force_N: float = 0.0, target_m=None) -> pd.DataFrame:
         """Rows in the dataset format: the zero (home, coils off), then the scans of the last
         ``history_s``; the last row carries the present currents, force and target (m)."""
@@ -317,14 +322,21 @@ class LoopController:
     the point's compensator decide, returns the motor coordinates and a record of what it read.
 
     ``compensators``: {mode: Compensator}; ``modes`` (n,), ``targets_m`` (n, 3) per plan point;
-    ``force_per_A``: the force simulator's nominal N/A (the force a direct IGM is given)."""
+    ``force_per_A``: the force simulator's nominal N/A (the force a direct IGM is given).
 
-    def __init__(self, compensators: dict, modes, targets_m, sensors, force_per_A: float = 1.0):
+    After each zero, before its first decision, the controller lets its temperature loop run
+    for ``fill_s`` (a scan every ``scan_period_s``, the robot at home): the models' temperature
+    rates and smoothing need that history (with two or three scans a second derivative of mK
+    noise over 10 s is ~1e-5 K/s^2, and a DGM's d2T terms then move the target by micrometres)."""
+
+    def __init__(self, compensators: dict, modes, targets_m, sensors, force_per_A: float = 1.0,
+                 fill_s: float = 600.0, scan_period_s: float = 10.0):
         self.compensators = compensators
         self.modes = list(modes)
         self.targets = np.asarray(targets_m, dtype=np.float64)
         self.log = ConditionLog(sensors)
         self.force_per_A = float(force_per_A)
+        self.fill_s, self.scan_period_s = float(fill_s), float(scan_period_s)
         self.latency_s: dict[str, list] = {m: [] for m in compensators}
         self._nominal_q = {}
 
@@ -335,11 +347,20 @@ class LoopController:
             for c in self.compensators.values():
                 c.zero(frame)
 
-    def command(self, k, inst, zero):
-        self._zero(zero)
+    def _scan(self, inst) -> tuple[float, list]:
         scan = inst.thermometers.scan()
         T = [scan.temperatures_C[s] for s in self.log.sensors]
         self.log.add(scan.t_s, T)
+        return scan.t_s, T
+
+    def command(self, k, inst, zero):
+        self._zero(zero)
+        history = []
+        if self.log.n_scans == 0:                # a new zero: fill the temperature history
+            for _ in range(int(math.ceil(self.fill_s / self.scan_period_s))):
+                inst.clock.sleep(self.scan_period_s)
+                history.append(self._scan(inst))
+        scan_t, T = self._scan(inst)
         I = inst.coils.read_currents() if inst.coils is not None else np.zeros(3)
         F = float(np.mean(I)) * self.force_per_A
         frame = self.log.frame(I, F, self.targets[k])
@@ -353,14 +374,16 @@ class LoopController:
         if self.modes[k] == "nominal":
             for j in range(k + 1, min(k + 3, len(self.modes))):
                 self._nominal_q[j] = cmd.q
-        record = {"scan_t_s": scan.t_s, "T_C": T, "currents_A": np.asarray(I, float),
+        record = {"scan_t_s": scan_t, "T_C": T, "currents_A": np.asarray(I, float),
                   "force_N": F, "mode": self.modes[k], "status": cmd.status,
-                  "residual_m": cmd.residual_m, "reason": cmd.reason}
+                  "residual_m": cmd.residual_m, "reason": cmd.reason, "history": history}
         return cmd.q, record
 
     def replayed(self, k, point):
         self._zero(point)
         c = point["control"]
+        for t, T in c["history"]:
+            self.log.add(t, T)
         self.log.add(c["scan_t_s"], c["T_C"])
         if c["mode"] == "nominal":
             for j in range(k + 1, min(k + 3, len(self.modes))):

@@ -177,10 +177,11 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
     from what the instruments read at that moment, in place of ``plan.q``. At every zero the
     temperature scan is recorded with it (``zero_T_C``); per point, after the coil currents
     are set and before the move, ``controller.command(k, inst, zero)`` returns ``(q (3,) rad,
-    record)``. The commanded q (``q_cmd_rad``) and the record (``control``: what it read and
-    decided) are journaled with the point and give the dataset's motor coordinates. Journaled
-    points are handed to ``controller.replayed(k, point)`` in order instead (resume, replay),
-    so that its state (e.g. the temperature history) is what it was.
+    record)`` (it may let the clock run, e.g. to fill its temperature history). The commanded
+    q (``q_cmd_rad``) and the record (``control``: what it read and decided) are journaled
+    with the point and give the dataset's motor coordinates. On a resume the journaled points
+    are handed to ``controller.replayed(k, point)`` in order, so that its state (the temperature
+    history) is what it was; in a replay it decides them again, and must decide the same.
     """
     import json
     import logging
@@ -235,13 +236,9 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
             inst.coils.set_currents(plan.currents_A[k])
             currents = plan.currents_A[k].copy()
         q_k, control = plan.q[k], None
-        if controller is not None:
-            if k in done:                         # decided before: the journal holds it
-                q_k, control = np.asarray(done[k]["q_cmd_rad"], float), done[k]["control"]
-                controller.replayed(k, done[k])
-            else:
-                q_k, control = controller.command(k, inst, zero)
-                q_k = np.asarray(q_k, dtype=np.float64)
+        if controller is not None:                # a replayed point decides again: compared
+            q_k, control = controller.command(k, inst, zero)
+            q_k = np.asarray(q_k, dtype=np.float64)
         inst.robot.move_to(q_k)
         inst.clock.sleep(settings.wait_s)
         axes = plan.sessions[session][1]

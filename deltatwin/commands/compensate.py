@@ -178,8 +178,8 @@ def run(args) -> int:
               "model_sha256": model_sha, "after_h": args.after_h,
               "calibration_scale": 1.0 if scale is None else float(scale),
               "instruments": args.instruments, "points": len(plan)}
-    controller = LoopController({"nominal": nominal, "model": comp}, modes, targets,
-                                sc.sensors if args.instruments == "sim" else (), per_A)
+    controller = LoopController({"nominal": nominal, "model": comp}, modes, targets, (), per_A,
+                                scan_period_s=sc.settings.scan_period_s)
     with Journal.open(journal_path, header) as journal:
         before = len(journal.done())
         if args.instruments == "sim":
