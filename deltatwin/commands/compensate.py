@@ -92,6 +92,22 @@ def compensation_plan(sc, rng, n_targets: int, nominal, axes):
     return plan, ["nominal", "model"] * n_targets, targets[rep], per_A
 
 
+def compensation_world(sc, scale, after_h: float, plan):
+    """(twin, simulated lab) of the scenario's robot and laboratory, the lab's clock set
+    ``after_h`` hours after the end of the calibration campaign at ``scale`` (the twin's horizon
+    covers the compensated campaign ``plan`` from there)."""
+    from deltatwin.twin.instruments.simulated import SimulatedLab
+    from deltatwin.twin.world import Twin
+
+    _, cal_plan = sc.build(scale)
+    start_s = sc.horizon_s(cal_plan) + after_h * 3600.0
+    twin = Twin(sc.params, sc.effects, sc.sensors, sc.seed, start_s + sc.horizon_s(plan),
+                sc.campaign.get("warmup_s", 7200.0))
+    lab = SimulatedLab(twin, sc.settings)
+    lab.t = start_s
+    return twin, lab
+
+
 def _ranges(cal_df, records, sensors) -> dict:
     """Conditions of the compensation decisions outside the calibration data's range."""
     out = {}
@@ -128,10 +144,8 @@ def run(args) -> int:
     from deltatwin.twin.dataset import read_dataset, write_dataset
     from deltatwin.twin.instruments.interface import InstrumentError
     from deltatwin.twin.instruments.optics import AXES
-    from deltatwin.twin.instruments.simulated import SimulatedLab
     from deltatwin.twin.journal import Journal
     from deltatwin.twin.scenario import Scenario
-    from deltatwin.twin.world import Twin
 
     if args.targets < 1:
         raise ValueError(f"--targets must be >= 1, got {args.targets}")
@@ -183,15 +197,10 @@ def run(args) -> int:
     with Journal.open(journal_path, header) as journal:
         before = len(journal.done())
         if args.instruments == "sim":
-            _, cal_plan = sc.build(scale)
-            start_s = sc.horizon_s(cal_plan) + args.after_h * 3600.0
-            twin = Twin(sc.params, sc.effects, sc.sensors, sc.seed,
-                        start_s + sc.horizon_s(plan), sc.campaign.get("warmup_s", 7200.0))
-            lab = SimulatedLab(twin, sc.settings)
-            lab.t = start_s
+            twin, lab = compensation_world(sc, scale, args.after_h, plan)
             instruments = lab.instrument_set()
             described = {"kind": "sim", "world": "the scenario's twin (simulated instruments)",
-                         "start_s": start_s}
+                         "start_s": lab.t}
         else:
             from deltatwin.hw.lab import open_lab
             instruments = open_lab(ports, wall_clock_start_s=resumed_wall_clock_s(journal))
