@@ -61,6 +61,9 @@ def register(sub) -> None:
     p.add_argument("--journal", type=Path, default=None, help="default: OUTPUT.journal")
     p.add_argument("--resume", action="store_true",
                    help="continue the compensated campaign of the existing journal")
+    p.add_argument("--view", type=Path, default=None, metavar="RUN.rrd",
+                   help="also write a Rerun recording of the achieved error fields "
+                        "(uncompensated, then compensated: target minus reading per target)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON line")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -279,6 +282,13 @@ def run(args) -> int:
     meta["instruments"] = described
     meta["compensation"] = {k: v for k, v in report.items() if k not in ("output", "seconds")}
     write_dataset(df, meta, output)
+    if args.view is not None:
+        from deltatwin.view import LadderStep, write_recording
+        target_m = targets.copy()
+        steps = [LadderStep(name, np.where((np.array(modes) == mode)[:, None], target_m, np.nan))
+                 for name, mode in (("uncompensated", "nominal"), (comp.kind, "model"))]
+        write_recording(df, meta, steps, args.view, params=sc.params)
+        report["view"] = str(args.view)
     if args.json:
         print(json.dumps(report))
     else:

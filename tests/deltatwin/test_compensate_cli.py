@@ -49,7 +49,8 @@ def _run(d, capsys, *extra):
 
 
 def test_true_model_compensates_to_the_noise(lab, capsys):
-    rep = _run(lab, capsys)
+    rep = _run(lab, capsys, "--view", str(lab / "comp.rrd"))
+    assert (lab / "comp.rrd").stat().st_size > 0 and rep["view"].endswith("comp.rrd")
     assert rep["model"]["kind"] == "physics" and rep["n_not_converged"] == 0
     df = pd.read_parquet(lab / "comp.parquet")
     assert len(df) == 2 * TARGETS and list(df["command"][:2]) == ["nominal", "model"]
