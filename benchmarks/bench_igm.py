@@ -72,7 +72,37 @@ def main(argv=None) -> int:
           f"(solver), {resid_nm:.2e} nm (re-evaluated); target <= 0.001 nm: "
           f"{'met' if resid_nm <= 1e-3 else 'NOT met'}")
     print(f"max |q - q_true|: {np.abs(res.q - q_true).max():.2e} rad")
-    return 0 if (rate >= 1e5 and resid_nm <= 1e-3 and conv == 1.0) else 1
+    stroke_ok = _unreachable_targets(dgm, igm, aux, rng)
+    return 0 if (rate >= 1e5 and resid_nm <= 1e-3 and conv == 1.0 and stroke_ok) else 1
+
+
+def _unreachable_targets(dgm, igm, aux, rng, n: int = 2000) -> bool:
+    """Issue 14 item 4: targets of angles up to 6x the stroke, and targets 1 mm, 1 cm, 10 cm
+    (random direction) from reachable ones. Prints the statuses; every converged answer must
+    lie in the stroke and reach its target to 0.001 nm."""
+    lo, hi = igm.stroke_rad
+    aux = {k: v[:n] for k, v in aux.items()}
+    order = [dgm.output_names_.index(a) for a in "xyz"]
+    reading = lambda q: dgm.predict_values({**aux, "q1": q[:, 0], "q2": q[:, 1],
+                                            "q3": q[:, 2]})[:, order]
+    cases = [("angles up to 6x the stroke", reading(rng.uniform(6 * lo, 6 * hi, (n, 3))))]
+    base = reading(rng.uniform(lo, hi, (n, 3)))
+    for d in (1e-3, 1e-2, 1e-1):
+        u = rng.standard_normal((n, 3))
+        cases.append((f"{d * 1e3:g} mm from reachable", base + d * u / np.linalg.norm(
+            u, axis=1)[:, None]))
+    ok = True
+    for name, target in cases:
+        r = igm.solve(target, aux)
+        c = r.converged
+        sound = bool(np.all(igm.in_stroke(r.q[c]))
+                     and np.abs(reading(r.q)[c] - target[c]).max(initial=0) <= 1e-12)
+        ok &= sound
+        counts = {s: int((r.status == s).sum()) for s in ("converged", "out_of_stroke",
+                                                          "out_of_reach", "not_finite")}
+        print(f"targets {name:>28}: {counts} (converged ones in stroke and <= 0.001 nm: "
+              f"{'yes' if sound else 'NO'})")
+    return ok
 
 
 if __name__ == "__main__":
