@@ -119,6 +119,7 @@ class Compensator:
     the zero row only); ``command(target_m, frame)``: the motor coordinates for the last row."""
     kind = "?"
     model_path: str | None = None
+    calibration_data: str | None = None      # the dataset a physics model file names
 
     def zero(self, frame: pd.DataFrame) -> None:
         """Nothing to transfer by default."""
@@ -259,6 +260,10 @@ class DirectIGMCompensator(Compensator):
             v.update(X=X[0:1], Y=X[1:2], Z=X[2:3])
             q = self.model.predict_values(v)[0]
             J = self.model.jacobian(v)[0]                       # dq/dX (3, 3) rad/m
+            if not (np.all(np.isfinite(J)) and abs(np.linalg.det(J)) > 0):
+                raise CalibrationInputError("direct IGM: its Jacobian dq/dX is singular at "
+                                            f"X = {X.tolist()} m: the home reading at the zero "
+                                            "cannot be found")
             dX = np.linalg.solve(J, q)
             X = X - dX
             if np.max(np.abs(dX)) <= self.tol_m:
@@ -312,7 +317,6 @@ def load_compensator(path) -> Compensator:
     else:
         m = load_model(path)
         comp = StepwiseCompensator(m) if isinstance(m, DGM) else DirectIGMCompensator(m)
-        comp.calibration_data = None
     comp.model_path = str(path)
     return comp
 
