@@ -78,12 +78,12 @@ def rows_only(meas: Measurements, rows: np.ndarray) -> tuple[Measurements, np.nd
         f.name: _take(getattr(meas.points, f.name), keep, n_all)
         for f in dataclasses.fields(meas.points) if f.name not in _NOT_PER_ROW})
     m = rows.size
-    sub = dataclasses.replace(
-        meas, df=meas.df.iloc[rows], y=meas.y[rows], cos_factor=meas.cos_factor[rows],
-        group=meas.group[rows], cal=meas.cal[rows], val=meas.val[rows], points=pts,
-        zero_row=meas.zero_row[rows] - n + m,
-        sensor_node_T=_take(meas.sensor_node_T, keep, n_all), _statics=None)
-    return sub, np.arange(m)
+    per_row = {f.name: getattr(meas, f.name)[rows] for f in dataclasses.fields(meas)
+               if isinstance(getattr(meas, f.name), np.ndarray)
+               and getattr(meas, f.name).shape[:1] == (n,)}     # readings, cosine terms, splits
+    per_row.update(df=meas.df.iloc[rows], points=pts, zero_row=meas.zero_row[rows] - n + m,
+                   sensor_node_T=_take(meas.sensor_node_T, keep, n_all), _statics=None)
+    return dataclasses.replace(meas, **per_row), np.arange(m)
 
 
 def with_motor_coordinates(meas: Measurements, rows: np.ndarray, q: np.ndarray) -> Measurements:

@@ -16,7 +16,6 @@ its calibration data (``--data``; a physics model names its own).
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import sys
 import time
@@ -65,7 +64,6 @@ def register(sub) -> None:
                    help="also write a Rerun recording of the achieved error fields "
                         "(uncompensated, then compensated: target minus reading per target)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON line")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
@@ -111,6 +109,19 @@ def compensation_world(sc, scale, after_h: float, plan):
     return twin, lab
 
 
+def _check_robot(instruments, sc) -> None:
+    """An emulated laboratory says on its clock port which world it simulates: refuse another
+    scenario or seed (another robot: the model was not calibrated on it). Its scale is not
+    compared: a compensated campaign is not the calibration campaign."""
+    world = instruments.clock.world() if hasattr(instruments.clock, "world") else {}
+    ours = {k: v for k, v in sc.identity(None).items() if k != "scale"}
+    differ = [f"{k}: emulator {world.get(k)!r}, here {v!r}" for k, v in ours.items()
+              if world and world.get(k) != v]
+    if differ:
+        raise ValueError("the emulated laboratory simulates another robot (" + "; ".join(differ)
+                         + "): start `deltatwin emulate` with this scenario and its seed")
+
+
 def _ranges(cal_df, records, sensors) -> dict:
     """Conditions of the compensation decisions outside the calibration data's range."""
     out = {}
@@ -143,6 +154,7 @@ def run(args) -> int:
         load_compensator,
     )
     from deltatwin.commands.campaign import EXIT_INSTRUMENT_FAULT, resumed_wall_clock_s
+    from deltatwin.commands.output import strict_json
     from deltatwin.twin.campaign import run_campaign
     from deltatwin.twin.dataset import read_dataset, write_dataset
     from deltatwin.twin.instruments.interface import InstrumentError
@@ -197,34 +209,43 @@ def run(args) -> int:
               "instruments": args.instruments, "points": len(plan)}
     controller = LoopController({"nominal": nominal, "model": comp}, modes, targets, (), per_A,
                                 scan_period_s=sc.settings.scan_period_s)
-    with Journal.open(journal_path, header) as journal:
-        before = len(journal.done())
-        if args.instruments == "sim":
-            twin, lab = compensation_world(sc, scale, args.after_h, plan)
-            instruments = lab.instrument_set()
-            described = {"kind": "sim", "world": "the scenario's twin (simulated instruments)",
-                         "start_s": lab.t}
-        else:
-            from deltatwin.hw.lab import open_lab
-            instruments = open_lab(ports, wall_clock_start_s=resumed_wall_clock_s(journal))
-            described = {"kind": "serial", "ports_file": str(args.ports), "lab": ports.lab}
-        try:
-            if args.instruments == "serial":
+    if args.instruments == "sim":
+        twin, lab = compensation_world(sc, scale, args.after_h, plan)
+        instruments = lab.instrument_set()
+        described = {"kind": "sim", "world": "the scenario's twin (simulated instruments)",
+                     "start_s": lab.t}
+    else:
+        from deltatwin.hw.lab import open_lab
+        instruments = open_lab(ports, wall_clock_start_s=resumed_wall_clock_s(journal_path))
+        described = {"kind": "serial", "ports_file": str(args.ports), "lab": ports.lab}
+    try:
+        if args.instruments == "serial":
+            # before the journal exists: a wrong port or another robot's emulator is reported
+            # and leaves nothing behind that blocks a rerun
+            try:
                 instruments.connect()
-            controller.log.sensors = tuple(instruments.thermometers.sensors)
-            df = run_campaign(plan, instruments, sc.settings, sc.cosine, sc.dead_path(),
-                              progress=not args.quiet, journal=journal,
-                              replay=args.instruments == "sim", controller=controller)
-        except InstrumentError as exc:
-            done = len(journal.done())
-            print(f"deltatwin compensate: stopped by an instrument fault at point {done} of "
-                  f"{len(plan)}: {exc}\n  {done} point(s) are safe in the journal "
-                  f"{journal_path}; fix the cause and run the same command with --resume",
-                  file=sys.stderr)
-            return EXIT_INSTRUMENT_FAULT
-        finally:
-            instruments.close()
-        points = journal.points()
+                _check_robot(instruments, sc)
+            except InstrumentError as exc:
+                print(f"deltatwin compensate: cannot start: {exc}\n  nothing was measured; "
+                      "fix the cause and run the same command again", file=sys.stderr)
+                return EXIT_INSTRUMENT_FAULT
+        controller.log.sensors = tuple(instruments.thermometers.sensors)
+        with Journal.open(journal_path, header) as journal:
+            before = len(journal.done())
+            try:
+                df = run_campaign(plan, instruments, sc.settings, sc.cosine, sc.dead_path(),
+                                  progress=not args.quiet, journal=journal,
+                                  replay=args.instruments == "sim", controller=controller)
+            except InstrumentError as exc:
+                done = len(journal.done())
+                print(f"deltatwin compensate: stopped by an instrument fault at point {done} "
+                      f"of {len(plan)}: {exc}\n  {done} point(s) are safe in the journal "
+                      f"{journal_path}; fix the cause and run the same command with --resume",
+                      file=sys.stderr)
+                return EXIT_INSTRUMENT_FAULT
+            points = journal.points()
+    finally:
+        instruments.close()
     records = [points[k]["control"] for k in range(len(plan))]
     df["command"] = modes
     df["status"] = [r["status"] for r in records]
@@ -290,7 +311,7 @@ def run(args) -> int:
         write_recording(df, meta, steps, args.view, params=sc.params)
         report["view"] = str(args.view)
     if args.json:
-        print(json.dumps(report))
+        print(strict_json(report))
     else:
         print(f"compensated campaign: {sc.name}, model {args.model} ({comp.kind}), "
               f"{args.targets} targets, {len(not_conv)} not converged")

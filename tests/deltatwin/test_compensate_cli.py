@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from deltatwin.cli import main
-from deltatwin.files import toml_value
+from deltatwin.files import toml_text
 from deltatwin.twin.dataset import write_dataset
 from deltatwin.twin.scenario import Scenario
 from tests.calibration.test_physics_model import PARTS, SCENARIO
@@ -23,19 +23,16 @@ def lab(tmp_path_factory):
     d = tmp_path_factory.mktemp("compensate")
     sensors = "\n".join(f'{p} = "{p}"' for p in PARTS + ["air_x", "air_y", "air_z"])
     text = SCENARIO.format(contact="", sensors=sensors).replace(
-        "cal = 700, val = 300", "cal = 150, val = 100")
+        "cal = 700, val = 300", "cal = 150, val = 100").replace(
+        "T_resolution_C = 0.0", "T_resolution_C = 0.001")     # a resolution must be > 0
     (d / "lab.toml").write_text(text)
     sc = Scenario.load(d / "lab.toml")
     df, meta = sc.simulate()
     write_dataset(df, meta, d / "cal.parquet")
     # the twin's own parameter values, in the fitted-model file format (deltatwin fit -o)
-    lines = ["[model]", f"effects = {toml_value(MODEL_EFFECTS)}",
-             f"sensors = {toml_value(dict(sc.sensors))}"]
-    for e in sc.effects:
-        if e.name in MODEL_EFFECTS:
-            lines += [f"[effects.{e.name}]"] + [f"{k} = {toml_value(np.asarray(v).tolist())}"
-                                                for k, v in e.values.items()]
-    (d / "true.toml").write_text("\n".join(lines) + "\n")
+    doc = {"model": {"effects": MODEL_EFFECTS, "sensors": dict(sc.sensors)},
+           "effects": {e.name: dict(e.values) for e in sc.effects if e.name in MODEL_EFFECTS}}
+    (d / "true.toml").write_text(toml_text(doc))
     return d
 
 
