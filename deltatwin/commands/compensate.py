@@ -21,8 +21,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 TARGET_STROKE_FRACTION = 0.8   # targets: nominal readings of q drawn in this share of the stroke
 WITHIN = 1.2                   # issue 19: achieved within 1.2x the validation prediction
 
@@ -40,7 +38,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None,
                    help="seed of the targets and force levels (default: the scenario's); the "
                         "robot is always the scenario's")
-    p.add_argument("--instruments", choices=("sim", "serial"), default="sim")
+    p.add_argument("--instruments", choices=("sim", "serial"), default="sim",
+                   help="sim: the scenario's twin as simulated instruments (default); serial: "
+                        "the drivers on the ports file's laboratory")
     p.add_argument("--ports", type=Path, default=None,
                    help="ports file (TOML) for --instruments serial")
     p.add_argument("--data", type=Path, default=None,
@@ -70,6 +70,8 @@ def register(sub) -> None:
 def compensation_plan(sc, rng, n_targets: int, nominal, axes):
     """(plan, modes, targets (2N, 3) m): each target twice in a row, nominal then model; for a
     force scenario a force level drawn uniformly up to the campaign's largest."""
+    import numpy as np
+
     from deltatwin.calibration.compensation import ConditionLog
     from deltatwin.twin.campaign import Plan
 
@@ -124,6 +126,8 @@ def _check_robot(instruments, sc) -> None:
 
 def _ranges(cal_df, records, sensors) -> dict:
     """Conditions of the compensation decisions outside the calibration data's range."""
+    import numpy as np
+
     out = {}
     if cal_df is None:
         return out
@@ -147,6 +151,8 @@ def _ranges(cal_df, records, sensors) -> dict:
 
 
 def run(args) -> int:
+    import numpy as np
+
     from deltatwin.calibration.compensation import (
         LoopController,
         NominalCompensator,
@@ -155,6 +161,7 @@ def run(args) -> int:
     )
     from deltatwin.commands.campaign import EXIT_INSTRUMENT_FAULT, resumed_wall_clock_s
     from deltatwin.commands.output import strict_json
+    from deltatwin.files import check_writable
     from deltatwin.twin.campaign import run_campaign
     from deltatwin.twin.dataset import read_dataset, write_dataset
     from deltatwin.twin.instruments.interface import InstrumentError
@@ -172,6 +179,8 @@ def run(args) -> int:
         raise ValueError(f"--scale must be in (0, 1], got {args.scale}")
     if not args.after_h >= 0:
         raise ValueError(f"--after-h must be >= 0 hours, got {args.after_h}")
+    if args.view is not None:
+        check_writable(args.view)
     t0 = time.perf_counter()
     sc = Scenario.load(args.scenario)
     comp = load_compensator(args.model)
