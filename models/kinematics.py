@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from deltatwin.models import batched
 from deltatwin.models.geometry import Geometry
 
 CLOSURE_TOL_M = 1e-12
@@ -82,29 +83,6 @@ def check_stroke(geom: Geometry, q: np.ndarray, what: str = "motor coordinates")
                               f"stroke [{lo}, {hi}] rad ({bad.size} pose(s) out of stroke)")
 
 
-def _trilaterate_low(c: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Lower intersection point (N,3) of three spheres, centres c (N,3,3), radii r (N,3)."""
-    d21, d31 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
-    d = np.linalg.norm(d21, axis=1)
-    ex = d21 / d[:, None]
-    i = np.sum(ex * d31, axis=1)
-    ey = d31 - i[:, None] * ex
-    j = np.linalg.norm(ey, axis=1)
-    ey /= j[:, None]
-    ez = np.cross(ex, ey)
-    x = (r[:, 0] ** 2 - r[:, 1] ** 2 + d ** 2) / (2 * d)
-    y = (r[:, 0] ** 2 - r[:, 2] ** 2 + i ** 2 + j ** 2) / (2 * j) - i * x / j
-    z2 = r[:, 0] ** 2 - x ** 2 - y ** 2
-    bad = np.flatnonzero(~(z2 >= 0))
-    if bad.size:
-        raise KinematicsError(f"pose {int(bad[0])}: the rods cannot reach the platform "
-                              f"(three-sphere intersection is empty; {bad.size} pose(s))")
-    base = c[:, 0] + x[:, None] * ex + y[:, None] * ey
-    zz = np.sqrt(z2)[:, None] * ez
-    lo = np.where((zz[:, 2] > 0)[:, None], base - zz, base + zz)
-    return lo
-
-
 def _residual_and_jacobian(geom, A, p, R):
     """Rod equations f = |P - A|^2 - L^2 (N,6) and their derivatives.
 
@@ -136,31 +114,107 @@ def _check_closure(geom, A, p, R, what):
     return err
 
 
+def _component_first(geom: Geometry):
+    """The joint arrays component-first with a trailing point axis (length 1 for one robot
+    state, N for a per-point geometry): B, axis (3,3,1,1|N), arm_vec, P0 (3,3,2,1|N),
+    L (3,2,1|N), theta_zero (3,1|N)."""
+    g = _per_point(geom)
+    chain_vec = lambda v: np.ascontiguousarray(v.transpose(2, 1, 0))[:, :, None]
+    rod_vec = lambda v: np.ascontiguousarray(v.transpose(3, 1, 2, 0))
+    return (chain_vec(g.B), chain_vec(g.axis), rod_vec(g.arm_vec), rod_vec(g.P0),
+            np.ascontiguousarray(g.L.transpose(1, 2, 0)), np.ascontiguousarray(g.theta_zero.T))
+
+
+def _trilaterate_low(c: np.ndarray, r: np.ndarray, first_pose: int = 0) -> np.ndarray:
+    """Lower intersection point (3,N) of three spheres, centres c (3,3 spheres,N) and radii
+    r (3,N), component-first (poses numbered from ``first_pose`` in errors)."""
+    d21, d31 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+    d = np.sqrt(batched.dot(d21, d21))
+    ex = d21 / d
+    i = batched.dot(ex, d31)
+    ey = d31 - i * ex
+    j = np.sqrt(batched.dot(ey, ey))
+    ey /= j
+    ez = batched.cross(ex, ey)
+    x = (r[0] ** 2 - r[1] ** 2 + d ** 2) / (2 * d)
+    y = (r[0] ** 2 - r[2] ** 2 + i ** 2 + j ** 2) / (2 * j) - i * x / j
+    z2 = r[0] ** 2 - x ** 2 - y ** 2
+    bad = np.flatnonzero(~(z2 >= 0))
+    if bad.size:
+        raise KinematicsError(f"pose {first_pose + int(bad[0])}: the rods cannot reach the "
+                              f"platform (three-sphere intersection is empty; {bad.size} pose(s))")
+    base = c[:, 0] + x * ex + y * ey
+    zz = np.sqrt(z2) * ez
+    return np.where(zz[2] > 0, base - zz, base + zz)
+
+
 def forward(geom: Geometry, q, check: bool = True) -> Pose:
-    """Forward kinematics: motor coordinates q (N,3) rad -> platform Pose (exact, 6-DOF)."""
+    """Forward kinematics: motor coordinates q (N,3) rad -> platform Pose (exact, 6-DOF).
+
+    Written component-first (models/batched.py): every array carries the points on its last
+    axis, and the Newton steps solve their 6x6 systems by Cholesky of the normal equations, entry
+    by entry over the points (the same root as a direct solve: the steps only steer the
+    iteration to where every rod equation holds; the loop closure is checked on the result).
+    Points go in chunks of ``batched.CHUNK_POINTS``, so that a chunk's arrays stay in the CPU
+    caches."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     if check:
         check_stroke(geom, q)
     n = q.shape[0]
-    A = elbow_points(geom, geom.theta(q))
-    # start: ideal closed form with each parallelogram replaced by its centre line
-    g = _per_point(geom)
-    centres = A.mean(axis=2) - g.P0.mean(axis=2)
-    p = _trilaterate_low(centres, np.broadcast_to(g.L.mean(axis=2), (n, 3)))
-    R = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    joints = _component_first(geom)
+    p, R = np.empty((n, 3)), np.empty((n, 3, 3))
 
-    def update():
-        nonlocal p, R
-        f, d, w = _residual_and_jacobian(geom, A, p, R)
-        J = np.concatenate([2 * d, 2 * np.cross(w, d)], axis=-1).reshape(n, 6, 6)
-        step = np.linalg.solve(J, -f[..., None])[..., 0]
-        p = p + step[:, :3]
-        R = Rotation.from_rotvec(step[:, 3:]).as_matrix() @ R
-        return np.abs(step).max(axis=1)
+    def solve_chunk(sl):
+        on_chunk = lambda x: x[..., sl] if x.shape[-1] == n else x      # per-point or one robot
+        p_chunk, R_chunk = _forward_newton(q[sl], *map(on_chunk, joints), first_pose=sl.start)
+        p[sl], R[sl] = p_chunk.T, R_chunk.transpose(2, 0, 1)
 
-    _newton(update, n, "forward kinematics")
-    _check_closure(geom, A, p, R, "forward kinematics")
+    batched.map_chunks(solve_chunk, n)
     return Pose(p=p, R=R)
+
+
+def _forward_newton(q, B, axis, arm_vec, P0, L, theta_zero, first_pose: int):
+    """Newton on the six rod equations for the poses of one chunk (component-first joint
+    arrays, see ``_component_first``): position (3,m) and rotation (3,3,m)."""
+    m = q.shape[0]
+    theta = (q.T + theta_zero)[:, None]                                   # (3 chains,1,m)
+    cos_t, sin_t = np.cos(theta), np.sin(theta)
+    A = (B + arm_vec * cos_t + batched.cross(axis, arm_vec) * sin_t
+         + axis * batched.dot(axis, arm_vec) * (1.0 - cos_t))             # elbows (3,3,2,m)
+    # start: ideal closed form with each parallelogram replaced by its centre line
+    centres = 0.5 * (A[:, :, 0] + A[:, :, 1]) - 0.5 * (P0[:, :, 0] + P0[:, :, 1])
+    p = _trilaterate_low(centres, np.broadcast_to(0.5 * (L[:, 0] + L[:, 1]), (3, m)), first_pose)
+    R = np.zeros((3, 3, m))
+    R[0, 0] = R[1, 1] = R[2, 2] = 1.0
+    L2 = L * L
+    # chord Newton: the rows d f / d(position, rotation) / 2 = (d, w x d) per rod, factored once
+    # at the start (it is within ~1 um, so they change by ~1e-5 of themselves): each further
+    # step gains five digits for a residual, a product and two substitutions
+    rows = factor = None
+    for _ in range(_MAX_ITER):
+        w = batched.matvec(R[:, :, None, None], P0)                      # platform hinges R P0
+        d = p[:, None, None] + w - A
+        half_f = 0.5 * (batched.dot(d, d) - L2)                          # rod equations / 2
+        if rows is None:
+            rows = np.concatenate([d, batched.cross(w, d)]).reshape(6, 6, m)
+            factor = batched.normal_factor(rows)
+        step = batched.least_squares_step(factor, rows, half_f.reshape(6, m))
+        p = p + step[:3]
+        R = batched.matmul(batched.rotation_matrices(step[3:]), R)
+        moved = np.abs(step).max(axis=0)
+        if np.all(moved < 1e-14):
+            break
+    else:
+        bad = np.flatnonzero(~(moved < 1e-14))
+        raise KinematicsError(f"forward kinematics did not converge at pose "
+                              f"{first_pose + int(bad[0])} ({bad.size} pose(s) of its chunk)")
+    d = p[:, None, None] + batched.matvec(R[:, :, None, None], P0) - A
+    err = np.abs(np.sqrt(batched.dot(d, d)) - L).reshape(6, m).max(axis=0)
+    bad = np.flatnonzero(~(err < CLOSURE_TOL_M))
+    if bad.size:
+        raise KinematicsError(f"forward kinematics: loop closure {err[bad[0]]:.3e} m at pose "
+                              f"{first_pose + int(bad[0])} exceeds {CLOSURE_TOL_M} m")
+    return p, R
 
 
 def _ideal_chain_angles(geom: Geometry, p: np.ndarray) -> np.ndarray:

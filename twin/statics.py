@@ -33,18 +33,18 @@ Implementation: structure of arrays.  Every per-pose quantity is an array whose 
 over the poses of a chunk, with vector component / matrix entry, chain and rod as leading axes,
 so each numpy call works on thousands of poses at once; the condensation (4x4 per chain) and the
 platform solve (6x6) are Cholesky factorisations written entry by entry over those arrays.
-Chunks of CHUNK_POSES poses are solved on THREADS threads (numpy releases the GIL inside its
-loops); each chunk writes its own rows, so the result does not depend on the thread count.
+Chunks of CHUNK_POSES poses are solved on the threads of models/batched.py ``map_chunks``
+(numpy releases the GIL inside its loops); each chunk writes its own rows, so the result does
+not depend on the thread count.
 """
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from deltatwin.models import batched
 from deltatwin.models.geometry import Geometry
 from deltatwin.models.kinematics import Pose, forward, home_rod_directions
 from deltatwin.models.params import RobotParams
@@ -53,7 +53,6 @@ from deltatwin.models.stiffness import Stiffness, element_stiffness
 GRAVITY_M_S2 = 9.80665
 N_COORD = 18  # dp(3) dr(3) dtheta(3) phi(3 chains x 3)
 CHUNK_POSES = 1024  # poses per assembly chunk (working set stays in the CPU caches)
-THREADS = len(os.sched_getaffinity(0))  # chunks solved in parallel (numpy releases the GIL)
 _DP, _DR, _ETA = slice(0, 3), slice(3, 6), slice(6, 10)   # chain coordinates (see module doc)
 # [h]x entries: (row, column, component of h, sign)
 _SKEW_ENTRIES = ((0, 1, 2, -1.0), (0, 2, 1, 1.0), (1, 0, 2, 1.0), (1, 2, 0, -1.0),
@@ -73,27 +72,14 @@ class StaticResult:
         return self.y[:, :6]
 
 
-# -- structure-of-arrays helpers: vectors are (3, ...) with the component first ----------------
-def _dot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
 def _bend_vector(rest, actual):
     """Rotation vector (3,...) turning unit vector ``rest`` into unit vector ``actual``: along
     rest x actual, of length the angle between them (rad)."""
-    c = _cross(rest, actual)
-    sin_angle = np.sqrt(_dot(c, c))
+    c = batched.cross(rest, actual)
+    sin_angle = np.sqrt(batched.dot(c, c))
     safe = np.where(sin_angle > 0.0, sin_angle, 1.0)
-    return c * np.where(sin_angle > 0.0, np.arctan2(sin_angle, _dot(rest, actual)) / safe, 1.0)
-
-
-def _cross(a, b, out=None):
-    if out is None:
-        out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        np.multiply(a[j], b[k], out=out[i])
-        out[i] -= a[k] * b[j]
-    return out
+    return c * np.where(sin_angle > 0.0, np.arctan2(sin_angle, batched.dot(rest, actual)) / safe,
+                        1.0)
 
 
 def _rod_pairs(a, b):
@@ -111,53 +97,6 @@ def _rotation_terms(axis: np.ndarray, v: np.ndarray):
     sin(angle) tangential; the three terms component-first with a trailing pose axis."""
     fixed = axis * np.sum(axis * v, axis=-1, keepdims=True)
     return tuple(np.moveaxis(t, -1, 0)[..., None] for t in (fixed, v - fixed, np.cross(axis, v)))
-
-
-def _map_chunks(fun, n_poses: int) -> list:
-    """``fun(slice)`` over chunks of CHUNK_POSES poses, on THREADS threads; results in order."""
-    chunks = [slice(s, s + CHUNK_POSES) for s in range(0, n_poses, CHUNK_POSES)]
-    if THREADS < 2 or len(chunks) < 2:
-        return [fun(sl) for sl in chunks]
-    with ThreadPoolExecutor(min(THREADS, len(chunks))) as pool:
-        return list(pool.map(fun, chunks))
-
-
-def _cholesky(K):
-    """Cholesky factors of symmetric positive-definite matrices K (n,n,...), outer-product form:
-    the lower triangle holds the factor L, with the reciprocal of L's diagonal on the diagonal
-    (for the substitutions); NaN where K is not positive definite."""
-    L = K.copy()
-    n = K.shape[0]
-    for j in range(n):
-        pivot = L[j, j]
-        inv_diag = 1.0 / np.sqrt(np.where(pivot > 0.0, pivot, np.nan))
-        if j + 1 < n:
-            col = L[j + 1:, j]
-            col *= inv_diag
-            L[j + 1:, j + 1:] -= col[:, None] * col[None]
-        L[j, j] = inv_diag
-    return L
-
-
-def _forward_substitute(L, b):
-    """Solve L x = b for factors from ``_cholesky``; b (n, ...) broadcasting against L[i, k]."""
-    x = b.copy()
-    for i in range(L.shape[0]):
-        for k in range(i):
-            x[i] -= L[i, k] * x[k]
-        x[i] *= L[i, i]
-    return x
-
-
-def _backward_substitute(L, b):
-    """Solve L^T x = b for factors from ``_cholesky``."""
-    n = L.shape[0]
-    x = b.copy()
-    for i in reversed(range(n)):
-        for k in range(i + 1, n):
-            x[i] -= L[k, i] * x[k]
-        x[i] *= L[i, i]
-    return x
 
 
 class Statics:
@@ -209,7 +148,7 @@ class Statics:
         rotated = (pose.R.reshape(m * 3, 3) @ self._platform_vecs.T).reshape(m, 3, 2, 3, 2)
         w, rest_plat = np.ascontiguousarray(rotated.transpose(2, 1, 3, 4, 0))      # (3,3,2,m)
         d = pose.p.T[:, None, None, :] + w - A
-        inv_len = 1.0 / np.sqrt(_dot(d, d))                                       # (3,2,m)
+        inv_len = 1.0 / np.sqrt(batched.dot(d, d))                                       # (3,2,m)
         n = d * inv_len
 
         axes = np.stack([np.broadcast_to(self._u, a_dir.shape), np.broadcast_to(self._u, a_dir.shape),
@@ -217,14 +156,14 @@ class Statics:
         # lever arms of the elbow hinge about the centres (B, V, V, V): c_k = a_k x lever_k
         arm_A, pivot_A = A - self._base, A - pivot
         c = np.empty((3, 4) + A.shape[1:])                                        # (3,4,3,2,m)
-        _cross(self._u, arm_A, out=c[:, 0])
-        _cross(axes[:, 1:], pivot_A[:, None], out=c[:, 1:])
-        n_c = _dot(n[:, None], c)                                                 # (4,3,2,m)
+        batched.cross(self._u, arm_A, out=c[:, 0])
+        batched.cross(axes[:, 1:], pivot_A[:, None], out=c[:, 1:])
+        n_c = batched.dot(n[:, None], c)                                                 # (4,3,2,m)
         # v's eta columns G_k = n x a_k / 2 - c_k / L = (lever_k / L + n / 2) x a_k
         G = np.empty_like(c)
-        _cross(arm_A * inv_len + 0.5 * n, self._u, out=G[:, 0])
-        _cross((pivot_A * inv_len + 0.5 * n)[:, None], axes[:, 1:], out=G[:, 1:])
-        wn = _cross(w, n)                                                         # s1's dr columns
+        batched.cross(arm_A * inv_len + 0.5 * n, self._u, out=G[:, 0])
+        batched.cross((pivot_A * inv_len + 0.5 * n)[:, None], axes[:, 1:], out=G[:, 1:])
+        wn = batched.cross(w, n)  # s1's dr columns
         h = w * inv_len - 0.5 * n                                                 # v's dr columns: -[h]x
         kb = k.hinge_bending
         kv = 2.0 * kb                                                             # weight of |v|^2
@@ -252,8 +191,8 @@ class Statics:
             K[a, 3 + b] -= sign * kh[comp]
         K[_DP, _ETA] = _both_rods(kv_len * G) - _rod_pairs(sn, n_c)
         K[_DR, _DR] = (_rod_pairs(swn, wn) - kv * _rod_pairs(h, h)
-                         + eye * (kv * _both_rods(_dot(h, h))) + W)
-        K[_DR, _ETA] = kv * _both_rods(_cross(h[:, None], G)) - _rod_pairs(swn, n_c) - WA
+                         + eye * (kv * _both_rods(batched.dot(h, h))) + W)
+        K[_DR, _ETA] = kv * _both_rods(batched.cross(h[:, None], G)) - _rod_pairs(swn, n_c) - WA
         K[_ETA, _ETA] = (_rod_pairs(s_ax * n_c, n_c) + kv * np.einsum("ckijm,clijm->klim", G, G)
                          + np.einsum("akim,alim->klim", axes_c, WA)
                          + np.diag(self._k_internal)[:, :, None, None])
@@ -266,10 +205,10 @@ class Statics:
         fixed, radial, tangential = self._rest_elbow
         rest_elbow = fixed + radial * np.cos(qT) + tangential * np.sin(qT)
         e_elbow, e_plat = _bend_vector(rest_elbow, n), _bend_vector(rest_plat, n)
-        sigma = _cross(e_elbow + e_plat, n) * inv_len
+        sigma = batched.cross(e_elbow + e_plat, n) * inv_len
         f0 = np.empty((10, 3, m))
         f0[_DP] = -kb * _both_rods(sigma)
-        f0[_DR] = kb * _both_rods(e_plat - _cross(w, sigma))
+        f0[_DR] = kb * _both_rods(e_plat - batched.cross(w, sigma))
         f0[_ETA] = kb * (np.einsum("cijm,ckijm->kim", sigma, c)
                          + np.einsum("cim,ckim->kim", _both_rods(e_elbow), axes_c))
         return K, f0
@@ -279,8 +218,8 @@ class Statics:
         """Condense the chains' internal coordinates: platform stiffness (6,6,m), force (6,m),
         and the map back to internal coordinates (Cholesky factors of K_ii (4,4,3,m) and
         L^-1 [K_ip, f_i] (4,7,3,m))."""
-        L = _cholesky(K[_ETA, _ETA])
-        X = _forward_substitute(L, np.concatenate([K[_ETA, :6], f0[_ETA, None]], axis=1))
+        L = batched.cholesky(K[_ETA, _ETA])
+        X = batched.forward_substitute(L, np.concatenate([K[_ETA, :6], f0[_ETA, None]], axis=1))
         S = np.einsum("kaim,kbim->abm", X, X)                                      # (7,7,m)
         K_plat = np.sum(K[:6, :6], axis=2) - S[:6, :6]
         f_plat = np.sum(f0[:6], axis=1) - S[:6, 6]
@@ -304,14 +243,15 @@ class Statics:
 
         def solve_chunk(sl):
             K_plat, f_plat, (L, X) = self._platform_system(q[sl], Pose(kin.p[sl], kin.R[sl]))
-            L_plat = _cholesky(K_plat)
-            yp = _backward_substitute(L_plat, _forward_substitute(L_plat, f[sl].T + f_plat))
-            yi = _backward_substitute(L, X[:, 6] - np.einsum("kaim,am->kim", X[:, :6], yp))
+            L_plat = batched.cholesky(K_plat)
+            yp = batched.backward_substitute(
+                L_plat, batched.forward_substitute(L_plat, f[sl].T + f_plat))
+            yi = batched.backward_substitute(L, X[:, 6] - np.einsum("kaim,am->kim", X[:, :6], yp))
             y[sl, :6] = yp.T
             y[sl, 6:9] = yi[0].T
             y[sl, 9:] = yi[1:].T.reshape(-1, 9)                                  # (m, chain, axis)
 
-        _map_chunks(solve_chunk, q.shape[0])
+        batched.map_chunks(solve_chunk, q.shape[0], CHUNK_POSES)
         bad = np.flatnonzero(~np.all(np.isfinite(y), axis=1))
         if bad.size:
             i = int(bad[0])
@@ -325,6 +265,7 @@ class Statics:
         """Platform compliance (N,6,6) at motor coordinates q: [m/N, m/(N m); rad/N, rad/(N m)]."""
         q = np.atleast_2d(np.asarray(q, dtype=np.float64))
         kin = forward(self.geom, q)
-        K_plat = _map_chunks(lambda sl: self._platform_system(q[sl], Pose(kin.p[sl], kin.R[sl]))[0],
-                             q.shape[0])
+        K_plat = batched.map_chunks(
+            lambda sl: self._platform_system(q[sl], Pose(kin.p[sl], kin.R[sl]))[0],
+            q.shape[0], CHUNK_POSES)
         return np.linalg.inv(np.moveaxis(np.concatenate(K_plat, axis=-1), -1, 0))

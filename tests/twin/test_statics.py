@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import deltatwin.twin.statics
+import deltatwin.models.batched
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import (
     Pose,
@@ -305,9 +305,9 @@ def test_result_does_not_depend_on_the_thread_count(statics, monkeypatch):
     """Chunks are solved on threads, each writing its own rows: identical bits for 1 or 2."""
     q = np.random.default_rng(5).uniform(*statics.geom.stroke, size=(2500, 3))
     pose = forward(statics.geom, q)
-    monkeypatch.setattr(deltatwin.twin.statics, "THREADS", 1)
+    monkeypatch.setattr(deltatwin.models.batched, "THREADS", 1)
     one = statics.solve(q, pose=pose).y
-    monkeypatch.setattr(deltatwin.twin.statics, "THREADS", 2)
+    monkeypatch.setattr(deltatwin.models.batched, "THREADS", 2)
     assert np.array_equal(statics.solve(q, pose=pose).y, one)
 
 

@@ -1,0 +1,140 @@
+"""Small vector and matrix algebra on batches stored structure-of-arrays: a vector is (3, ...)
+with its component first, a matrix (n, n, ...) with its entries first, and the batch (one
+entry per pose) runs along the trailing axes.  Each numpy call then works on thousands of
+poses at once, where ``np.sum(a * b, axis=-1)`` over a length-3 axis, ``np.cross`` or a batched
+``np.linalg.solve`` of 6x6 systems pay per-item overhead many times the arithmetic.
+"""
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+# below this rotation angle (rad) the Rodrigues coefficients come from their Taylor series
+# (truncation error < angle^6 / 5040 ~ 2e-22: exact in float64)
+_SERIES_ANGLE = 1e-3
+
+
+# points per chunk of a batched computation: a chunk's working set stays in the CPU caches
+CHUNK_POINTS = 2048
+
+
+def usable_cores() -> int:
+    """Processors this process may run on (its affinity where the system reports one: Linux;
+    else the machine's count: macOS, Windows)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+# threads that ``map_chunks`` solves chunks on (numpy releases the GIL inside its loops); one
+# by default, so that processes side by side do not oversubscribe the cores: an application
+# raises it once at start-up (deltatwin/threads.py, docs/performance.md)
+THREADS = 1
+
+
+def map_chunks(fun, n_points: int, chunk: int | None = None) -> list:
+    """``fun(slice)`` over chunks of ``chunk`` (default CHUNK_POINTS) points, on THREADS
+    threads; results in order.  Each chunk writes its own rows, so results do not depend on
+    the thread count."""
+    chunk = chunk or CHUNK_POINTS
+    chunks = [slice(s, s + chunk) for s in range(0, n_points, chunk)]
+    if THREADS < 2 or len(chunks) < 2:
+        return [fun(sl) for sl in chunks]
+    with ThreadPoolExecutor(min(THREADS, len(chunks))) as pool:
+        return list(pool.map(fun, chunks))
+
+
+def dot(a, b):
+    """Scalar products of component-first vectors a, b (3, ...) -> (...)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def cross(a, b, out=None):
+    """Cross products of component-first vectors (3, ...), broadcasting; into ``out`` if given."""
+    if out is None:
+        out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        np.multiply(a[j], b[k], out=out[i])
+        out[i] -= a[k] * b[j]
+    return out
+
+
+def matvec(M, v):
+    """Products M v of matrices (3, 3, ...) and vectors (3, ...), broadcasting -> (3, ...)."""
+    return np.stack([M[i, 0] * v[0] + M[i, 1] * v[1] + M[i, 2] * v[2] for i in range(3)])
+
+
+def matmul(A, B):
+    """Products A B of matrices (3, 3, ...) -> (3, 3, ...)."""
+    return np.stack([matvec(A, B[:, j]) for j in range(3)], axis=1)
+
+
+def rotation_matrices(rotvec):
+    """Rotation matrices (3, 3, ...) of rotation vectors (3, ...) (rad): Rodrigues,
+    R = I + a [w]x + b [w]x^2 with a = sin(t)/t, b = (1 - cos t)/t^2 = 2 sin^2(t/2)/t^2."""
+    t2 = dot(rotvec, rotvec)
+    a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+    b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+    large = t2 >= _SERIES_ANGLE ** 2
+    if large.any():          # rare: Newton's rotation steps are micro-radians
+        t = np.sqrt(t2[large])
+        a[large] = np.sin(t) / t
+        b[large] = 2.0 * (np.sin(0.5 * t) / t) ** 2
+    x, y, z = rotvec
+    bx, by, bz = b * x, b * y, b * z
+    ax, ay, az = a * x, a * y, a * z
+    return np.stack([np.stack([1.0 - bz * z - by * y, bx * y - az, bx * z + ay]),
+                     np.stack([bx * y + az, 1.0 - bz * z - bx * x, by * z - ax]),
+                     np.stack([bx * z - ay, by * z + ax, 1.0 - by * y - bx * x])])
+
+
+def cholesky(K):
+    """Cholesky factors of symmetric positive-definite matrices K (n,n,...), outer-product form:
+    the lower triangle holds the factor L, with the reciprocal of L's diagonal on the diagonal
+    (for the substitutions); NaN where K is not positive definite."""
+    L = K.copy()
+    n = K.shape[0]
+    for j in range(n):
+        pivot = L[j, j]
+        inv_diag = 1.0 / np.sqrt(np.where(pivot > 0.0, pivot, np.nan))
+        if j + 1 < n:
+            col = L[j + 1:, j]
+            col *= inv_diag
+            L[j + 1:, j + 1:] -= col[:, None] * col[None]
+        L[j, j] = inv_diag
+    return L
+
+
+def forward_substitute(L, b):
+    """Solve L x = b for factors from ``cholesky``; b (n, ...) broadcasting against L[i, k]."""
+    x = b.copy()
+    for i in range(L.shape[0]):
+        for k in range(i):
+            x[i] -= L[i, k] * x[k]
+        x[i] *= L[i, i]
+    return x
+
+
+def backward_substitute(L, b):
+    """Solve L^T x = b for factors from ``cholesky``."""
+    n = L.shape[0]
+    x = b.copy()
+    for i in reversed(range(n)):
+        for k in range(i + 1, n):
+            x[i] -= L[k, i] * x[k]
+        x[i] *= L[i, i]
+    return x
+
+
+def normal_factor(G):
+    """Cholesky factors (``cholesky``) of the normal matrices G G^T (n,n,...) of rows
+    G (n, r, ...): r equations of n unknowns each, r >= n, full rank (else NaN)."""
+    return cholesky(np.einsum("ir...,jr...->ij...", G, G))
+
+
+def least_squares_step(L, G, f):
+    """x minimising |G^T x + f| (f (r, ...)) by the normal equations G G^T x = -G f, with
+    L = ``normal_factor(G)``."""
+    return backward_substitute(L, forward_substitute(L, -np.sum(G * f, axis=1)))
