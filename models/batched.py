@@ -61,14 +61,23 @@ def cross(a, b, out=None):
     return out
 
 
-def matvec(M, v):
+def matvec(M, v, out=None):
     """Products M v of matrices (3, 3, ...) and vectors (3, ...), broadcasting -> (3, ...)."""
-    return np.stack([M[i, 0] * v[0] + M[i, 1] * v[1] + M[i, 2] * v[2] for i in range(3)])
+    if out is None:
+        out = np.empty((3,) + np.broadcast_shapes(M.shape[2:], v.shape[1:]))
+    for i in range(3):
+        np.multiply(M[i, 0], v[0], out=out[i])
+        out[i] += M[i, 1] * v[1]
+        out[i] += M[i, 2] * v[2]
+    return out
 
 
 def matmul(A, B):
     """Products A B of matrices (3, 3, ...) -> (3, 3, ...)."""
-    return np.stack([matvec(A, B[:, j]) for j in range(3)], axis=1)
+    out = np.empty((3, 3) + np.broadcast_shapes(A.shape[2:], B.shape[2:]))
+    for j in range(3):
+        matvec(A, B[:, j], out=out[:, j])
+    return out
 
 
 def rotation_matrices(rotvec):
@@ -85,9 +94,11 @@ def rotation_matrices(rotvec):
     x, y, z = rotvec
     bx, by, bz = b * x, b * y, b * z
     ax, ay, az = a * x, a * y, a * z
-    return np.stack([np.stack([1.0 - bz * z - by * y, bx * y - az, bx * z + ay]),
-                     np.stack([bx * y + az, 1.0 - bz * z - bx * x, by * z - ax]),
-                     np.stack([bx * z - ay, by * z + ax, 1.0 - by * y - bx * x])])
+    R = np.empty((3, 3) + t2.shape)
+    R[0, 0], R[0, 1], R[0, 2] = 1.0 - bz * z - by * y, bx * y - az, bx * z + ay
+    R[1, 0], R[1, 1], R[1, 2] = bx * y + az, 1.0 - bz * z - bx * x, by * z - ax
+    R[2, 0], R[2, 1], R[2, 2] = bx * z - ay, by * z + ax, 1.0 - by * y - bx * x
+    return R
 
 
 def cholesky(K):

@@ -20,8 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from deltatwin.models import batched
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import Pose, forward
 from deltatwin.models.params import RobotParams
@@ -102,6 +102,16 @@ class Points:
     pose: Pose | None = None     # kinematic pose, set by the twin before the load stage
     # a model fitted to measurements: sensor name -> (part, smoothed reading degC, rate K/s)
     sensor_readings: dict | None = None
+    _unique_q: tuple | None = field(default=None, repr=False)
+
+    def unique_q(self) -> tuple[np.ndarray, np.ndarray]:
+        """The distinct motor coordinates (M,3) and each point's index among them (N,):
+        computed once per ``q`` array (a model evaluated many times on the same points, a
+        twin's kinematics and statics on the same instants)."""
+        if self._unique_q is None or self._unique_q[0] is not self.q:
+            qu, inv = np.unique(self.q, axis=0, return_inverse=True)
+            self._unique_q = (self.q, qu, inv.reshape(-1))
+        return self._unique_q[1:]
 
 
 @dataclass
@@ -220,8 +230,7 @@ class Twin:
     # -- geometry, load, optics ---------------------------------------------------------------
     def truth(self, pts: Points) -> Truth:
         geom, kin = kinematic_pose(self.params, self.geom, self.effects, pts)
-        qu, inv = np.unique(pts.q, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
+        qu, inv = pts.unique_q()
         # statics are linear in the load: preload deflection + compliance * wrench, per position
         preload = self.statics.solve(qu, gravity=False).deflection[inv]
         return observe(geom, kin, self.effects, pts, preload, self.statics.compliance(qu)[inv],
@@ -237,9 +246,8 @@ def kinematic_pose(params: RobotParams, geom, effects: list[Effect], pts: Points
     if temps:
         geom = build_geometry(params, temps)
         return geom, forward(geom, pts.q)
-    qu, inv = np.unique(pts.q, axis=0, return_inverse=True)
+    qu, inv = pts.unique_q()
     ku = forward(geom, qu)
-    inv = inv.reshape(-1)
     return geom, Pose(ku.p[inv], ku.R[inv])
 
 
@@ -255,9 +263,10 @@ def observe(geom, kin: Pose, effects: list[Effect], pts: Points, preload: np.nda
         w = e.wrench(pts)
         if w is not None:
             wrench += w
-    y = preload + (compliance @ wrench[..., None])[..., 0]
-    R = Rotation.from_rotvec(y[:, 3:6]).as_matrix() @ kin.R
-    pose = Pose(kin.p + y[:, :3], R)
+    y = preload + np.einsum("nij,nj->ni", compliance, wrench)
+    # the deflection's small rotation on the kinematic one, component-first (models/batched.py)
+    R = batched.matmul(batched.rotation_matrices(y[:, 3:6].T), kin.R.transpose(1, 2, 0))
+    pose = Pose(kin.p + y[:, :3], np.ascontiguousarray(R.transpose(2, 0, 1)))
     optics = Optics.nominal(cube_home, n, n_nominal=1.0)
     for e in effects:
         e.optics(pts, optics)

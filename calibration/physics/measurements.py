@@ -70,8 +70,7 @@ class Measurements:
         if self._statics is None:
             geom = build_geometry(params)
             st = Statics(params, geom)
-            qu, inv = np.unique(self.points.q, axis=0, return_inverse=True)
-            inv = inv.reshape(-1)
+            qu, inv = self.points.unique_q()
             self._statics = (st.solve(qu, gravity=False).deflection[inv], st.compliance(qu)[inv])
         return self._statics
 

@@ -3,17 +3,22 @@ from __future__ import annotations
 
 import numpy as np
 
+from deltatwin.models import batched
 from deltatwin.twin.effects.base import Effect, Parameter
 
 
 def _tilt(direction, angles):
-    """Tilt unit vectors (N,3) by two small angles about the two axes normal to them."""
-    helper = np.where(np.abs(direction[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    e1 = np.cross(direction, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(direction, e1)
-    d = direction + angles[0] * e1 + angles[1] * e2
-    return d / np.linalg.norm(d, axis=1, keepdims=True), e1, e2
+    """Tilt unit vectors (N,3) by two small angles about the two axes normal to them; the
+    tilted vectors and the two axes, (N,3) each (computed component-first, models/batched.py)."""
+    b = direction.T
+    helper = np.zeros_like(b)
+    upright = np.abs(b[2]) < 0.9
+    helper[2], helper[0] = upright, ~upright
+    e1 = batched.cross(b, helper)
+    e1 /= np.sqrt(batched.dot(e1, e1))
+    e2 = batched.cross(b, e1)
+    d = b + angles[0] * e1 + angles[1] * e2
+    return (d / np.sqrt(batched.dot(d, d))).T, e1.T, e2.T
 
 
 class BeamMisalignment(Effect):

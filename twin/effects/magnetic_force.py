@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from deltatwin.models import batched
 from deltatwin.models.mjcf import MAGNET_HALF_M, magnet_positions
 from deltatwin.twin.effects.base import Effect, Parameter
 
@@ -19,16 +20,17 @@ MU0 = 4e-7 * np.pi
 
 def dipole_force_torque(m1, r1, m2, r2):
     """Force (N) and torque (N*m, about r2) on dipole m2 at r2 from dipole m1 at r1 (A*m^2, m).
-    Arrays broadcast over leading axes (..., 3)."""
+    Component-first arrays (3, ...) broadcasting over the trailing axes (models/batched.py)."""
     r = r2 - r1
-    d = np.linalg.norm(r, axis=-1, keepdims=True)
+    d2 = batched.dot(r, r)
+    d = np.sqrt(d2)
     u = r / d
-    m1u = np.sum(m1 * u, -1, keepdims=True)
-    m2u = np.sum(m2 * u, -1, keepdims=True)
-    m1m2 = np.sum(m1 * m2, -1, keepdims=True)
-    F = 3 * MU0 / (4 * np.pi * d ** 4) * (m2 * m1u + m1 * m2u + u * m1m2 - 5 * u * m1u * m2u)
-    B = MU0 / (4 * np.pi * d ** 3) * (3 * u * m1u - m1)
-    return F, np.cross(m2, B)
+    m1u = batched.dot(m1, u)
+    m2u = batched.dot(m2, u)
+    m1m2 = batched.dot(m1, m2)
+    F = 3 * MU0 / (4 * np.pi * d2 * d2) * (m2 * m1u + m1 * m2u + u * m1m2 - 5 * u * m1u * m2u)
+    B = MU0 / (4 * np.pi * d2 * d) * (3 * u * m1u - m1)
+    return F, batched.cross(m2, B)
 
 
 class MagneticForce(Effect):
@@ -59,18 +61,20 @@ class MagneticForce(Effect):
 
     def wrench(self, points):
         pose, params = points.pose, points.params
-        coils = self.coil_dipoles(params, points.home_p)                       # (3,3)
-        mag = pose.p[:, None, :] + (pose.R[:, None] @ magnet_positions(params)[None, :, :, None])[..., 0]
-        m_mag = -self.magnet_moment_Am2 * pose.R[:, :, 2]                       # down, with platform
-        m_mag = np.broadcast_to(m_mag[:, None, None, :], mag.shape[:2] + (3, 3))
-        m_coil = np.zeros(points.currents_A.shape + (3,))
-        m_coil[..., 2] = self.coil_moment_per_A * points.currents_A             # (N,3 coils,3)
+        n = pose.p.shape[0]
+        coils = self.coil_dipoles(params, points.home_p).T[:, None, :, None]   # (3,1,3 coils,1)
+        R = pose.R.transpose(1, 2, 0)                                          # (3,3,N)
+        # magnets (axis 1) component-first: lever from the platform origin and centre (3,3,N)
+        arm = batched.matvec(R[:, :, None], magnet_positions(params).T[:, :, None])
+        mag = pose.p.T[:, None] + arm
+        m_mag = (-self.magnet_moment_Am2 * R[:, 2])[:, None, None]            # down, with platform
+        m_coil = np.zeros((3, 1) + points.currents_A.T.shape)                  # (3,1,3 coils,N)
+        m_coil[2, 0] = self.coil_moment_per_A * points.currents_A.T
         # every coil (axis 2) on every magnet (axis 1)
-        F, tau = dipole_force_torque(m_coil[:, None, :, :], coils[None, None, :, :],
-                                     m_mag, mag[:, :, None, :])
-        F_mag = F.sum(axis=2)                                                   # (N,3 magnets,3)
-        arm = mag - pose.p[:, None, :]
-        w = np.zeros((pose.p.shape[0], 6))
-        w[:, :3] = F_mag.sum(axis=1)
-        w[:, 3:] = (np.cross(arm, F_mag) + tau.sum(axis=2)).sum(axis=1)
+        F, tau = dipole_force_torque(m_coil, coils, m_mag, mag[:, :, None])
+        F_mag = F[:, :, 0] + F[:, :, 1] + F[:, :, 2]                           # (3,3 magnets,N)
+        w = np.empty((n, 6))
+        w[:, :3] = (F_mag[:, 0] + F_mag[:, 1] + F_mag[:, 2]).T
+        moment = batched.cross(arm, F_mag) + tau.sum(axis=2)
+        w[:, 3:] = (moment[:, 0] + moment[:, 1] + moment[:, 2]).T
         return w
