@@ -412,25 +412,33 @@ def causal_fit(t_s, values, window_s: float = DEFAULT_WINDOW_S, degree: int = 2)
     new_time = np.concatenate([[1], (np.diff(t) > 0).astype(int)])
     cum = np.cumsum(new_time)
     distinct = cum - cum[lo] + 1
-    K = int(count.max())
-    k = np.arange(K)
-    idx = np.arange(n)[:, None] - k[None, :]                       # (n, K): i, i-1, ...
-    valid = idx >= lo[:, None]
-    idx = np.where(valid, idx, 0)
-    tau = np.where(valid, (t[idx] - t[:, None]) / window_s, 0.0)   # in [-1, 0]
-    w = valid.astype(float)
+    # normal equations of every row's window, accumulated over the window's offsets k (sample
+    # i - k): moments sum w tau^m (Hankel matrix G) and sum w tau^p (v_{i-k} - v_i) (B, values
+    # centred on the current sample to keep them small); (n, p) and (n, p, c) arrays, never
+    # one as large as (n, window, c)
+    p_max = degree + 1
+    moments = np.zeros((2 * p_max - 1, n))
+    B = np.zeros((p_max, n, c))
+    i = np.arange(n)
+    for k in range(int(count.max())):
+        valid = i - k >= lo
+        j = np.where(valid, i - k, 0)
+        tau = np.where(valid, (t[j] - t) / window_s, 0.0)               # in [-1, 0]
+        power = valid.astype(float)                                     # w tau^m, m = 0, 1, ...
+        Y = v[j] - v
+        for m in range(2 * p_max - 1):
+            moments[m] += power
+            if m < p_max:
+                B[m] += power[:, None] * Y
+            power = power * tau
     deg = np.minimum(degree, distinct - 1)
     for dg in (1, 2):
         rows = np.flatnonzero(deg == dg)
         if rows.size == 0:
             continue
-        V = np.stack([tau[rows] ** p for p in range(dg + 1)], axis=2)   # (r, K, dg+1)
-        Vw = V * w[rows][:, :, None]
-        G = np.einsum("rkp,rkq->rpq", Vw, V)
-        # centre values on the current sample to keep the right-hand side small
-        Y = v[idx[rows]] - v[rows][:, None, :]                          # (r, K, c)
-        B = np.einsum("rkp,rkc->rpc", Vw, Y)
-        coef = np.linalg.solve(G, B)                                    # (r, dg+1, c)
+        G = np.stack([np.stack([moments[a + b, rows] for b in range(dg + 1)], axis=1)
+                      for a in range(dg + 1)], axis=1)                 # (r, dg+1, dg+1)
+        coef = np.linalg.solve(G, B[:dg + 1, rows].transpose(1, 0, 2))  # (r, dg+1, c)
         level[rows] = v[rows] + coef[:, 0, :]
         d1[rows] = coef[:, 1, :] / window_s
         if dg == 2:

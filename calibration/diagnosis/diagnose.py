@@ -133,13 +133,14 @@ def recorded_variables(df: pd.DataFrame) -> dict[str, np.ndarray]:
     out = {"t_s": df["t_s"].to_numpy(dtype=np.float64)}
     t = out["t_s"]
     order = np.argsort(t, kind="stable")
-    for c in df.columns:
-        if c.startswith("T_") and c.endswith("_C"):
-            v = df[c].to_numpy(dtype=np.float64)
-            out[c] = v
-            rate = np.empty_like(v)
-            rate[order] = causal_derivatives(t[order], v[order], degree=1)[0]
-            out[f"dT_{c[2:-2]}_dt_K_per_s"] = rate
+    sensors = [c for c in df.columns if c.startswith("T_") and c.endswith("_C")]
+    T = df[sensors].to_numpy(dtype=np.float64)
+    rate = np.empty_like(T)
+    if sensors:     # every sensor in one call: the windows' normal equations are shared
+        rate[order] = causal_derivatives(t[order], T[order], degree=1)[0]
+    for k, c in enumerate(sensors):
+        out[c] = T[:, k]
+        out[f"dT_{c[2:-2]}_dt_K_per_s"] = rate[:, k]
     for c in ("q1_rad", "q2_rad", "q3_rad", "F_N", "coil1_A", "coil2_A", "coil3_A") + tuple(
             f"{a}_arcsec" for a in AC_CHANNELS):
         if c in df:

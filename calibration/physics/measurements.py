@@ -100,20 +100,21 @@ def sensor_streams(df: pd.DataFrame, sensors: dict, window_s: float = TEMPERATUR
     nm): {sensor name: (part, level degC (N,), rate K/s (N,))}."""
     t = df["t_s"].to_numpy(dtype=np.float64)
     order = np.argsort(t, kind="stable")
-    out = {}
     for s, part in sensors.items():
         c = f"T_{s}_C"
         if c not in df:
-            raise MissingColumnsError(f"{where}: metadata 'sensors' names sensor {s!r} (on {part!r}) but "
-                                      f"the data has no column {c!r}")
-        raw = df[c].to_numpy(dtype=np.float64)
-        if not np.all(np.isfinite(raw)):
-            raise CalibrationInputError(f"{where}: column {c!r}: row {int(np.flatnonzero(~np.isfinite(raw))[0])}"
-                                        " is not a finite temperature")
-        level, rate = np.empty_like(raw), np.empty_like(raw)
+            raise MissingColumnsError(f"{where}: metadata 'sensors' names sensor {s!r} (on "
+                                      f"{part!r}) but the data has no column {c!r}")
+        bad = np.flatnonzero(~np.isfinite(df[c].to_numpy(dtype=np.float64)))
+        if bad.size:
+            raise CalibrationInputError(f"{where}: column {c!r}: row {int(bad[0])} is not a "
+                                        "finite temperature")
+    raw = df[[f"T_{s}_C" for s in sensors]].to_numpy(dtype=np.float64)
+    level, rate = np.empty_like(raw), np.empty_like(raw)
+    if sensors:     # every sensor in one call: the windows' normal equations are shared
         level[order], rate[order] = causal_fit(t[order], raw[order], window_s, degree=1)[:2]
-        out[s] = (part, level, rate)
-    return out
+    return {s: (part, np.ascontiguousarray(level[:, k]), np.ascontiguousarray(rate[:, k]))
+            for k, (s, part) in enumerate(sensors.items())}
 
 
 def node_temperatures(sensor_T: dict, sensors: dict, T_ref_C: float, n: int) -> dict:

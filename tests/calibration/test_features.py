@@ -140,3 +140,29 @@ def test_temperature_variables_per_session_in_time_order_and_SI():
         temperature_variables(df, ["b"], {"T_b"}, 293.15, 600.0)
     with pytest.warns(MissingMetadataWarning, match="session"):
         temperature_variables(df.drop(columns="session"), ["a"], {"dT_a"}, 293.15, 600.0)
+
+
+def test_causal_fit_of_many_streams_equals_a_window_by_window_least_squares():
+    """One call for several columns against each sample's own least-squares polynomial over
+    its trailing window (numpy lstsq), uneven times with repeats and a window start."""
+    from deltatwin.calibration.blackbox.features import causal_fit
+    rng = np.random.default_rng(11)
+    t = np.sort(np.concatenate([rng.uniform(0.0, 3000.0, 300), [5.0, 5.0, 5.0]]))
+    v = np.stack([20.0 + 1e-3 * rng.normal(size=t.size), np.sin(t / 500.0),
+                  1e-4 * t + rng.normal(size=t.size)], axis=1)
+    for degree in (1, 2):
+        level, d1, d2, count = causal_fit(t, v, 600.0, degree)
+        for i in range(0, t.size, 7):
+            window = np.flatnonzero((t >= t[i] - 600.0) & (np.arange(t.size) <= i))  # causal
+            assert count[i] == window.size
+            dg = min(degree, np.unique(t[window]).size - 1)
+            if dg == 0:
+                assert np.array_equal(level[i], v[i]) and not d1[i].any() and not d2[i].any()
+                continue
+            tau = (t[window] - t[i]) / 600.0
+            coef = np.linalg.lstsq(np.vander(tau, dg + 1, increasing=True),
+                                   v[window] - v[i], rcond=None)[0]
+            assert np.allclose(level[i], v[i] + coef[0], rtol=0, atol=1e-12 * np.abs(v).max())
+            assert np.allclose(d1[i], coef[1] / 600.0, rtol=1e-9, atol=1e-15)
+            if dg == 2:
+                assert np.allclose(d2[i], 2 * coef[2] / 600.0 ** 2, rtol=1e-9, atol=1e-18)
