@@ -1,0 +1,57 @@
+"""How many threads a deltatwin process computes on, set once at start-up (docs/performance.md).
+
+Two pools exist: the BLAS library's (numpy's and scipy's OpenBLAS), and the chunk pool of the
+batched kinematics and statics (models/batched.py ``map_chunks``).  Neither helps this
+package much: its matrices are 3x3 to 6x6 per point (BLAS threads only spin up and wait on
+them) or a few hundred columns wide, and the chunked stages are a fraction of a command.  But
+both oversubscribe the cores when commands run side by side: two processes each starting one
+BLAS thread per core slowed each other by 75-240 % (issue 21).  So a command uses one thread
+of each unless told otherwise by ``DELTATWIN_THREADS`` (a number, or ``auto``: every core this
+process may use) or an explicit ``set_threads(n)``.
+"""
+from __future__ import annotations
+
+import os
+
+ENVIRONMENT_VARIABLE = "DELTATWIN_THREADS"
+# read by BLAS libraries when they load (scipy's OpenBLAS loads with scipy.linalg, later)
+BLAS_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+_blas_limit = None      # the threadpoolctl limiter, kept so the limit lives as long as the process
+
+
+def threads_from_environment() -> int:
+    """The thread count ``DELTATWIN_THREADS`` asks for (1 when unset); ValueError naming the
+    variable when it is neither a positive whole number nor ``auto``."""
+    raw = os.environ.get(ENVIRONMENT_VARIABLE, "").strip()
+    if not raw:
+        return 1
+    if raw.lower() == "auto":
+        from deltatwin.models.batched import usable_cores
+        return usable_cores()
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"environment variable {ENVIRONMENT_VARIABLE}={raw!r}: expected a "
+                         "positive whole number of threads or 'auto'")
+    return n
+
+
+def set_threads(threads: int | None = None) -> int:
+    """Use ``threads`` (default: ``threads_from_environment()``) for both the BLAS libraries and
+    the chunk pool, for the rest of the process (and its children); returns the count.  Call it
+    once when a command starts, before it computes: BLAS libraries loaded later read the
+    environment variables set here, those already loaded are limited through threadpoolctl."""
+    global _blas_limit
+    n = threads_from_environment() if threads is None else int(threads)
+    if n < 1:
+        raise ValueError(f"threads = {threads!r}: expected a positive whole number")
+    for variable in BLAS_VARIABLES:
+        os.environ[variable] = str(n)
+    from threadpoolctl import threadpool_limits
+
+    from deltatwin.models import batched
+    _blas_limit = threadpool_limits(limits=n, user_api="blas")
+    batched.THREADS = n
+    return n
