@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import eigh
-from scipy.signal import lfilter
 
 GRID_S = 1.0  # integration step; inputs are held constant over a step
 
@@ -165,6 +164,8 @@ class ThermalState:
     def advance(self, U: np.ndarray) -> np.ndarray:
         """Integrate len(U) grid steps with inputs U (n, n_inputs) held per step; return the
         node temperatures (n, n_nodes) at the END of each step and keep the final state."""
+        from scipy.signal import lfilter  # scipy.signal loads scipy.stats: only when integrating
+
         net = self.net
         drive = (U @ net.VtF.T) * net.gain                   # (n, n_modes)
         Z = np.empty_like(drive)

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
-import scipy.stats
+import scipy.special
 
 from deltatwin.calibration.errors import (
     CalibrationInputError,
@@ -242,7 +242,9 @@ def _tpval(t: np.ndarray, df: int) -> np.ndarray:
     if df <= 0:
         return np.full(t.shape, np.nan)
     with np.errstate(invalid="ignore"):
-        return 2.0 * scipy.stats.t.sf(np.abs(t), df)
+        # Student's t survival function (what scipy.stats.t.sf computes, without importing
+        # scipy.stats)
+        return 2.0 * scipy.special.stdtr(df, -np.abs(t))
 
 
 def _safediv(num, den):

@@ -29,8 +29,7 @@ import math
 
 import numpy as np
 import pandas as pd
-import statsmodels.api as sm
-from scipy import stats
+from scipy import special
 
 from deltatwin.calibration.blackbox.estimator import base_variables, thermal_sensors
 from deltatwin.calibration.blackbox.features import (
@@ -118,7 +117,8 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
     p_before, p_after = float(np.sum(before[rows] ** 2)), float(np.sum(after[rows] ** 2))
     df1 = max(k, 1)        # k = 0: a candidate's fixed change at its starting values
     if rss1 > 0 and rss0 > rss1:
-        p_value = float(stats.f.sf(((rss0 - rss1) / df1) / (rss1 / df2), df1, df2))
+        # the F distribution's survival function (scipy.stats.f.sf without scipy.stats)
+        p_value = float(special.fdtrc(df1, df2, ((rss0 - rss1) / df1) / (rss1 / df2)))
     else:
         p_value = 1.0
     d_bic = n * math.log(max(rss1, 1e-300) / max(rss0, 1e-300)) + k * math.log(max(n, 1)) \
@@ -151,6 +151,9 @@ def recorded_variables(df: pd.DataFrame) -> dict[str, np.ndarray]:
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, alpha: float = ALPHA) -> list[dict]:
     """Variables the residual (N,3) still depends on: cubic OLS of each axis' residual on each
     variable; significant after Bonferroni, sorted by R^2 (largest first)."""
+    # statsmodels costs ~1 s of imports: only when this test runs
+    import statsmodels.api as sm
+
     variables = recorded_variables(df)
     tests = []
     for k, a in enumerate(AXES):

@@ -3,7 +3,6 @@ barometric pressure."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import lfilter
 
 from deltatwin.twin.effects.base import Effect, Parameter
 
@@ -11,6 +10,7 @@ from deltatwin.twin.effects.base import Effect, Parameter
 def ornstein_uhlenbeck(rng, t, std, time_s, step_s=60.0):
     """A stationary Ornstein-Uhlenbeck process (std, correlation time) sampled at times ``t``:
     generated on a coarse step and interpolated linearly."""
+    from scipy.signal import lfilter  # scipy.signal loads scipy.stats: only when simulating
     coarse = np.arange(t[0], t[-1] + 2 * step_s, step_s)
     a = np.exp(-step_s / time_s)
     x = lfilter([std * np.sqrt(1 - a * a)], [1.0, -a], rng.standard_normal(coarse.size),
@@ -39,6 +39,8 @@ class RoomClimate(Effect):
     )
 
     def environment(self, env, rng):
+        from scipy.signal import lfilter
+
         t = env.t_grid
         free = (self.free_mean_C
                 + self.daily_amplitude_C * np.cos(2 * np.pi * (t / 3600.0 - self.daily_peak_h) / 24.0)
