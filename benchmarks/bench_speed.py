@@ -1,0 +1,187 @@
+"""Speed of the loop a researcher feels (issue 21), in one run, each figure beside its target:
+
+1. one physics-model evaluation (``PhysicsModel.predict_path``) at full scale: paper-thermal,
+   28,492 rows, the seven model effects (geometric_errors thermal_expansion gravity_sag
+   magnetic_force loop_drift air_refraction beam_misalignment), against 0.07 s;
+2. how ``simulate``, ``fit`` and ``diagnose`` (of the fitted model) scale with the rows: the
+   exponent of time ~ rows^k from three campaign sizes (least squares on the logarithms); near
+   1 is linear, a rise shows a regression.  On hidden/thermal-and-loop with its true model
+   (geometric_errors thermal_expansion loop_drift, 70 parameters), a fit that converges at
+   every size (the seven effects on a reduced paper-thermal stop at the fit's iteration limit:
+   a fit property, not a speed one);
+3. how ``fit`` scales with the free parameters: three effect sets on one campaign size;
+4. two commands side by side: ``deltatwin fit`` and ``deltatwin calibrate`` each run alone,
+   then two copies at once, with the threads set once at start (deltatwin/threads.py, as the
+   command line does) and, for comparison, with the libraries' defaults (BLAS on every core);
+   the slowdown is the pair's wall time over the lone run's, minus one (target <= 15 %).
+
+Wall times are medians of REPEATS runs (``time.perf_counter``); CPU times (``process_time``)
+beside them, and the load average before each part, because the machine is shared: a wall
+time far above its CPU time says other processes took the cores.  Run:
+
+    python benchmarks/bench_speed.py            # full: ~5-10 min on this 2-core machine
+    python benchmarks/bench_speed.py --quick    # smaller campaigns, one repeat (~2 min)
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SEVEN = ("geometric_errors", "thermal_expansion", "gravity_sag", "magnetic_force", "loop_drift",
+         "air_refraction", "beam_misalignment")
+SCALING_SCENARIO = "hidden/thermal-and-loop"
+SCALING_EFFECTS = ("geometric_errors", "thermal_expansion", "loop_drift")
+EVALUATION_TARGET_S = 0.07
+SIDE_BY_SIDE_TARGET = 0.15
+# a child process as `deltatwin` runs it, the threads set once at start
+CLI_WITH_THREADS = ("import sys; from deltatwin.threads import set_threads; set_threads(); "
+                    "from deltatwin.cli import main; sys.exit(main(sys.argv[1:]))")
+CLI_DEFAULTS = "import sys; from deltatwin.cli import main; sys.exit(main(sys.argv[1:]))"
+
+
+def load() -> str:
+    return "load average %.1f" % os.getloadavg()[0] if hasattr(os, "getloadavg") else ""
+
+
+def timed(fun, repeats: int):
+    """(median wall s, median CPU s, last result) of ``repeats`` calls."""
+    wall, cpu, out = [], [], None
+    for _ in range(repeats):
+        c0, t0 = time.process_time(), time.perf_counter()
+        out = fun()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return float(np.median(wall)), float(np.median(cpu)), out
+
+
+def exponent(sizes, seconds) -> float:
+    """k of seconds ~ sizes^k, least squares on the logarithms."""
+    return float(np.polyfit(np.log(sizes), np.log(seconds), 1)[0])
+
+
+def evaluation(df, meta, repeats: int) -> None:
+    from deltatwin.calibration.physics.measurements import measurements
+    from deltatwin.calibration.physics.model import PhysicsModel
+    from deltatwin.models.params import load_params
+
+    params = load_params(None)
+    meas = measurements(df, meta, params)
+    model = PhysicsModel(SEVEN, params)
+    theta = model.theta() + np.random.default_rng(0).normal(size=model.n_free) * model.scales
+    model.predict_path(meas, theta)                                  # warm-up: statics, caches
+    wall, cpu, _ = timed(lambda: model.predict_path(meas, theta), max(repeats, 5))
+    print(f"1. one model evaluation, {meas.n:,} rows, {model.n_free} parameters: "
+          f"{wall:.3f} s wall (CPU {cpu:.3f} s), target <= {EVALUATION_TARGET_S} s: "
+          f"ratio {wall / EVALUATION_TARGET_S:.2f}, "
+          f"{'MET' if wall <= EVALUATION_TARGET_S else 'NOT MET'}   [{load()}]")
+
+
+def scaling_with_rows(scales, repeats: int) -> None:
+    from deltatwin.calibration.diagnosis.diagnose import diagnose
+    from deltatwin.calibration.physics.fit import PhysicsFit
+    from deltatwin.twin.scenario import Scenario
+
+    sc = Scenario.load(SCALING_SCENARIO)
+    rows, t_sim, t_fit, t_diag = [], [], [], []
+    print(f"2. scaling with rows ({SCALING_SCENARIO}, fit and diagnose with "
+          f"{', '.join(SCALING_EFFECTS)})   [{load()}]")
+    print(f"   {'rows':>7} {'simulate s':>11} {'fit s':>8} {'diagnose s':>11}")
+    for s in scales:
+        w_sim, _, (df, meta) = timed(lambda s=s: sc.simulate(s), repeats)
+        w_fit, _, fit = timed(lambda df=df, meta=meta: PhysicsFit(list(SCALING_EFFECTS)).fit(
+            df, meta), repeats)
+        w_diag, _, _ = timed(lambda fit=fit: diagnose(fit), repeats)
+        rows.append(len(df))
+        t_sim.append(w_sim)
+        t_fit.append(w_fit)
+        t_diag.append(w_diag)
+        print(f"   {len(df):7d} {w_sim:11.2f} {w_fit:8.2f} {w_diag:11.2f}")
+    print(f"   exponent (time ~ rows^k): simulate {exponent(rows, t_sim):.2f}, "
+          f"fit {exponent(rows, t_fit):.2f}, diagnose {exponent(rows, t_diag):.2f}")
+
+
+def scaling_with_parameters(scale: float, repeats: int) -> None:
+    from deltatwin.calibration.physics.fit import PhysicsFit
+    from deltatwin.calibration.physics.model import PhysicsModel
+    from deltatwin.twin.scenario import Scenario
+
+    df, meta = Scenario.load(SCALING_SCENARIO).simulate(scale)
+    sets = [("thermal_expansion", "loop_drift"),
+            ("thermal_expansion", "loop_drift", "beam_misalignment", "air_refraction"),
+            SCALING_EFFECTS + ("beam_misalignment", "air_refraction")]
+    sizes, seconds = [], []
+    print(f"3. fit scaling with parameters ({SCALING_SCENARIO}, {len(df):,} rows)   [{load()}]")
+    for effects in sets:
+        wall, _, _ = timed(lambda e=effects: PhysicsFit(list(e)).fit(df, meta), repeats)
+        sizes.append(PhysicsModel(list(effects)).n_free)
+        seconds.append(wall)
+        print(f"   {sizes[-1]:4d} parameters: {wall:6.2f} s  ({', '.join(effects)})")
+    print(f"   exponent (time ~ parameters^k): {exponent(sizes, seconds):.2f}")
+
+
+def _run_children(argv_list, threads_set: bool) -> float:
+    """Wall time (s) of running the commands in ``argv_list`` at once."""
+    code = CLI_WITH_THREADS if threads_set else CLI_DEFAULTS
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    t0 = time.perf_counter()
+    procs = [subprocess.Popen([sys.executable, "-c", code, *argv], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, env=env) for argv in argv_list]
+    codes = [p.wait() for p in procs]
+    if any(codes):
+        raise RuntimeError(f"a child command failed (exit codes {codes}): {argv_list[0]}")
+    return time.perf_counter() - t0
+
+
+def side_by_side(data: Path, repeats: int) -> None:
+    commands = {"fit": ["fit", str(data), "--effects", "thermal_expansion,loop_drift", "-q"],
+                "calibrate": ["calibrate", "--features", "thermal", str(data), "-q"]}
+    print(f"4. two commands side by side (each alone, then two at once), {data.name}   "
+          f"[{load()}]")
+    for threads_set, label in ((True, "threads set once (1)"), (False, "library defaults")):
+        for name, argv in commands.items():
+            alone, pair = [], []
+            for _ in range(repeats):              # alternate, so that drift hits both alike
+                alone.append(_run_children([argv], threads_set))
+                pair.append(_run_children([argv, argv], threads_set))
+            slow = float(np.median(pair) / np.median(alone) - 1.0)
+            verdict = ("MET" if slow <= SIDE_BY_SIDE_TARGET else "NOT MET") if threads_set else ""
+            print(f"   {label:<21} {name:<9} alone {np.median(alone):6.2f} s, two at once "
+                  f"{np.median(pair):6.2f} s: slowdown {100 * slow:5.1f} % "
+                  f"(target <= {100 * SIDE_BY_SIDE_TARGET:.0f} %) {verdict}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="smaller campaigns, one repeat")
+    ap.add_argument("--skip-side-by-side", action="store_true")
+    args = ap.parse_args(argv)
+
+    from deltatwin.threads import set_threads
+    from deltatwin.twin.dataset import write_dataset
+    from deltatwin.twin.scenario import Scenario
+
+    set_threads()                                    # as the command line does
+    repeats = 1 if args.quick else 3
+    scales = (0.1, 0.2, 0.4) if args.quick else (0.25, 0.5, 1.0)
+    df, meta = Scenario.load("paper-thermal").simulate(0.25 if args.quick else 1.0)
+    evaluation(df, meta, repeats)
+    scaling_with_rows(scales, repeats)
+    scaling_with_parameters(scales[0], repeats)
+    if not args.skip_side_by_side:
+        with tempfile.TemporaryDirectory() as tmp:
+            data = Path(tmp) / "paper-thermal.parquet"
+            write_dataset(df, meta, data)
+            side_by_side(data, 2 if args.quick else 3)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
