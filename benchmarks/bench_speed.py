@@ -15,9 +15,11 @@
    command line does) and, for comparison, with the libraries' defaults (BLAS on every core);
    the slowdown is the pair's wall time over the lone run's, minus one (target <= 15 %).
 
-Wall times are medians of REPEATS runs (``time.perf_counter``); CPU times (``process_time``)
+Wall times are medians of the repeats (``time.perf_counter``); CPU times (``process_time``)
 beside them, and the load average before each part, because the machine is shared: a wall
-time far above its CPU time says other processes took the cores.  Run:
+time far above its CPU time says other processes took the cores.  With one thread (the
+default, docs/performance.md) the CPU time is what the wall time is on an idle machine, so
+the exponents are fitted to it.  Run:
 
     python benchmarks/bench_speed.py            # full: ~5-10 min on this 2-core machine
     python benchmarks/bench_speed.py --quick    # smaller campaigns, one repeat (~2 min)
@@ -47,7 +49,7 @@ CLI_DEFAULTS = "import sys; from deltatwin.cli import main; sys.exit(main(sys.ar
 
 
 def load() -> str:
-    return "load average %.1f" % os.getloadavg()[0] if hasattr(os, "getloadavg") else ""
+    return f"load average {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else ""
 
 
 def timed(fun, repeats: int):
@@ -89,22 +91,22 @@ def scaling_with_rows(scales, repeats: int) -> None:
     from deltatwin.twin.scenario import Scenario
 
     sc = Scenario.load(SCALING_SCENARIO)
-    rows, t_sim, t_fit, t_diag = [], [], [], []
+    rows, cpu = [], {"simulate": [], "fit": [], "diagnose": []}
     print(f"2. scaling with rows ({SCALING_SCENARIO}, fit and diagnose with "
-          f"{', '.join(SCALING_EFFECTS)})   [{load()}]")
-    print(f"   {'rows':>7} {'simulate s':>11} {'fit s':>8} {'diagnose s':>11}")
+          f"{', '.join(SCALING_EFFECTS)}): seconds wall / CPU   [{load()}]")
+    print(f"   {'rows':>7} {'simulate':>13} {'fit':>13} {'diagnose':>13}")
     for s in scales:
-        w_sim, _, (df, meta) = timed(lambda s=s: sc.simulate(s), repeats)
-        w_fit, _, fit = timed(lambda df=df, meta=meta: PhysicsFit(list(SCALING_EFFECTS)).fit(
+        w_sim, c_sim, (df, meta) = timed(lambda s=s: sc.simulate(s), repeats)
+        w_fit, c_fit, fit = timed(lambda df=df, meta=meta: PhysicsFit(list(SCALING_EFFECTS)).fit(
             df, meta), repeats)
-        w_diag, _, _ = timed(lambda fit=fit: diagnose(fit), repeats)
+        w_diag, c_diag, _ = timed(lambda fit=fit: diagnose(fit), repeats)
         rows.append(len(df))
-        t_sim.append(w_sim)
-        t_fit.append(w_fit)
-        t_diag.append(w_diag)
-        print(f"   {len(df):7d} {w_sim:11.2f} {w_fit:8.2f} {w_diag:11.2f}")
-    print(f"   exponent (time ~ rows^k): simulate {exponent(rows, t_sim):.2f}, "
-          f"fit {exponent(rows, t_fit):.2f}, diagnose {exponent(rows, t_diag):.2f}")
+        for name, c in (("simulate", c_sim), ("fit", c_fit), ("diagnose", c_diag)):
+            cpu[name].append(c)
+        print(f"   {len(df):7d} {w_sim:6.2f} /{c_sim:6.2f} {w_fit:6.2f} /{c_fit:6.2f} "
+              f"{w_diag:6.2f} /{c_diag:6.2f}")
+    print("   exponent (CPU time ~ rows^k): "
+          + ", ".join(f"{name} {exponent(rows, c):.2f}" for name, c in cpu.items()))
 
 
 def scaling_with_parameters(scale: float, repeats: int) -> None:
@@ -117,13 +119,14 @@ def scaling_with_parameters(scale: float, repeats: int) -> None:
             ("thermal_expansion", "loop_drift", "beam_misalignment", "air_refraction"),
             SCALING_EFFECTS + ("beam_misalignment", "air_refraction")]
     sizes, seconds = [], []
-    print(f"3. fit scaling with parameters ({SCALING_SCENARIO}, {len(df):,} rows)   [{load()}]")
+    print(f"3. fit scaling with parameters ({SCALING_SCENARIO}, {len(df):,} rows): seconds "
+          f"wall / CPU   [{load()}]")
     for effects in sets:
-        wall, _, _ = timed(lambda e=effects: PhysicsFit(list(e)).fit(df, meta), repeats)
+        wall, cpu, _ = timed(lambda e=effects: PhysicsFit(list(e)).fit(df, meta), repeats)
         sizes.append(PhysicsModel(list(effects)).n_free)
-        seconds.append(wall)
-        print(f"   {sizes[-1]:4d} parameters: {wall:6.2f} s  ({', '.join(effects)})")
-    print(f"   exponent (time ~ parameters^k): {exponent(sizes, seconds):.2f}")
+        seconds.append(cpu)
+        print(f"   {sizes[-1]:4d} parameters: {wall:6.2f} / {cpu:6.2f}  ({', '.join(effects)})")
+    print(f"   exponent (CPU time ~ parameters^k): {exponent(sizes, seconds):.2f}")
 
 
 def _run_children(argv_list, threads_set: bool) -> float:

@@ -23,6 +23,7 @@ from deltatwin.models.geometry import Geometry
 
 CLOSURE_TOL_M = 1e-12
 _MAX_ITER = 30
+_REFACTOR_STEP = 1e-6   # m or rad: Newton above, chord below (see forward)
 
 
 class KinematicsError(ValueError):
@@ -187,15 +188,17 @@ def _forward_newton(q, B, axis, arm_vec, P0, L, theta_zero, first_pose: int):
     R = np.zeros((3, 3, m))
     R[0, 0] = R[1, 1] = R[2, 2] = 1.0
     L2 = L * L
-    # chord Newton: the rows d f / d(position, rotation) / 2 = (d, w x d) per rod, factored once
-    # at the start (it is within ~1 um, so they change by ~1e-5 of themselves): each further
-    # step gains five digits for a residual, a product and two substitutions
-    rows = factor = None
+    # Newton while the steps are large, then chord: the rows d f / d(position, rotation) / 2 =
+    # (d, w x d) per rod are factored again only while a step moved a pose by more than
+    # _REFACTOR_STEP (~1e-5 m from the centre-line start with geometric errors); once within it
+    # they change by < 1e-4 of themselves and each further step gains four digits for a
+    # residual, a product and two substitutions
+    moved = np.inf
     for _ in range(_MAX_ITER):
         w = batched.matvec(R[:, :, None, None], P0)                      # platform hinges R P0
         d = p[:, None, None] + w - A
         half_f = 0.5 * (batched.dot(d, d) - L2)                          # rod equations / 2
-        if rows is None:
+        if np.max(moved) > _REFACTOR_STEP:
             rows = np.concatenate([d, batched.cross(w, d)]).reshape(6, 6, m)
             factor = batched.normal_factor(rows)
         step = batched.least_squares_step(factor, rows, half_f.reshape(6, m))
