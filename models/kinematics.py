@@ -120,10 +120,13 @@ def _component_first(geom: Geometry):
     state, N for a per-point geometry): B, axis (3,3,1,1|N), arm_vec, P0 (3,3,2,1|N),
     L (3,2,1|N), theta_zero (3,1|N)."""
     g = _per_point(geom)
-    chain_vec = lambda v: np.ascontiguousarray(v.transpose(2, 1, 0))[:, :, None]
-    rod_vec = lambda v: np.ascontiguousarray(v.transpose(3, 1, 2, 0))
+    # an array broadcast over the points (stride 0: the same for all) keeps one point
+    one = lambda v: v[:1] if v.strides[0] == 0 else v
+    chain_vec = lambda v: np.ascontiguousarray(one(v).transpose(2, 1, 0))[:, :, None]
+    rod_vec = lambda v: np.ascontiguousarray(one(v).transpose(3, 1, 2, 0))
     return (chain_vec(g.B), chain_vec(g.axis), rod_vec(g.arm_vec), rod_vec(g.P0),
-            np.ascontiguousarray(g.L.transpose(1, 2, 0)), np.ascontiguousarray(g.theta_zero.T))
+            np.ascontiguousarray(one(g.L).transpose(1, 2, 0)),
+            np.ascontiguousarray(one(g.theta_zero).T))
 
 
 def _trilaterate_low(c: np.ndarray, r: np.ndarray, first_pose: int = 0) -> np.ndarray:
