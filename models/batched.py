@@ -56,8 +56,8 @@ def cross(a, b, out=None):
     if out is None:
         out = np.empty(np.broadcast_shapes(a.shape, b.shape))
     for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        np.multiply(a[j], b[k], out=out[i])
-        out[i] -= a[k] * b[j]
+        np.multiply(a[j], b[k], out=out[i, ...])      # [i, ...]: an array even for (3,) vectors
+        out[i, ...] -= a[k] * b[j]
     return out
 
 
@@ -66,9 +66,9 @@ def matvec(M, v, out=None):
     if out is None:
         out = np.empty((3,) + np.broadcast_shapes(M.shape[2:], v.shape[1:]))
     for i in range(3):
-        np.multiply(M[i, 0], v[0], out=out[i])
-        out[i] += M[i, 1] * v[1]
-        out[i] += M[i, 2] * v[2]
+        np.multiply(M[i, 0], v[0], out=out[i, ...])
+        out[i, ...] += M[i, 1] * v[1]
+        out[i, ...] += M[i, 2] * v[2]
     return out
 
 

@@ -1,12 +1,12 @@
 """A library module imports a heavy dependency only where it is used (issue 21): fitting a
 physics model loads neither scipy.signal (the thermal network's filter) nor scipy.stats,
-statsmodels or trimesh; the stepwise regression loads no scipy.stats."""
+statsmodels, trimesh or MuJoCo; the stepwise regression loads no scipy.stats."""
 import subprocess
 import sys
 
 import pytest
 
-HEAVY = ("scipy.signal", "scipy.stats", "statsmodels", "trimesh")
+HEAVY = ("scipy.signal", "scipy.stats", "statsmodels", "trimesh", "mujoco")
 
 
 @pytest.mark.parametrize("modules", [

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from deltatwin.models import batched
-from deltatwin.models.mjcf import MAGNET_HALF_M, magnet_positions
+from deltatwin.models.layout import MAGNET_HALF_M, magnet_positions
 from deltatwin.twin.effects.base import Effect, Parameter
 
 MU0 = 4e-7 * np.pi

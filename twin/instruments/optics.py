@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deltatwin.models.mjcf import FOLD_MIRROR_Z, INSTRUMENT_SITES
+from deltatwin.models.layout import FOLD_MIRROR_Z, INSTRUMENT_SITES
 
 AXES = ("x", "y", "z")
 # cube face each beam reflects on (outward normal, platform frame) and autocollimator channels
