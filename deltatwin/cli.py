@@ -113,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     _configure_logging(args)
     try:
+        from deltatwin.threads import set_threads
+
+        set_threads()                 # once, before computing (docs/performance.md)
         _check_outputs(args)
         return int(args.func(args) or EXIT_DONE)
     except KeyboardInterrupt:
