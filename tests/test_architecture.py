@@ -47,6 +47,16 @@ def test_each_layer_imports_only_the_layers_below(folder):
     assert not offending, "\n".join(offending)
 
 
+def test_calibration_paths_do_not_import_each_other():
+    """The black-box path and the physics path are independent; the diagnosis joins them."""
+    for a, b in (("blackbox", "physics"), ("physics", "blackbox"), ("blackbox", "diagnosis"),
+                 ("physics", "diagnosis")):
+        for path in (ROOT / "calibration" / a).rglob("*.py"):
+            bad = [m for m in _project_imports(path)
+                   if m.startswith(f"deltatwin.calibration.{b}")]
+            assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
 def test_nothing_imports_the_commands():
     for folder in [*LAYERS, "deltatwin"]:
         for path in (ROOT / folder).rglob("*.py"):

@@ -15,7 +15,6 @@ import pandas as pd
 from deltatwin.calibration.blackbox.features import (
     CARTESIAN_INPUTS,
     DEFAULT_T_REF_K,
-    DEFAULT_WINDOW_S,
     JOINT_INPUTS,
     FeatureSet,
     Term,
@@ -31,6 +30,7 @@ from deltatwin.calibration.errors import (
     ModelFileError,
     TooFewPointsError,
 )
+from deltatwin.calibration.streams import DEFAULT_WINDOW_S
 from deltatwin.files import atomic_write_text
 
 MODEL_FORMAT = "deltatwin-calibration-model"

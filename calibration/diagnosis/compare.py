@@ -29,11 +29,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from deltatwin.calibration.blackbox.features import DEFAULT_WINDOW_S, temperature_variables
+from deltatwin.calibration.blackbox.features import temperature_variables
 from deltatwin.calibration.errors import CalibrationInputError
 from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
 from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
 from deltatwin.calibration.physics.model_file import load_fitted
+from deltatwin.calibration.streams import DEFAULT_WINDOW_S
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import forward
 from deltatwin.models.params import RobotParams, load_params

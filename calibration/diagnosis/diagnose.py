@@ -36,7 +36,6 @@ from deltatwin.calibration.blackbox.features import (
     JOINT_INPUTS,
     FeatureSet,
     Product,
-    causal_derivatives,
     force_powers,
     geometric,
     thermal_preset,
@@ -52,6 +51,7 @@ from deltatwin.calibration.physics.model import (
     model_effects,
     residuals,
 )
+from deltatwin.calibration.streams import causal_derivatives
 from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES
 
 ALPHA = 1e-3

@@ -7,8 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from deltatwin.calibration.blackbox.features import causal_fit
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
+from deltatwin.calibration.streams import causal_fit
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.params import RobotParams
 from deltatwin.twin.campaign import COSINE_ANGLES

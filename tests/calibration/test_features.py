@@ -145,7 +145,7 @@ def test_temperature_variables_per_session_in_time_order_and_SI():
 def test_causal_fit_of_many_streams_equals_a_window_by_window_least_squares():
     """One call for several columns against each sample's own least-squares polynomial over
     its trailing window (numpy lstsq), uneven times with repeats and a window start."""
-    from deltatwin.calibration.blackbox.features import causal_fit
+    from deltatwin.calibration.streams import causal_fit
     rng = np.random.default_rng(11)
     t = np.sort(np.concatenate([rng.uniform(0.0, 3000.0, 300), [5.0, 5.0, 5.0]]))
     v = np.stack([20.0 + 1e-3 * rng.normal(size=t.size), np.sin(t / 500.0),
