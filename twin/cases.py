@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deltatwin.files import toml_value
+from deltatwin.files import toml_text
 from deltatwin.twin.effects import LIBRARY
 
 FRAME_ARM_M = (-0.6, 0.0)
@@ -77,7 +77,7 @@ class Case:
 
     def toml(self) -> str:
         """The scenario file of the case."""
-        effects = (*self.true_effects, *ENVIRONMENT[self.kind])
+        effects = [*self.true_effects, *ENVIRONMENT[self.kind]]
         tables = {"room_climate": dict(CLIMATE[self.kind]),
                   "loop_drift": {"frame_arm_m": list(FRAME_ARM_M), "frame_cte_per_K": 23e-6}}
         if self.kind == "force":
@@ -86,20 +86,14 @@ class Case:
                                         "coil_offset_m": [[-0.004, -0.008, 0.0]] * 3}
         for e, m in self.hidden:
             tables[e] = {**tables.get(e, {}), **_scaled(e, m, tables.get(e, {}))}
-        lines = ["[scenario]", f"name = {toml_value(self.name)}",
-                 f"description = {toml_value(self.description())}", f"seed = {self.seed}", "",
-                 "[hidden]", f"effects = {toml_value(self.hidden_effects)}",
-                 f"baseline = {toml_value(list(self.baseline))}", "",
-                 "[effects]", f"on = {toml_value(list(effects))}"]
-        for e, values in tables.items():
-            if e in effects:
-                lines += ["", f"[effects.{e}]"] + [f"{k} = {toml_value(v)}"
-                                                   for k, v in values.items()]
-        lines += ["", "[sensors]"] + [f"{s} = {toml_value(s)}" for s in PAPER_SENSORS[self.kind]]
-        lines += ["", "[instruments]", f"noise_floor_m = {NOISE_M[self.kind]!r}",
-                  "cosine_correction = true", "", "[campaign]"]
-        lines += [f"{k} = {toml_value(v)}" for k, v in CAMPAIGNS[self.kind].items()]
-        return "\n".join(lines) + "\n"
+        doc = {"scenario": {"name": self.name, "description": self.description(),
+                            "seed": self.seed},
+               "hidden": {"effects": self.hidden_effects, "baseline": list(self.baseline)},
+               "effects": {"on": effects, **{e: v for e, v in tables.items() if e in effects}},
+               "sensors": {s: s for s in PAPER_SENSORS[self.kind]},
+               "instruments": {"noise_floor_m": NOISE_M[self.kind], "cosine_correction": True},
+               "campaign": CAMPAIGNS[self.kind]}
+        return toml_text(doc, "a generated discovery case (deltatwin.twin.cases)")
 
     def description(self) -> str:
         hidden = ", ".join(f"{e} x{m:.3g}" for e, m in self.hidden) or "nothing (null case)"
