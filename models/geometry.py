@@ -53,10 +53,11 @@ def part_scale(params: RobotParams, part: str, T_C) -> np.ndarray:
 PART_TEMPERATURES = ("base", "arms", "rods", "platform")
 
 
-def build_geometry(params: RobotParams, temperatures: dict | None = None) -> Geometry:
-    """Joint geometry of ``params``; part temperatures (degC) from the parameters or, when
-    ``temperatures`` is given, per point: ``{"base": (N,), "arms": (N,3), "rods": (N,3,2),
-    "platform": (N,)}`` (missing parts keep the parameters' value) -> a batched Geometry."""
+def part_scales(params: RobotParams, temperatures: dict | None = None) -> tuple:
+    """Thermal scale factors of (base, arms, rods, platform): at the parameters' own part
+    temperatures or, when ``temperatures`` is given, per point (as ``build_geometry``). Every
+    joint array of the base, of an arm, of a rod or of the platform is its value at the
+    reference temperature times its part's factor."""
     p = params
     T = {"base": p.T_base_C, "arms": p.T_arms_C, "rods": p.T_rods_C, "platform": p.T_platform_C}
     if temperatures is not None:
@@ -70,6 +71,14 @@ def build_geometry(params: RobotParams, temperatures: dict | None = None) -> Geo
         for part in PART_TEMPERATURES:
             value = np.asarray(temperatures.get(part, T[part]), dtype=np.float64)
             T[part] = np.broadcast_to(value, (n_pts,) + np.shape(T[part]))
+    return tuple(part_scale(params, part, T[part]) for part in PART_TEMPERATURES)
+
+
+def build_geometry(params: RobotParams, temperatures: dict | None = None) -> Geometry:
+    """Joint geometry of ``params``; part temperatures (degC) from the parameters or, when
+    ``temperatures`` is given, per point: ``{"base": (N,), "arms": (N,3), "rods": (N,3,2),
+    "platform": (N,)}`` (missing parts keep the parameters' value) -> a batched Geometry."""
+    p = params
     az = np.deg2rad(p.actuator_azimuth_deg)
     radial = np.stack([np.cos(az), np.sin(az), np.zeros(3)], axis=1)
     tangent = np.stack([-np.sin(az), np.cos(az), np.zeros(3)], axis=1)
@@ -79,10 +88,8 @@ def build_geometry(params: RobotParams, temperatures: dict | None = None) -> Geo
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
 
     # scale factors with trailing axes matching each joint array ((N,) + shape when batched)
-    s_base = part_scale(p, "base", T["base"])[..., None, None]
-    s_arm = part_scale(p, "arms", T["arms"])[..., None]
-    s_rod = part_scale(p, "rods", T["rods"])
-    s_plat = part_scale(p, "platform", T["platform"])[..., None, None]
+    s_base, s_arm, s_rod, s_plat = part_scales(p, temperatures)
+    s_base, s_arm, s_plat = s_base[..., None, None], s_arm[..., None], s_plat[..., None, None]
 
     B = s_base * (p.base_radius_m * radial + p.d_base_joint_m)
     arm_len = (p.arm_length_m + p.d_arm_length_m)[:, None]
@@ -95,7 +102,7 @@ def build_geometry(params: RobotParams, temperatures: dict | None = None) -> Geo
                               + side * p.platform_half_width_m * tangent[:, None, :]
                               + p.d_platform_joint_m)
     L = s_rod * (p.rod_length_m + p.d_rod_length_m)
-    cube = part_scale(p, "platform", T["platform"])[..., None] * p.mirror_cube_offset_m
+    cube = s_plat[..., 0] * p.mirror_cube_offset_m
     theta_zero = p.home_angle_rad + p.encoder_offset_rad
     if temperatures is not None:
         n_pts = L.shape[0]

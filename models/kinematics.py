@@ -223,6 +223,34 @@ def _forward_newton(q, B, axis, arm_vec, P0, L, theta_zero, first_pose: int):
     return p, R
 
 
+def rod_residuals(geom: Geometry, q, pose: Pose) -> np.ndarray:
+    """The six rod equations |P - A|^2 - L^2 (N,6), m^2, of ``pose`` under ``geom`` at motor
+    coordinates q (N,3): zero at the pose ``forward`` returns."""
+    q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    return _residual_and_jacobian(geom, elbow_points(geom, geom.theta(q)), pose.p, pose.R)[0]
+
+
+def rod_vectors(geom: Geometry, q, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """At ``pose``: each rod's vector from its elbow hinge to its platform hinge, P - A, and
+    the platform hinge's vector R P0, (N,3,2,3) each (m). The rod equations' derivative with
+    respect to the platform hinge is 2 (P - A), to the elbow hinge -2 (P - A)."""
+    q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    _, d, w = _residual_and_jacobian(geom, elbow_points(geom, geom.theta(q)), pose.p, pose.R)
+    return d, w
+
+
+def pose_derivative(geom: Geometry, q, pose: Pose, d_residuals: np.ndarray) -> np.ndarray:
+    """Exact derivative of the forward kinematics' pose with respect to parameters, from the rod
+    equations' partial derivatives at the fixed pose ``d_residuals`` (N,6,k): the implicit
+    function theorem, d pose = -(d f / d pose)^-1 d f / d parameter. Returns (N,6,k): position
+    (m) then rotation vector (rad, the rotation applied on the left of ``pose.R``) per unit of
+    each parameter."""
+    q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    d, w = rod_vectors(geom, q, pose)
+    J = np.concatenate([2 * d, 2 * np.cross(w, d)], axis=-1).reshape(q.shape[0], 6, 6)
+    return -np.linalg.solve(J, d_residuals)
+
+
 def _ideal_chain_angles(geom: Geometry, p: np.ndarray) -> np.ndarray:
     """Closed-form arm angles (N,3) for each chain's centre line, platform not rotated."""
     g = _per_point(geom)

@@ -75,9 +75,12 @@ def thermal_plan(rng, stroke, n_positions: int, cal_fraction: float, sessions) -
 
 
 def force_plan(stroke, cal_levels: int, val_levels: int, forces_N, force_per_A: float,
-               readings: int, axes=AXES) -> Plan:
+               readings: int, axes=AXES, interleaved: bool = False) -> Plan:
     """Second paper: a cal grid and a non-coincident val grid of motor coordinates, each
-    position at every force (same current in the three coils)."""
+    position at every force (same current in the three coils). The paper measures the whole
+    cal grid, then the val grid; ``interleaved`` visits them merged in proportion instead, so
+    that validation meets the conditions (temperatures drifting over the campaign) calibration
+    saw."""
     lo, hi = stroke
     margin = 0.05 * (hi - lo)
     cal = _stroke_grid(stroke, cal_levels, margin)
@@ -85,6 +88,11 @@ def force_plan(stroke, cal_levels: int, val_levels: int, forces_N, force_per_A: 
     val = _stroke_grid(stroke, val_levels, margin + 0.5 * step)
     q_pos = np.concatenate([cal, val])
     split = np.array(["cal"] * len(cal) + ["val"] * len(val))
+    if interleaved:
+        progress = np.concatenate([(np.arange(len(cal)) + 0.5) / len(cal),
+                                   (np.arange(len(val)) + 0.5) / len(val)])
+        order = np.argsort(progress, kind="stable")
+        q_pos, split = q_pos[order], split[order]
     forces = np.asarray(forces_N, dtype=np.float64)
     ids = np.repeat(np.arange(len(q_pos)), forces.size)
     F = np.tile(forces, len(q_pos))

@@ -44,7 +44,8 @@ TABLES = {"scenario": {"name", "description", "seed"}, "robot": {"file"},
           "reduced": {"scale"}, "hidden": {"effects", "baseline"}}
 CAMPAIGN_KEYS = {"thermal": {"kind", "warmup_s", "n_positions", "cal_fraction", "sessions"},
                  "force": {"kind", "warmup_s", "cal_levels", "val_levels", "forces_N",
-                           "force_per_A", "readings"}}
+                           "force_per_A", "readings", "order"}}
+FORCE_ORDERS = ("papers", "interleaved")   # the cal grid then the val grid, or merged
 SESSION_KEYS = {"name", "axes", "cal", "val"}
 
 
@@ -264,7 +265,12 @@ class Scenario:
             raise ScenarioError(f"{f} forces_N: {max(forces)} N needs {max(forces) / per_A:.2f} A, "
                                 "above the coils' 2 A")
         readings = _number(f"{f} readings", c.get("readings", 4), 1, True, 100)
-        return force_plan(stroke, cal, val, forces, per_A, readings)
+        order = c.get("order", "papers")
+        if order not in FORCE_ORDERS:
+            raise ScenarioError(f"{f} order = {order!r}: expected one of {list(FORCE_ORDERS)} "
+                                "(the papers' cal grid then val grid, or the two merged)")
+        return force_plan(stroke, cal, val, forces, per_A, readings,
+                          interleaved=order == "interleaved")
 
     def dead_path(self) -> dict:
         """Nominal beam path head -> cube face (m) per axis, for the cosine correction."""

@@ -237,14 +237,27 @@ class Twin:
                        self.cube_home, self.params.mirror_cube_size_m)
 
 
-def kinematic_pose(params: RobotParams, geom, effects: list[Effect], pts: Points):
-    """Geometry and kinematic pose at the points: the effects' part temperatures scale the
-    geometry per point (exact kinematics), otherwise one geometry for all (FK per unique q)."""
+def geometry_temperatures(effects: list[Effect], pts: Points) -> dict:
+    """Per-point part temperatures the effects give the geometry ({"base": (N,), "arms": (N,3),
+    ...}, degC); empty when none does (the robot parameters' own temperatures hold)."""
     temps = {}
     for e in effects:
         temps.update(e.part_temperatures(pts) or {})
-    if temps:
-        geom = build_geometry(params, temps)
+    return temps
+
+
+def point_geometry(params: RobotParams, geom, effects: list[Effect], pts: Points):
+    """The geometry at the points: scaled per point by the effects' part temperatures (a
+    batched Geometry), else ``geom`` (one robot state, built from ``params``)."""
+    temps = geometry_temperatures(effects, pts)
+    return build_geometry(params, temps) if temps else geom
+
+
+def kinematic_pose(params: RobotParams, geom, effects: list[Effect], pts: Points):
+    """Geometry and kinematic pose at the points: the effects' part temperatures scale the
+    geometry per point (exact kinematics), otherwise one geometry for all (FK per unique q)."""
+    geom = point_geometry(params, geom, effects, pts)
+    if geom.batched:
         return geom, forward(geom, pts.q)
     qu, inv = pts.unique_q()
     ku = forward(geom, qu)

@@ -30,6 +30,11 @@ import numpy as np
 import pandas as pd
 
 from deltatwin.calibration.blackbox.features import temperature_variables
+from deltatwin.calibration.diagnosis.conditions import (
+    extrapolated_variables,
+    extrapolation_message,
+)
+from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
 from deltatwin.calibration.errors import CalibrationInputError
 from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
 from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
@@ -67,6 +72,16 @@ class ModelEvaluation:
     offsets_m: np.ndarray
     zero_rows: list
     position_m: np.ndarray
+
+
+def _at_floor(axes: dict, floor: dict | None, kind: str) -> dict | None:
+    """Per axis: whether the error 90 % is within AT_FLOOR of the floor ({axis: bool}, with the
+    floor's kind), None without a floor."""
+    if not floor:
+        return None
+    out = {a: bool(r["err_p90_nm"] <= AT_FLOOR * floor[a]) for a, r in axes.items()
+           if a in floor and r.get("err_p90_nm") is not None}
+    return {"kind": kind, "factor": AT_FLOOR, "axes": out}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -317,6 +332,8 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
                     if v["p90_ratio_max_min"] is not None)[::-1]
     truth = (meta or {}).get("truth") or {}
     floor = truth.get("noise_floor_nm")
+    judged, kind = floor_of(meta)
+    extrapolated = extrapolated_variables(df)
     used_T = set(ev.description["sensors"])
     unused = [c for c in temperature_columns(df) if c[2:-2] not in used_T]
     return {
@@ -330,6 +347,11 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
                   "estimated_on": {f"{s}.{a}": w for (s, a), w in zip(meas.groups, ev.zero_rows)}},
         "rows": split,
         "noise_floor_nm": floor,
+        "achievable_floor_nm": truth.get("achievable_floor_nm"),
+        "floor_budget_nm": truth.get("floor_budget_nm"),
+        "at_floor": _at_floor(axes.get("val") or axes.get(split) or {}, judged, kind),
+        "extrapolation": {"variables": extrapolated,
+                          "message": extrapolation_message(extrapolated)},
         "unused_temperature_columns": unused,
         "axes": axes,
         "regions": {"scheme": "octants of the platform's nominal kinematic position about the "

@@ -41,7 +41,12 @@ from deltatwin.calibration.blackbox.features import (
     thermal_preset,
 )
 from deltatwin.calibration.diagnosis.compare import evaluate
-from deltatwin.calibration.errors import MissingColumnsError
+from deltatwin.calibration.diagnosis.conditions import (
+    extrapolated_variables,
+    extrapolation_message,
+)
+from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
+from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
@@ -52,10 +57,14 @@ from deltatwin.calibration.physics.model import (
     residuals,
 )
 from deltatwin.calibration.streams import causal_derivatives
+from deltatwin.models.kinematics import KinematicsError
+from deltatwin.twin.effects import EffectError
 from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES
 
 ALPHA = 1e-3
 MIN_EXPLAINED = 0.1
+ABSORBED = 0.9   # a candidate whose signature lies this much in the model's span is absorbed
+GAP_CLOSED = 0.5   # or a candidate closes half the gap between the model and the floor
 
 
 def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
@@ -66,9 +75,10 @@ def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
 
 
 def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0: float,
-               n: int, k_m: int):
+               n: int, k_m: int, before: np.ndarray, floor_all_nm: float | None = None):
     meas = fit.measurements_
-    model = PhysicsModel(fit.effects + [name], fit.model_.params, fit.model_.values())
+    model = PhysicsModel(fit.effects + [name], fit.model_.params,
+                         {**fit.model_.values(), name: fit.known_.get(name, {})})
     theta = model.theta()
     new = np.zeros(model.n_free, bool)
     for f in model.free:
@@ -79,6 +89,7 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     cal = meas.cal
     r = _projected(meas, cal, meas.y - A)              # residual with the candidate on
     Pc = _projected(meas, cal, Jc)
+    absorbed = _absorbed(fit, Qm, Pc, _projected(meas, cal, delta0))
     # the candidate's directions beyond the model's own, that the data determine
     if Jm.shape[1]:
         Pc = Pc - Qm @ (Qm.T @ Pc)
@@ -98,21 +109,73 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
     after = _val_after(meas, fit, change)
     verdict = _verdict(rss0, rss1, k_c, n, max(n - k_m - k_c - len(meas.groups), 1),
-                       fit.residual_, after, meas.val)
+                       before, after, meas.val, floor_all_nm)
     fig = figures_nm(after, meas.val)
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],
             "val_err90_after_nm": fig["all"]["err_p90"],
             "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
             "new_directions": k_c, "p_value": verdict["p_value"],
-            "delta_bic": verdict["delta_bic"], "significant": verdict["significant"]}
+            "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
+            "significant": verdict["significant"], **absorbed}
+
+
+def _absorbed(fit: PhysicsFit, Qm: np.ndarray, Pc: np.ndarray, change0: np.ndarray) -> dict:
+    """How much of a candidate's signature lies in the span of the model's identified
+    directions (``Qm``, orthonormal, session means out): its columns at their parameters'
+    typical size (``Pc``) and its change at its starting values (``change0``), as a fraction
+    of their power; the model effect whose own columns absorb most of it; and the signature's
+    size (rms over the readings, nm, per parameter at its typical size)."""
+    sig = np.hstack([Pc, change0[:, None]]) if np.any(change0) else Pc
+    power = float(np.sum(sig ** 2))
+    signature_nm = float(np.sqrt(power / max(sig.size, 1))) * 1e9
+    if power == 0 or not Qm.shape[1]:
+        return {"absorbed_fraction": 0.0, "absorbed_by": None, "signature_nm": signature_nm}
+    fraction = float(np.sum((Qm.T @ sig) ** 2)) / power
+    meas, JS = fit.measurements_, fit.jacobian_ * fit.model_.scales
+    by, best = None, 0.0
+    for e in fit.effects:
+        cols = np.concatenate([np.arange(f.sl.start, f.sl.stop) for f in fit.model_.free
+                               if f.effect == e] or [np.zeros(0, int)])
+        if not cols.size:
+            continue
+        Pe = _projected(meas, meas.cal, JS[:, :, cols])
+        u, sv, _ = np.linalg.svd(Pe, full_matrices=False)
+        Qe = u[:, sv > sv.max(initial=0) * 1e-9]
+        share = float(np.sum((Qe.T @ sig) ** 2)) / power
+        if share > best:
+            by, best = e, share
+    return {"absorbed_fraction": fraction, "absorbed_by": by, "signature_nm": signature_nm}
+
+
+def _in_words(c: dict, effects: list) -> str:
+    """A candidate's verdict in words: significant, absorbed by the model, failed, or not
+    significant."""
+    if "failed" in c:
+        return f"{c['effect']}: could not be evaluated on this model ({c['failed']})"
+    if c["signature_nm"] == 0:
+        return (f"{c['effect']}: no signature on this campaign (what it depends on did not "
+                "vary)")
+    if c["significant"]:
+        return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
+                "the validation residual")
+    if c["absorbed_fraction"] >= ABSORBED:
+        return (f"{c['effect']}: {100 * c['absorbed_fraction']:.0f} % of its signature is "
+                f"absorbed by {c['absorbed_by'] or '+'.join(effects)} on this campaign: its "
+                "presence can be neither shown nor excluded here (a campaign that moves what "
+                "it depends on independently would separate it)")
+    return f"{c['effect']}: not significant"
 
 
 def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndarray,
-             after: np.ndarray, val: np.ndarray) -> dict:
+             after: np.ndarray, val: np.ndarray, floor_all_nm: float | None = None) -> dict:
     """Whether ``k`` added directions explain the residual: the nested F test and the BIC
     change on the calibration residual sums of squares (``n`` readings, ``df2`` residual
     degrees of freedom), the explained fraction of the validation residual's power (``before``
-    / ``after`` (N,3) residuals, ``val`` (N,) rows), and the decision (module docstring)."""
+    / ``after`` (N,3) residuals, ``val`` (N,) rows), the fraction of the gap between the
+    validation error 90 % and the floor (``floor_all_nm``) that the candidate closes, and the
+    decision: p < ALPHA, the BIC falls, and the candidate either explains MIN_EXPLAINED of the
+    validation residual or closes GAP_CLOSED of the gap to the floor (a model already within
+    AT_FLOOR of the floor has no gap to close: noise is not fitted)."""
     rows = val[:, None] & np.isfinite(before)
     p_before, p_after = float(np.sum(before[rows] ** 2)), float(np.sum(after[rows] ** 2))
     df1 = max(k, 1)        # k = 0: a candidate's fixed change at its starting values
@@ -124,8 +187,16 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
     d_bic = n * math.log(max(rss1, 1e-300) / max(rss0, 1e-300)) + k * math.log(max(n, 1)) \
         if n else 0.0
     explained = 1.0 - p_after / p_before if p_before > 0 else 0.0
+    gap_closed = 0.0
+    if floor_all_nm and rows.any():
+        e_before = figures_nm(before, val)["all"]["err_p90"]
+        e_after = figures_nm(after, val)["all"]["err_p90"]
+        if e_before > AT_FLOOR * floor_all_nm:
+            gap_closed = (e_before - e_after) / (e_before - floor_all_nm)
+    useful = explained >= MIN_EXPLAINED or gap_closed >= GAP_CLOSED
     return {"p_value": p_value, "delta_bic": d_bic, "explained_fraction": explained,
-            "significant": bool(p_value < ALPHA and d_bic < 0 and explained >= MIN_EXPLAINED)}
+            "gap_closed": gap_closed,
+            "significant": bool(p_value < ALPHA and d_bic < 0 and useful)}
 
 
 def recorded_variables(df: pd.DataFrame) -> dict[str, np.ndarray]:
@@ -183,27 +254,58 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     Jm = (_projected(meas, cal, fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_
           if k_m else np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
     r0 = _projected(meas, cal, fit.residual_)
-    rss0 = float(np.sum(r0 ** 2))
+    # the reference is the model itself one linear step further (nothing if it converged): a
+    # candidate must explain what the model's own directions cannot, even when the fit stopped
+    # short of its minimum (a misspecified model's slow valley)
+    coef_m = np.linalg.lstsq(Jm, r0, rcond=None)[0] if k_m else np.zeros(0)
+    rss0 = float(np.sum((r0 - Jm @ coef_m) ** 2))
+    before = _val_after(meas, fit, (fit.jacobian_ * fit.model_.scales
+                                    @ fit.identified_directions_) @ coef_m if k_m else 0.0)
     n = r0.size
     Qm = np.linalg.qr(Jm)[0]                        # the model's span, once for all candidates
     candidates = [e for e in model_effects() if e not in fit.effects]
+    floor, floor_kind = floor_of(fit.meta_)
+    floor_all = (floor.get("all") or max(floor[a] for a in AXES if a in floor)) if floor else None
     ranking = []
     for name in candidates:
         if progress:
             progress(name)
-        ranking.append(_candidate(fit, name, Jm, Qm, rss0, n, k_m))
-    ranking.sort(key=lambda c: (not c["significant"],
+        try:
+            ranking.append(_candidate(fit, name, Jm, Qm, rss0, n, k_m, before, floor_all))
+        except (CalibrationInputError, EffectError, KinematicsError,
+                np.linalg.LinAlgError) as exc:
+            # a candidate the model cannot take on (a pose out of reach, an impossible value)
+            # says so in its row; the others are still ranked
+            ranking.append({"effect": name, "failed": str(exc), "explained_fraction": math.nan,
+                            "val_err90_after_nm": math.nan, "val_err90_after_by_axis_nm": {},
+                            "new_directions": 0, "p_value": math.nan, "delta_bic": math.nan,
+                            "gap_closed": math.nan, "significant": False, "absorbed_fraction": math.nan,
+                            "absorbed_by": None})
+    for c in ranking:
+        c["verdict"] = _in_words(c, fit.effects)
+    ranking.sort(key=lambda c: (not c["significant"], "failed" in c,
                                 c["delta_bic"] if c["significant"] else -c["explained_fraction"]))
     val_fig = fit.val_
     out = {"effects": fit.effects, "val_err90_nm": val_fig["all"]["err_p90"],
            "val_err90_by_axis_nm": {a: val_fig[a]["err_p90"] for a in AXES if a in val_fig},
-           "ranking": ranking}
+           "ranking": ranking, "floor_nm": floor, "floor_kind": floor_kind,
+           "at_floor": (bool(val_fig["all"]["err_p90"] <= AT_FLOOR * floor_all)
+                        if floor_all else None),
+           "absorbed": [c["verdict"] for c in ranking
+                        if not c["significant"] and c.get("absorbed_fraction", 0) >= ABSORBED],
+           "failed_candidates": [c["verdict"] for c in ranking if "failed" in c],
+           "fit_status": fit.status_}
+    extrapolated = extrapolated_variables(meas.df)
+    out["extrapolation"] = {"variables": extrapolated,
+                            "message": extrapolation_message(extrapolated)}
     best = next((c for c in ranking if c["significant"]), None)
     dependence = residual_dependence(meas.df, fit.residual_)
     if best:
         effects = ",".join(fit.effects + [best["effect"]])
         out["missing_effect"] = best["effect"]
-        out["next_command"] = f"deltatwin fit {data} --effects {effects} -o fitted.toml"
+        known = "".join(f" --set {e}.{k}={','.join(str(x) for x in np.ravel(v))}"
+                        for e, values in fit.known_.items() for k, v in values.items())
+        out["next_command"] = f"deltatwin fit {data} --effects {effects}{known} -o fitted.toml"
         out["scenario_change"] = (f"add \"{best['effect']}\" to the model's effects "
                                   f"(a scenario's [hidden] baseline, or --effects)")
         out["unexplained"] = {"claimed": False, "depends_on": dependence[:10]}
@@ -215,18 +317,27 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
             "message": ("no library effect explains the residual significantly"
                         + (f"; it still depends on: {', '.join(names[:8])}" if names else
                            "; it does not depend on any recorded variable (noise-like)"))}
+        if out["at_floor"]:
+            out["unexplained"]["message"] += (
+                f"; the model is at the {floor_kind} floor ({floor_all:.1f} nm: what the twin's "
+                "complete model reaches on these data)" if floor_kind == "achievable" else
+                f"; the model is at the instrument floor ({floor_all:.1f} nm)")
     return out
 
 
 def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DATA",
-                  max_added: int = 3, progress=None, **fit_options):
+                  max_added: int = 3, progress=None, known: dict | None = None, **fit_options):
     """The loop a researcher runs: fit the baseline, diagnose, add the significant effect the
     diagnosis names, refit, until none is significant (or ``max_added`` were added).
+    ``known``: the laboratory's constants ({effect: {parameter: value}}), given to every fit
+    and to the candidates of every diagnosis.
 
     Returns (ladder, diagnoses, fits): one ladder row per model ({model, effects, added,
-    n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm}), the
+    n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm,
+    achievable_floor_nm, fit_status}), the
     diagnosis of every model, and the fits."""
     noise = ((meta or {}).get("truth") or {}).get("noise_floor_nm")
+    achievable = ((meta or {}).get("truth") or {}).get("achievable_floor_nm")
     effects = list(baseline)
     ladder, diagnoses, fits = [], [], []
     for round_ in range(max_added + 1):
@@ -234,7 +345,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             progress(f"fit {'+'.join(effects) or 'nominal robot'}")
         # each model starts from the effects' priors: a previous fit's values may lie outside
         # a parameter's physical range where they stood in for the missing effect
-        fit = PhysicsFit(effects, **fit_options).fit(df, meta)
+        fit = PhysicsFit(effects, start=known, **fit_options).fit(df, meta)
         fits.append(fit)
         ladder.append({"model": "baseline" if round_ == 0 else f"+ {effects[-1]}",
                        "effects": list(effects), "added": None if round_ == 0 else effects[-1],
@@ -243,7 +354,8 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                        "val_err90_nm": fit.val_["all"]["err_p90"],
                        "val_err90_by_axis_nm": {a: fit.val_[a]["err_p90"] for a in AXES
                                                 if a in fit.val_},
-                       "noise_floor_nm": noise})
+                       "noise_floor_nm": noise, "achievable_floor_nm": achievable,
+                       "fit_status": fit.status_})
         if progress:
             progress(f"diagnose {'+'.join(effects) or 'nominal robot'}")
         d = diagnose(fit, data)

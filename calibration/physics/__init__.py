@@ -18,10 +18,13 @@ cosine_correction) with the measured angles.
 
 The fit (``PhysicsFit``, scikit-learn style: ``fit`` then attributes ending in ``_``) works in
 parameter units scaled by each parameter's ``fit_scale`` (its typical size): the Jacobian is
-computed by forward differences, re-using the kinematics for parameters that only change the
-load or the optics; its singular value decomposition says which parameter combinations the data
-determine to better than ``identifiable_ratio`` of their typical size, given the readings'
-noise. Only those are fitted (Gauss-Newton in the reduced coordinates, scipy.linalg); the
-others stay at their starting values and are named in the identifiability report, never fitted
-to noise. Units: SI inside (m, rad, K), nm in reports.
+exact to ~1e-7 (the kinematics' pose derivative by the implicit function theorem at each point's
+thermally corrected geometry, Richardson-extrapolated central differences elsewhere; checked
+against central differences in tests); its singular value decomposition says which parameter
+combinations the data determine to better than ``identifiable_ratio`` of their typical size,
+given the readings' noise. Only those are fitted (scipy.optimize.least_squares, trust region,
+stopping when a step moves the parameters by less than 0.1 of their uncertainty); the others
+stay at their prior and are named in the identifiability report, never fitted to noise. A model
+that lacks an effect fits badly: it returns its best fit with ``converged_`` and ``status_``
+and a logged warning, never an error. Units: SI inside (m, rad, K), nm in reports.
 """

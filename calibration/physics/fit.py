@@ -1,5 +1,5 @@
 """Fitting a physics model to measurements (scikit-learn style: ``fit``, attributes ending in ``_``):
-Gauss-Newton on the identified directions, with the identifiability report."""
+a trust-region least-squares fit on the identified directions, with the identifiability report."""
 from __future__ import annotations
 
 import logging
@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pandas as pd
-import scipy.linalg
+import scipy.optimize
 
 from deltatwin.calibration.errors import FitError, TooFewPointsError
 from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
@@ -21,8 +21,8 @@ from deltatwin.calibration.physics.model import (
 from deltatwin.models.params import RobotParams
 from deltatwin.twin.instruments.optics import AXES
 
-NM = 1e9   # the solver works on residuals in nm, where its tolerances are meaningful
-
+NM = 1e9   # the solver works on residuals in nm
+STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of their uncertainty
 log = logging.getLogger(__name__)
 
 
@@ -30,33 +30,46 @@ class PhysicsFit:
     """Fit a physics model's free parameters to a dataset's calibration rows.
 
     Parameters: ``effects`` (library names), ``params`` (the robot file; default nominal),
-    ``start`` ({effect: {parameter: value}}: starting values, e.g. a previous fit),
+    ``start`` ({effect: {parameter: value}}: starting values, e.g. a previous fit, or known
+    constants; those of effects outside the model are kept in ``known_`` for the candidates a
+    diagnosis adds),
     ``noise_nm`` (the readings' noise, nm: sets which directions are identifiable),
     ``identifiable_ratio`` (a direction is fitted if the data determine it to better than this
-    fraction of its parameters' typical size), ``max_iterations`` (Gauss-Newton steps),
-    ``progress`` (print the calibration rms after each step).
+    fraction of its parameters' typical size), ``max_evaluations`` (the solver's model
+    evaluations), ``progress`` (a callable given a message after each evaluation, or None).
 
     Attributes after ``fit``: ``model_`` (PhysicsModel at the fitted values), ``offsets_`` (m per
     (session, axis)), ``residual_`` ((N,3) m), ``cal_``/``val_`` (error figures, nm),
-    ``identifiability_`` (dict), ``converged_``, ``n_evaluations_``, ``parameters_`` (list of
+    ``identifiability_`` (dict), ``converged_`` and ``status_`` (a misspecified model that
+    stops short returns its best fit with ``converged_`` False, the reason in ``status_``, and a
+    logged warning), ``n_evaluations_``, ``parameters_`` (list of
     {label, value, start, unit, uncertainty, identified_fraction}).
     """
 
     def __init__(self, effects, params: RobotParams | None = None, start: dict | None = None,
                  noise_nm: float = 5.0, identifiable_ratio: float = 0.3,
-                 max_iterations: int = 20, progress: bool = False):
+                 max_evaluations: int = 20, progress: bool = False, prior: dict | None = None):
         if noise_nm <= 0 or not math.isfinite(noise_nm):
             raise FitError(f"noise_nm = {noise_nm}: must be a positive number of nanometres")
         if not 0 < identifiable_ratio:
             raise FitError(f"identifiable_ratio = {identifiable_ratio}: must be positive")
         self.effects = list(effects)
         self.params = params
-        self.start = start
+        # values for effects outside the model are the laboratory's known constants (e.g. a
+        # frame arm): kept for the candidates a diagnosis adds, checked against the library
+        start = dict(start or {})
+        self.known_ = {e: v for e, v in start.items() if e not in self.effects}
+        for name, values in self.known_.items():
+            PhysicsModel([name], params, {name: values}, where="known constants")
+        self.start = {e: v for e, v in start.items() if e in self.effects} or None
+        self.prior = prior
         self.noise_nm = noise_nm
         self.identifiable_ratio = identifiable_ratio
-        self.max_iterations = max_iterations
+        if max_evaluations < 1:
+            raise FitError(f"max_evaluations = {max_evaluations}: must be at least 1")
+        self.max_evaluations = int(max_evaluations)
         self.progress = progress
-        PhysicsModel(self.effects, params, start)      # validate names and values once
+        PhysicsModel(self.effects, params, self.start)   # validate names and values once
 
     def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
             where: str = "data"):
@@ -88,7 +101,7 @@ class PhysicsFit:
         # directions the data cannot determine are held at the prior (the effects' starting
         # values), not at a warm start's values: a previous fit may have pushed them anywhere
         # while standing in for an effect it lacked
-        prior = PhysicsModel(self.effects, self.params).theta()
+        prior = PhysicsModel(self.effects, self.params, self.prior).theta()
         z_start = V.T @ ((theta0 - prior) / S) if p else np.zeros(0)
 
         def theta_of(z):
@@ -99,59 +112,68 @@ class PhysicsFit:
             self.n_evaluations_ += 1
             return _projected(meas, cal, meas.y - A) * NM
 
+        last = {"theta": theta0, "J": J0}      # the latest Jacobian, re-used at the end
+
         def jac(z):
             th = theta_of(z)
-            if np.array_equal(th, theta0):
-                J = J0
-            else:
-                _, J = model.jacobian(meas, th)
+            if not np.array_equal(th, last["theta"]):
+                last["theta"], last["J"] = th, model.jacobian(meas, th)[1]
                 self.n_evaluations_ += p + 1
-            return -_projected(meas, cal, J * S) @ V * NM
+            return -_projected(meas, cal, last["J"] * S) @ V * NM
 
-        # Gauss-Newton in the identified coordinates, halving a step that does not lower the
-        # cost. The stopping rule is physical (a further step would move the predictions by
-        # less than 1 % of the noise), which a solver's relative tolerances cannot express;
-        # the problem is nearly linear in the parameters' small deviations, so it converges in
-        # a few Jacobians.
+        # A trust-region least-squares fit (scipy's TRF with the model's exact Jacobian) in the
+        # identified coordinates z, already in units of the parameters' fit_scale (x_scale 1).
+        # It stops when an accepted step lowers the cost by less than STEP_SIGMA^2 / dof of
+        # itself: a step then moves the parameters by ~STEP_SIGMA of their uncertainty
+        # (cost change ~ |J dz|^2 / 2, uncertainty sigma_r^2 = 2 cost / dof), a stop relative to
+        # the residual, so a misspecified model (residual 100x the noise) stops as soon as a
+        # well-specified one does. The x and gradient tolerances, absolute in z, are off.
         k = V.shape[1]
+        n_res = int(np.sum((meas.group >= 0) & cal[:, None]))
+        dof = max(n_res - k - len(meas.groups), 1)
         z = z_start
-        r = fun(z)
-        Jz = jac(z)
-        for _ in range(self.max_iterations if k else 0):
-            step = scipy.linalg.lstsq(Jz, -r, lapack_driver="gelsd")[0]
-            if np.sqrt(np.mean((Jz @ step) ** 2)) <= 0.01 * self.noise_nm:
-                break
-            cost = r @ r
-            for _ in range(30):
-                r_new = fun(z + step)
-                if r_new @ r_new < cost:
-                    break
-                step = 0.5 * step
-            else:
-                break                                   # no descent left: checked below
-            z, r = z + step, r_new
-            Jz = jac(z)
-            if self.progress:
-                log.info("fit %s: calibration rms %.3f nm", self.effects, np.sqrt(np.mean(r ** 2)))
+        self.solver_message_ = "nothing to fit: no identified direction"
+        if k:
+            def residual_nm(z):
+                r = fun(z)
+                if self.progress:
+                    log.info("fit %s: calibration rms %.3f nm", "+".join(self.effects),
+                             np.sqrt(np.mean(r ** 2)))
+                return r
+
+            sol = scipy.optimize.least_squares(
+                residual_nm, z_start, jac=jac, method="trf", x_scale=1.0,
+                ftol=STEP_SIGMA ** 2 / dof, xtol=None, gtol=None,
+                max_nfev=self.max_evaluations)
+            z = sol.x
+            self.solver_message_ = sol.message
         theta = theta_of(z)
-        A, J = model.jacobian(meas, theta)
-        self.n_evaluations_ += p + 1
+        jac(z)
+        J = last["J"]
+        A = model.predict_path(meas, theta)
         r = _projected(meas, cal, meas.y - A)
         Jz = -_projected(meas, cal, J * S) @ V
-        # convergence: a further Gauss-Newton step from here must change the predictions by
-        # less than 1 % of the readings' noise (rms over the calibration readings)
+        # converged: the Gauss-Newton step left from here moves the parameters by less than
+        # STEP_SIGMA of their uncertainty (|Jz step| / sigma_r: its length in standard
+        # deviations of the fitted directions); a misspecified model's best fit is a result,
+        # reported with its status, never an error
         step = np.linalg.lstsq(Jz, r, rcond=None)[0] if k else np.zeros(0)
-        change = float(np.sqrt(np.mean((Jz @ step) ** 2))) if k else 0.0
-        rms = float(np.sqrt(np.mean(r ** 2))) if r.size else 0.0
-        self.converged_ = change <= 0.01 * sigma
-        self.last_step_nm_ = change * 1e9
+        change = float(np.linalg.norm(Jz @ step)) if k else 0.0
+        sigma_r = float(np.linalg.norm(r)) / np.sqrt(dof)
+        self.remaining_step_sigma_ = change / sigma_r if sigma_r > 0 else 0.0
+        self.converged_ = bool(self.remaining_step_sigma_ <= STEP_SIGMA)
+        self.last_step_nm_ = change / np.sqrt(max(r.size, 1)) * 1e9
+        self.status_ = "converged" if self.converged_ else (
+            f"not converged: a further step would still move the parameters by "
+            f"{self.remaining_step_sigma_:.2g} of their uncertainty (limit {STEP_SIGMA}); "
+            f"solver: {self.solver_message_}")
         if not self.converged_:
-            raise FitError(f"the fit of {self.effects} did not converge in {self.max_iterations} "
-                           f"Gauss-Newton steps: a further step would still move the predictions "
-                           f"by {change * 1e9:.3g} nm rms (calibration rms {rms * 1e9:.3g} nm, "
-                           f"limit {0.01 * sigma * 1e9:.3g} nm); check the data's units and the "
-                           "effects, or raise max_iterations")
+            log.warning("the fit of %s did not converge after %d model evaluations: %s; the best "
+                        "fit found is returned (calibration rms %.3g nm)", self.effects,
+                        self.n_evaluations_, self.status_,
+                        float(np.sqrt(np.mean(r ** 2))) * 1e9 if r.size else 0.0)
         self.model_ = model
+        self.meta_ = meta or {}
         self.theta_ = theta
         self.measurements_ = meas
         self.offsets_ = group_offsets(meas, A, cal)
@@ -207,7 +229,8 @@ class PhysicsFit:
     def summary(self) -> dict:
         """JSON-ready result."""
         return {"effects": self.effects, "n_parameters": self.model_.n_free,
-                "converged": bool(self.converged_), "n_evaluations": self.n_evaluations_,
+                "converged": bool(self.converged_), "status": self.status_,
+                "n_evaluations": self.n_evaluations_,
                 "cal": _axis_p90(self.cal_), "val": _axis_p90(self.val_),
                 "val_err90_nm": self.val_["all"]["err_p90"],
                 "offsets_nm": {f"{s}.{a}": o * 1e9 for (s, a), o in

@@ -3,6 +3,7 @@ measured conditions; its prediction of the interferometer readings and their Jac
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -10,12 +11,70 @@ from scipy.spatial.transform import Rotation
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.metrics import error_figures
 from deltatwin.calibration.physics.measurements import Measurements
-from deltatwin.models.geometry import build_geometry
-from deltatwin.models.kinematics import Pose, forward
+from deltatwin.models.geometry import build_geometry, part_scales
+from deltatwin.models.kinematics import (
+    Pose,
+    elbow_points,
+    forward,
+    pose_derivative,
+    rod_residuals,
+    rod_vectors,
+)
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.effects import LIBRARY, EffectError, make_effect
 from deltatwin.twin.instruments.optics import AXES
-from deltatwin.twin.world import kinematic_pose, observe
+from deltatwin.twin.world import (
+    geometry_temperatures,
+    kinematic_pose,
+    observe,
+    point_geometry,
+)
+
+POSE_STEP = 1e-6   # m and rad: the central-difference step of the optical paths in the pose
+GEOMETRY_STEP = 0.1   # of a fit scale: central differences of the joint arrays (quadratic)
+DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving stops
+
+
+def richardson_derivative(evaluate, step: float, max_halvings: int = 8) -> tuple:
+    """The derivative at 0 of ``evaluate(offset)`` (a tuple of arrays, the last one judged):
+    fourth-order central differences (f(-2h) - 8 f(-h) + 8 f(h) - f(2h)) / 12h from h = ``step``
+    (a parameter's fit scale: large steps keep the predictions' round-off, ~5e-17 m of a 0.3 m
+    path, small against a column that moves the readings by nanometres), the step halved while
+    the estimate still changes by more than DERIVATIVE_TOL of itself (a parameter whose effect
+    is strongly nonlinear over its fit scale, such as a coil's offset) and the change still
+    shrinks; once it grows, round-off has taken over and the estimate before it is kept."""
+    f = {o * step: evaluate(o * step) for o in (1.0, -1.0, 2.0, -2.0)}
+
+    def stencil(h):
+        return tuple((8 * (a - b) - (c - d)) / (12 * h) for a, b, c, d in
+                     zip(f[h], f[-h], f[2 * h], f[-2 * h]))
+
+    estimates, changes, h = [stencil(step)], [], step
+    for _ in range(max_halvings):
+        h = h / 2
+        f[h], f[-h] = evaluate(h), evaluate(-h)
+        estimates.append(stencil(h))
+        size = np.nanmax(np.abs(estimates[-1][-1]))
+        change = (np.nanmax(np.abs(estimates[-1][-1] - estimates[-2][-1])) / size
+                  if size > 0 else 0.0)
+        if change < DERIVATIVE_TOL:
+            return estimates[-2]                    # the larger step agrees: less round-off
+        if changes and change >= changes[-1]:
+            return estimates[-3]                    # round-off took over at the last halving
+        changes.append(change)
+    return estimates[-1]
+
+
+class Stage(NamedTuple):
+    """What the load and optics are evaluated on: robot parameters, the geometry at the points,
+    their kinematic pose, the robot's home (where the instruments were aligned), the cube's
+    centre there, and the part temperatures (degC per part, N + S rows)."""
+    params: RobotParams
+    geom: object
+    kin: Pose
+    home: np.ndarray
+    cube_home: np.ndarray
+    node_T: dict
 
 
 @dataclass(frozen=True)
@@ -135,27 +194,25 @@ class PhysicsModel:
         geom0 = build_geometry(params)
         return params, geom0, forward(geom0, np.zeros((1, 3))).p[0]
 
-    def _kinematics(self, meas: Measurements):
-        """The stage the load and optics are evaluated on: (robot parameters, geometry,
-        kinematic pose, cube home, part temperatures), at the current values."""
+    def _kinematics(self, meas: Measurements) -> Stage:
+        """The stage the load and optics are evaluated on, at the current values."""
         params, geom0, home = self._robot()
         pts = meas.points
         pts.params, pts.home_p = params, home
         pts.node_T = meas.part_temperatures(self.effects)
         geom, kin = kinematic_pose(params, geom0, self.effects, pts)
-        return params, geom, kin, home + geom0.cube_offset, pts.node_T
+        return Stage(params, geom, kin, home, home + geom0.cube_offset, pts.node_T)
 
-    def _paths(self, meas: Measurements, stage) -> tuple[np.ndarray, np.ndarray]:
+    def _paths(self, meas: Measurements, stage: Stage) -> tuple[np.ndarray, np.ndarray]:
         """Optical path n s (m) and the index the instrument divides by, (N + S, 3) each, at the
         rows and at the session zeros."""
-        params, geom, kin, cube_home, node_T = stage
         pts = meas.points
         # the stage's own temperatures: a stage re-used for a load or optics parameter was
         # computed before a later sensor parameter was stepped
-        pts.params, pts.node_T = params, node_T
+        pts.params, pts.node_T, pts.home_p = stage.params, stage.node_T, stage.home
         preload, C = meas.statics(self.params)
-        truth = observe(geom, kin, self.effects, pts, preload, C, cube_home,
-                        params.mirror_cube_size_m)
+        truth = observe(stage.geom, stage.kin, self.effects, pts, preload, C, stage.cube_home,
+                        stage.params.mirror_cube_size_m)
         return (np.stack([truth.optical_path_m[a] for a in AXES], axis=1),
                 np.stack([truth.n_comp[a] for a in AXES], axis=1))
 
@@ -180,68 +237,128 @@ class PhysicsModel:
             self.set_theta(theta)
         return self._observe(meas, self._kinematics(meas))
 
-    def jacobian(self, meas: Measurements, theta: np.ndarray, rel_step: float = 1e-3,
-                 columns: np.ndarray | None = None):
-        """(A, J): the prediction (N,3) and its forward-difference derivative (N,3,p) with
-        respect to theta (only the ``columns`` mask when given, zeros elsewhere); steps of
-        ``rel_step`` times each parameter's fit scale.
+    def jacobian(self, meas: Measurements, theta: np.ndarray, columns: np.ndarray | None = None):
+        """(A, J): the prediction (N,3) and its derivative (N,3,p) with respect to theta (only
+        the ``columns`` mask when given, zeros elsewhere).
 
-        Geometry parameters under per-point part temperatures go by the chain rule: the
-        kinematic pose's derivative on the unique motor coordinates (at the reference
-        temperature: the parts' expansion changes it by ~1e-5 of itself) times the optical
-        paths' derivative with respect to the pose, so a fit costs a few exact evaluations, not
-        one per parameter and point."""
+        A parameter that changes the geometry (the robot, or the part temperatures that scale
+        it) moves the kinematic pose: the rod equations' partial derivatives at each point's
+        pose, under that point's own part temperatures (the corrected geometry), give the
+        pose's derivative by the implicit function theorem (models.kinematics.pose_derivative),
+        times the readings' derivative with respect to the pose; plus the parameter's direct
+        effect on the readings at the fixed pose (through the part temperatures the optics read,
+        or, for the robot, through its home where the instruments were aligned). So a fit costs a
+        few optics evaluations per parameter, not a kinematics. Every partial derivative is a
+        central difference of a smooth function: the joint arrays (quadratic in the rod
+        equations) with steps of GEOMETRY_STEP fit scales, the paths with steps of 1 um and
+        1 urad in the pose, the rest with the fourth-order stencil over one fit scale (the
+        kinematics' 1e-15 m and the paths' 5e-17 m round-off set steps this large). Checked
+        against central differences of the whole prediction to 1e-7 of each column in
+        tests/calibration/test_physics_model.py."""
         self.set_theta(theta)
         stage = self._kinematics(meas)
         path, n_comp = self._paths(meas, stage)
         A = self._counted(meas, path, n_comp)
         J = np.zeros(A.shape + (theta.size,))
         by = self.free_by_stage()
-        steps = rel_step * self.scales
         wanted = np.ones(theta.size, bool) if columns is None else np.asarray(columns, bool)
-        chain = by["robot"] & stage[1].batched & wanted
-        for j in np.flatnonzero(~chain & wanted):
-            th = theta.copy()
-            th[j] += steps[j]
-            self.set_theta(th)
-            Aj = self._observe(meas, self._kinematics(meas) if not by["load_optics"][j] else stage)
-            J[:, :, j] = (Aj - A) / steps[j]
-        if chain.any():
-            dpath = self._pose_chain(meas, theta, stage, path, np.flatnonzero(chain), steps)
-            J[:, :, chain] = self._counted(meas, dpath, n_comp, derivative=True)
+        pts, q = meas.points, meas.points.q
+        moving = np.flatnonzero(wanted & ~by["load_optics"])
+        d_residuals = np.zeros((q.shape[0], 6, moving.size))   # rod equations at the fixed pose
+        d_home = np.zeros((3, moving.size))
+        robot = wanted & by["robot"]
+        if robot.any():
+            d_residuals[:, :, np.isin(moving, np.flatnonzero(robot))], \
+                d_home[:, np.isin(moving, np.flatnonzero(robot))] = \
+                self._robot_derivatives(meas, theta, stage, np.flatnonzero(robot),
+                                        GEOMETRY_STEP * self.scales)
+        for j in np.flatnonzero(wanted & ~by["robot"]):
+            def evaluate(offset, j=j):
+                th = theta.copy()
+                th[j] += offset
+                self.set_theta(th)
+                if by["load_optics"][j]:
+                    return 0.0, self._observe(meas, stage)
+                # a part temperature: the geometry at the points and what the optics read
+                pts.node_T = meas.part_temperatures(self.effects)
+                geom_j = point_geometry(stage.params, stage.geom, self.effects, pts)
+                return (rod_residuals(geom_j, q, stage.kin),
+                        self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
+
+            d_rods, J[:, :, j] = richardson_derivative(evaluate, self.scales[j])
+            if not by["load_optics"][j]:
+                d_residuals[:, :, np.searchsorted(moving, j)] = d_rods
         self.set_theta(theta)
+        if moving.size:
+            dpose = pose_derivative(stage.geom, q, stage.kin, d_residuals)
+            J[:, :, moving] += self._pose_sensitivity(meas, stage, n_comp, dpose, d_home)
         return A, J
 
-    def _pose_chain(self, meas, theta, stage, path, cols, steps):
-        """d path / d theta (N + S, 3, len(cols)) for geometry parameters ``cols``."""
-        params, geom, kin, cube_home, node_T = stage
-        qu, inv = np.unique(meas.points.q, axis=0, return_inverse=True)
+    def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps):
+        """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
+        (N + S, 6, k) and the home's (3, k). Each point's joint arrays are the robot's at its
+        parameters' temperatures times the parts' thermal factors at the point
+        (models.geometry.part_scales), so their derivatives are too: the elbow hinges are
+        differenced on the unique motor coordinates, then scaled per point."""
+        pts, q = meas.points, meas.points.q
+        qu, inv = np.unique(q, axis=0, return_inverse=True)
         inv = inv.reshape(-1)
-        _, geom0, _ = self._robot()
-        ku = forward(geom0, qu)
-        dpose = np.zeros((qu.shape[0], 6, cols.size))      # d(position, rotation vector)/d theta
+        pts.node_T = stage.node_T
+        temps = geometry_temperatures(self.effects, pts)
+        s_base, s_arm, s_rod, s_plat = (
+            s / s0 for s, s0 in zip(part_scales(stage.params, temps or None),
+                                    part_scales(stage.params)))
+        rod, platform_hinge = rod_vectors(stage.geom, q, stage.kin)
+        L = stage.geom.L
+        d_residuals = np.zeros((q.shape[0], 6, cols.size))
+        d_home = np.zeros((3, cols.size))
         for i, j in enumerate(cols):
-            th = theta.copy()
-            th[j] += steps[j]
-            self.set_theta(th)
-            kj = forward(self._robot()[1], qu)
-            dpose[:, :3, i] = (kj.p - ku.p) / steps[j]
-            dpose[:, 3:, i] = Rotation.from_matrix(kj.R @ np.swapaxes(ku.R, 1, 2)).as_rotvec() / steps[j]
+            sides = []
+            for sign in (1.0, -1.0):
+                th = theta.copy()
+                th[j] += sign * steps[j]
+                self.set_theta(th)
+                _, g, home = self._robot()
+                arm = elbow_points(g, g.theta(qu)) - g.B[None, :, None, :]
+                sides.append((g.B, arm, g.P0, g.L, home))
+            dB, d_arm, dP0, dL, dh = ((a - b) / (2 * steps[j]) for a, b in zip(*sides))
+            dA = (np.asarray(s_base)[..., None, None, None] * dB[:, None, :]
+                  + np.asarray(s_arm)[..., None, None] * d_arm[inv])
+            dP = np.asarray(s_plat)[..., None, None, None] * \
+                (stage.kin.R[:, None, None] @ dP0[..., None])[..., 0]
+            d_residuals[:, :, i] = (2 * np.sum(rod * (dP - dA), axis=-1)
+                                    - 2 * L * s_rod * dL).reshape(-1, 6)
+            d_home[:, i] = dh
         self.set_theta(theta)
-        G = np.zeros(path.shape + (6,))                     # d path / d pose, per row
-        eps = (1e-9, 1e-9, 1e-9, 1e-8, 1e-8, 1e-8)
-        for d in range(6):
-            if d < 3:
-                p = kin.p.copy()
-                p[:, d] += eps[d]
-                moved = Pose(p, kin.R)
-            else:
-                w = np.zeros(3)
-                w[d - 3] = eps[d]
-                moved = Pose(kin.p, Rotation.from_rotvec(w).as_matrix() @ kin.R)
-            moved_path = self._paths(meas, (params, geom, moved, cube_home, node_T))[0]
-            G[:, :, d] = (moved_path - path) / eps[d]
-        return np.einsum("nad,ndj->naj", G, dpose[inv])
+        return d_residuals, d_home
+
+    def _pose_sensitivity(self, meas, stage: Stage, n_comp, dpose, d_home) -> np.ndarray:
+        """(N,3,k): the readings' change for pose changes ``dpose`` (N + S, 6, k: position,
+        rotation vector) and home changes ``d_home`` (3, k), by central differences."""
+        kin = stage.kin
+        out = 0.0
+        for d in range(9):
+            sides = []
+            for sign in (1.0, -1.0):
+                if d < 3:
+                    p = kin.p.copy()
+                    p[:, d] += sign * POSE_STEP
+                    moved = stage._replace(kin=Pose(p, kin.R))
+                elif d < 6:
+                    w = np.zeros(3)
+                    w[d - 3] = sign * POSE_STEP
+                    moved = stage._replace(kin=Pose(kin.p, Rotation.from_rotvec(w).as_matrix()
+                                                    @ kin.R))
+                else:
+                    shift = np.zeros(3)
+                    shift[d - 6] = sign * POSE_STEP
+                    moved = stage._replace(home=stage.home + shift,
+                                           cube_home=stage.cube_home + shift)
+                sides.append(self._paths(meas, moved)[0])
+            dpath = (sides[0] - sides[1]) / (2 * POSE_STEP)              # (N + S, 3)
+            weight = dpose[:, d] if d < 6 else np.broadcast_to(d_home[d - 6], dpose[:, 0].shape)
+            out = out + dpath[:, :, None] * weight[:, None, :]
+        return self._counted(meas, out, n_comp, derivative=True)
 
 
 # ---------------------------------------------------------------------------------------------

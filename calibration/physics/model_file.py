@@ -27,6 +27,10 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
                    "n_identified_directions": fit.identifiability_["n_identified_directions"],
                    "not_identifiable": fit.identifiability_["not_identifiable"]},
            "effects": fit.model_.values()}
+    if fit.known_:
+        # the laboratory's known constants of effects outside the model (--set): a diagnosis
+        # gives them to the candidates it adds
+        doc["known"] = fit.known_
     return toml_text(doc, "deltatwin physics model; load with "
                           "`deltatwin compare DATA --model THIS`")
 

@@ -9,6 +9,8 @@ time windows and variables; ``--json`` prints the whole result as one JSON objec
 """
 from __future__ import annotations
 
+import sys
+
 from deltatwin.commands.output import strict_json
 
 
@@ -55,6 +57,15 @@ def format_report(rep: dict) -> str:
     if isinstance(floor, dict):
         lines.append("noise floor (twin): " + ", ".join(f"{a} {v:.1f} nm"
                                                         for a, v in floor.items()))
+    achievable = rep.get("achievable_floor_nm")
+    if isinstance(achievable, dict):
+        lines.append("achievable floor (the twin's complete model refitted on these data): "
+                     + ", ".join(f"{a} {v:.1f} nm" for a, v in achievable.items()))
+    if rep.get("at_floor"):
+        judged = rep["at_floor"]
+        lines.append(f"at the {judged['kind']} floor (within {judged['factor']}x): "
+                     + ", ".join(f"{a} {'yes' if ok else 'no'}"
+                                 for a, ok in judged["axes"].items()))
     lines.append(f"{'split':<6}{'axis':<5}{'n':>6}{'mean nm':>9}{'p90 nm':>9}{'1.645s nm':>10}"
                  f"{'max nm':>9}")
     for split, axes in rep["axes"].items():
@@ -97,6 +108,8 @@ def run(args) -> int:
     except CalibrationInputError as exc:
         raise CalibrationInputError(f"{args.data} with model {args.model}: {exc}") from exc
     rep = {"data": str(args.data), "model_file": str(args.model), **rep}
+    if rep["extrapolation"]["message"]:
+        print(f"warning: {rep['extrapolation']['message']}", file=sys.stderr)
     if args.json:
         print(strict_json(rep, indent=1))
     else:

@@ -2,6 +2,8 @@
 dataset, and which effect they miss (calibration/physics.py, calibration/diagnosis.py)."""
 from __future__ import annotations
 
+import sys
+
 from deltatwin.commands.output import strict_json
 from deltatwin.files import atomic_write_text
 
@@ -35,8 +37,6 @@ def register(sub) -> None:
 def _effects(text: str) -> list[str]:
     names = [e.strip() for e in text.split(",") if e.strip()]
     return [] if names == ["none"] else names
-
-
 
 
 def _known_values(settings: list[str]) -> dict:
@@ -86,6 +86,9 @@ def run_fit(args) -> int:
     if floor:
         print("  noise floor (twin's truth): " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items())
               + " nm")
+    if not fit.converged_:
+        print(f"  {fit.status_}: the best fit found is shown (a model that lacks an effect "
+              "can fit badly; `deltatwin diagnose` says what is missing)")
     if ident["not_identifiable"]:
         print(f"  not identifiable from these data (held at their start): "
               f"{len(ident['not_identifiable'])} parameters, e.g. "
@@ -109,9 +112,9 @@ def run_diagnose(args) -> int:
         return _diagnose_stepwise(args, df, meta)
     model, doc = load_fitted(args.model)
     # refine from the file's values on this dataset's calibration rows (its zeros are new)
-    fit = PhysicsFit(model.names, start=model.values(),
-                     noise_nm=float(doc["model"].get("noise_nm", 5.0))).fit(df, meta,
-                                                                            where=str(args.data))
+    fit = PhysicsFit(model.names, start={**doc.get("known", {}), **model.values()},
+                     noise_nm=float(doc["model"].get("noise_nm", 5.0)),
+                     progress=not args.json).fit(df, meta, where=str(args.data))
     d = diagnose(fit, str(args.data))
     if args.json:
         print(strict_json(d))
@@ -119,11 +122,20 @@ def run_diagnose(args) -> int:
     print(f"model {', '.join(fit.effects) or 'nominal robot'}: validation error (90 %) "
           f"{d['val_err90_nm']:.1f} nm")
     print(f"  {'effect':<20} {'explains':>9} {'val err90 after':>16} {'p-value':>9} "
-          f"{'dBIC':>8}  significant")
+          f"{'dBIC':>8} {'absorbed':>9}  significant")
     for c in d["ranking"]:
         print(f"  {c['effect']:<20} {100 * c['explained_fraction']:8.1f}% "
-              f"{c['val_err90_after_nm']:13.1f} nm {c['p_value']:9.2g} {c['delta_bic']:8.0f}  "
-              f"{'yes' if c['significant'] else 'no'}")
+              f"{c['val_err90_after_nm']:13.1f} nm {c['p_value']:9.2g} {c['delta_bic']:8.0f} "
+              f"{100 * c['absorbed_fraction']:8.0f}%  "
+              f"{'failed' if 'failed' in c else 'yes' if c['significant'] else 'no'}")
+    for line in d["absorbed"] + d["failed_candidates"]:
+        print(f"  {line}")
+    floor = d["floor_nm"]
+    if floor:
+        print(f"  {d['floor_kind']} floor: " + ", ".join(f"{a} {v:.1f}" for a, v in floor.items())
+              + f" nm; at the floor (within 1.1x): {'yes' if d['at_floor'] else 'no'}")
+    if d["extrapolation"]["message"]:
+        print(f"warning: {d['extrapolation']['message']}", file=sys.stderr)
     if d["missing_effect"]:
         print(f"\nmissing effect: {d['missing_effect']}; add it with:\n  {d['next_command']}")
     else:

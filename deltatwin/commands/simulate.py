@@ -16,7 +16,7 @@ def run_simulate(args) -> int:
 
 
     t0 = time.perf_counter()
-    with tqdm(total=3, desc="simulate", unit="stage", disable=args.quiet) as bar:
+    with tqdm(total=4, desc="simulate", unit="stage", disable=args.quiet) as bar:
         bar.set_postfix_str("scenario")
         sc = Scenario.load(args.scenario, seed=args.seed)
         scale = sc.reduced_scale if args.reduced else args.scale
@@ -27,6 +27,11 @@ def run_simulate(args) -> int:
         else:
             df, meta = sc.simulate(scale)
         bar.update()
+        if not args.no_floor:
+            bar.set_postfix_str("achievable floor")
+            from deltatwin.calibration.diagnosis.floor import record_achievable_floor
+            record_achievable_floor(df, meta)
+        bar.update()
         bar.set_postfix_str("write")
         write_dataset(df, meta, args.output)
         bar.update()
@@ -35,6 +40,11 @@ def run_simulate(args) -> int:
                "sessions": df["session"].value_counts().to_dict(),
                "split": df["split"].value_counts().to_dict(),
                "duration_h": round(float(df["t_s"].max()) / 3600.0, 2)}
+    if "achievable_floor_nm" in meta["truth"]:
+        summary["achievable_floor_nm"] = {a: round(v, 1) for a, v in
+                                          meta["truth"]["achievable_floor_nm"].items()}
+        summary["noise_floor_nm"] = {a: round(v, 1) for a, v in
+                                     meta["truth"]["noise_floor_nm"].items()}
     T = df[[c for c in df.columns if c.startswith("T_")]].to_numpy()
     summary["temperature_range_C"] = [round(float(np.nanmin(T)), 3), round(float(np.nanmax(T)), 3)]
     print(strict_json(summary) if args.json else
@@ -71,6 +81,9 @@ def register(sub) -> None:
     g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points")
     p.add_argument("--through-interface", action="store_true",
                    help="run point by point through the instrument interface (same data, slower)")
+    p.add_argument("--no-floor", action="store_true",
+                   help="do not refit the twin's complete model for the achievable floor "
+                        "(the floor a model is judged against; it costs one fit)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run_simulate)
     e = sub.add_parser("effects", help="list the physical effects and their parameters")

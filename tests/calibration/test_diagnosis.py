@@ -5,6 +5,7 @@ claimed, and the variable it depends on is named."""
 import json
 import subprocess
 import sys
+import tomllib
 
 import numpy as np
 import pytest
@@ -180,9 +181,15 @@ def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
     r = run("fit", data, "--effects", "gravity_sag", "--set", "gravity_sag.load_factor=2",
             "--set", "gravity_sag.load_factor=abc", "-o", tmp_path / "bad.toml")
     assert r.returncode == 2 and "'abc' is not a number" in r.stderr
+    # a constant of an effect outside the model is kept for the candidates a diagnosis adds
     r = run("fit", data, "--effects", "gravity_sag", "--set", "loop_drift.frame_arm_m=-0.6,0",
+            "-o", tmp_path / "known.toml")
+    assert r.returncode == 0, r.stderr
+    known = tomllib.loads((tmp_path / "known.toml").read_text())["known"]
+    assert known == {"loop_drift": {"frame_arm_m": [-0.6, 0.0]}}
+    r = run("fit", data, "--effects", "gravity_sag", "--set", "loop_drift.frame_arms_m=-0.6,0",
             "-o", tmp_path / "bad.toml")
-    assert r.returncode == 2 and "loop_drift" in r.stderr and "not in the model" in r.stderr
+    assert r.returncode == 2 and "frame_arms_m" in r.stderr and "known constants" in r.stderr
     assert not (tmp_path / "bad.toml").exists()
 
 

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from deltatwin.calibration.physics.measurements import measurements
-from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
+from deltatwin.calibration.physics.model import (
+    PhysicsModel,
+    figures_nm,
+    group_offsets,
+    residuals,
+    richardson_derivative,
+)
 from deltatwin.twin.campaign import simulate_campaign
 from deltatwin.twin.scenario import Scenario
 
@@ -116,3 +122,45 @@ def test_sensor_contact_refuses_impossible_contacts(bad):
     from deltatwin.twin.effects import EffectError, make_effect
     with pytest.raises(EffectError, match=next(iter(bad))):
         make_effect("sensor_contact", bad)
+
+
+def _central_difference(model, meas, theta, j, step):
+    """Richardson-extrapolated central differences of the whole prediction in parameter j,
+    from ``step`` down (calibration.physics.model.richardson_derivative)."""
+    def at(offset):
+        th = theta.copy()
+        th[j] += offset
+        return (model.predict_path(meas, th),)
+    return richardson_derivative(at, step)[0]
+
+
+PATH_ROUND_OFF_M = 3e-16   # five ulps of a 0.3 m optical path: no difference resolves less
+
+
+@pytest.mark.parametrize("scenario, effects", [
+    ("hidden/loop-drift", ["geometric_errors", "thermal_expansion", "sensor_contact",
+                           "loop_drift", "gravity_sag", "air_refraction", "beam_misalignment"]),
+    ("hidden/magnetic-force", ["geometric_errors", "magnetic_force"])])
+def test_jacobian_matches_central_differences_at_the_corrected_geometry(scenario, effects):
+    """The Jacobian (implicit-function kinematics under each point's part temperatures, the
+    home where the instruments were aligned, central differences elsewhere) agrees with central
+    differences of the whole prediction to 1e-7 of each column (in m per fit scale; or to the
+    paths' round-off, 3e-16 m, for a column that moves the readings by less than 3 nm), away from
+    the starting values. The reference's own error is measured by differencing from two
+    starting steps (3 and 0.7 fit scales, neither a step the Jacobian takes)."""
+    df, meta = Scenario.load(scenario).simulate(0.02)
+    model = PhysicsModel(effects, values={"loop_drift": {"frame_arm_m": [-0.6, 0.0]}}
+                         if "loop_drift" in effects else None)
+    meas = measurements(df, meta, model.params)
+    theta = model.theta() + model.scales * np.random.default_rng(3).standard_normal(model.n_free)
+    _, J = model.jacobian(meas, theta)
+    for j, label in enumerate(model.labels):
+        scale = model.scales[j]
+        coarse = _central_difference(model, meas, theta, j, 3.0 * scale) * scale
+        fine = _central_difference(model, meas, theta, j, 0.7 * scale) * scale
+        size = np.nanmax(np.abs(coarse))
+        assert size > 0, label
+        reference_error = np.nanmax(np.abs(coarse - fine))
+        assert reference_error < max(5e-8 * size, PATH_ROUND_OFF_M), (label, reference_error / size)
+        error = np.nanmax(np.abs(J[:, :, j] * scale - coarse))
+        assert error < max(1e-7 * size, PATH_ROUND_OFF_M), (label, error / size, size)
