@@ -30,6 +30,7 @@ def test_at_least_six_different_hidden_effects_are_shipped():
     assert len(hidden) >= 6, hidden
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", SINGLE)
 def test_hidden_effect_is_ranked_first_and_adding_it_reaches_the_noise_floor(name):
     sc = Scenario.load(f"hidden/{name}")
@@ -46,6 +47,7 @@ def test_hidden_effect_is_ranked_first_and_adding_it_reaches_the_noise_floor(nam
     assert after <= 1.5 * _floor(meta), (after, meta["truth"]["noise_floor_nm"])
 
 
+@pytest.mark.slow
 def test_two_hidden_effects_are_found_one_after_the_other():
     sc = Scenario.load("hidden/thermal-and-loop")
     df, meta = sc.simulate(sc.reduced_scale)
@@ -86,6 +88,7 @@ def test_effect_outside_the_library_is_not_claimed_and_time_is_named():
     assert "t_s" in d["unexplained"]["message"]
 
 
+@pytest.mark.slow
 def test_identifiability_names_what_the_data_cannot_separate():
     sc = Scenario.load("hidden/geometric-errors")
     df, meta = sc.simulate(sc.reduced_scale)

@@ -1,3 +1,5 @@
+import pytest
+
 """``deltatwin demo``: the hidden-effect story end to end (reduced scale), and its bad input."""
 import json
 import subprocess
@@ -9,6 +11,7 @@ def _demo(tmp_path, *args):
                           capture_output=True, text=True, cwd=tmp_path)
 
 
+@pytest.mark.slow
 def test_demo_finds_the_hidden_effect_and_writes_report_and_recording(tmp_path):
     r = _demo(tmp_path, "--out", "run", "--json", "--scale", "0.3")
     assert r.returncode == 0, r.stderr

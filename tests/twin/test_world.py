@@ -34,6 +34,7 @@ def test_clock_a_few_ulp_above_a_whole_second(built):
     assert on_boundary >= 10
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("offset_s", START_OFFSETS_S)
 def test_campaign_from_any_start_offset(offset_s):
     """A campaign whose clock starts at ``offset_s`` (fractional sums of sleeps land a few ulp
