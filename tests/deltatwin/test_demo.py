@@ -1,9 +1,9 @@
-import pytest
-
 """``deltatwin demo``: the hidden-effect story end to end (reduced scale), and its bad input."""
 import json
 import subprocess
 import sys
+
+import pytest
 
 
 def _demo(tmp_path, *args):
