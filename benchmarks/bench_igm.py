@@ -1,13 +1,14 @@
 """Benchmark: IGM by Newton-Raphson on a fitted DGM, batch throughput and convergence.
 
-Fits a thermal DGM (217 candidates, 9 sensors) on a seeded synthetic campaign, then solves a
-batch of targets DGM(q_true, temperatures) for random q_true in the stroke and temperature
+Fits a thermal DGM (217 candidates, 9 sensors) on the twin's paper-thermal campaign (full
+scale by default: 28,492 readings over three days, the scenario's seed), then solves a batch of
+targets DGM(q_true, temperatures) for random q_true in the stroke and temperature
 states (with their causal derivatives) drawn from the campaign's rows.  Prints points/s
 (target >= 100,000), the share converged, the largest residual |DGM(q) - target| in nm
 (target <= 0.001 nm) and the largest |q - q_true|.
 
     python benchmarks/bench_igm.py                 # 200,000 points
-    python benchmarks/bench_igm.py --points 1000000
+    python benchmarks/bench_igm.py --points 1000000 --scale 0.3
 
 BLAS threads default to 1 as in bench_stepwise.py (set OPENBLAS_NUM_THREADS to override).
 """
@@ -26,19 +27,27 @@ import numpy as np  # noqa: E402
 
 from deltatwin.calibration.blackbox.dgm import DGM  # noqa: E402
 from deltatwin.calibration.blackbox.igm import IGM  # noqa: E402
-from tests.calibration.synthetic import thermal_campaign  # noqa: E402
+from deltatwin.twin.scenario import Scenario  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=200_000)
-    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--seed", type=int, default=7, help="seed of the targets drawn")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="share of paper-thermal's points simulated (1.0: the paper's campaign)")
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
 
-    df, meta, _ = thermal_campaign(rng, n_positions=1500, n_xy=3000, n_z=3000)
+    t0 = time.perf_counter()
+    df, meta = Scenario.load("paper-thermal", scale=args.scale).simulate(args.scale)
+    t_sim = time.perf_counter() - t0
+    t0 = time.perf_counter()
     dgm = DGM().fit(df, meta)
+    t_fit = time.perf_counter() - t0
+    print(f"paper-thermal at scale {args.scale:g}: {len(df)} readings simulated in {t_sim:.1f} s; "
+          f"DGM fitted in {t_fit:.1f} s")
     igm = IGM(dgm, tol_m=1e-12)
     print(f"DGM: terms kept {dgm.terms_kept_} of {len(dgm.features_)} candidates; IGM aux "
           f"variables: {len(igm.aux_variables)}")

@@ -1,10 +1,11 @@
 """Benchmark: calibration.stepwisefit vs a plain loop of statsmodels OLS refits.
 
-Paper-scale problem (first paper, one axis): 217 candidate terms x 9701 rows — 19 cubic
-monomials of q (±0.06 rad), 9 temperatures near 22 °C taken in degC as the seeds did
+Paper-scale problem (first paper, one axis): 217 candidate terms x 9701 rows — the calibration
+rows of the X/Y session of the twin's paper-thermal campaign at full scale (the paper's 9701):
+19 cubic monomials of q, 9 temperatures near 21-25 °C taken in degC as the seeds did
 (T_ref = 0 °C, so the temperature x geometric columns are ill-conditioned), their 171
-products with the geometric terms, causal first and second derivatives; the response is a
-synthetic campaign's X reading (calibration.synthetic) with 5 nm noise.  Seeded.
+products with the geometric terms, causal first and second derivatives; the response is the
+twin's X reading (5 nm noise std).  Seeded (the scenario's seed unless --seed).
 
 Runs both on the same data, checks the selections are identical step by step, and prints
 both times and the speed-up.  Targets (issue 4): stepwisefit <= 1 s and >= 100x faster.
@@ -31,23 +32,27 @@ import warnings  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from deltatwin.calibration.blackbox.estimator import base_variables  # noqa: E402
+from deltatwin.calibration.blackbox.estimator import base_variables, thermal_sensors  # noqa: E402
 from deltatwin.calibration.blackbox.features import thermal_preset  # noqa: E402
-from deltatwin.calibration.blackbox.stepwise import (
-    stepwise_refit_loop,  # noqa: E402
-    stepwisefit,  # noqa: E402
-)
-from tests.calibration.synthetic import STRUCTURE_SENSORS, thermal_campaign  # noqa: E402
+from deltatwin.calibration.blackbox.stepwise import stepwise_refit_loop, stepwisefit  # noqa: E402
+from deltatwin.twin.scenario import Scenario  # noqa: E402
+
+PAPER_XY_CAL_ROWS = 9701
 
 
-def paper_scale_problem(seed: int = 2024, n_rows: int = 9701):
-    """(X, y, names): the thermal preset's 217 columns for one axis, temperatures in degC."""
-    rng = np.random.default_rng(seed)
-    df, _, _ = thermal_campaign(rng, n_positions=max(4 * n_rows, 1000), n_xy=n_rows, n_z=3,
-                                q_max_rad=0.06, val_fraction=0.0)
-    df = df[df["session"] == "xy"]
-    fs = thermal_preset(STRUCTURE_SENSORS)
-    values = base_variables(df, fs.variables, STRUCTURE_SENSORS, 273.15, 600.0)
+def paper_scale_problem(seed: int | None = None, n_rows: int = PAPER_XY_CAL_ROWS):
+    """(X, y, names): the thermal preset's 217 columns for the X axis, temperatures in degC,
+    on the calibration rows of paper-thermal's X/Y session (``n_rows`` of them: the scenario is
+    scaled so that its session has at least that many, then the first ``n_rows`` are kept)."""
+    scale = min(1.0, (n_rows + 0.5) / PAPER_XY_CAL_ROWS)   # rounding never short
+    df, meta = Scenario.load("paper-thermal", seed=seed, scale=scale).simulate(scale)
+    sensors = thermal_sensors(df, meta)
+    df = df[(df["session"] == "xy") & (df["split"] == "cal")].iloc[:n_rows]
+    if len(df) < n_rows:
+        raise SystemExit(f"paper-thermal's X/Y session has {len(df)} calibration rows, "
+                         f"fewer than --rows {n_rows}")
+    fs = thermal_preset(sensors)
+    values = base_variables(df, fs.variables, sensors, 273.15, 600.0)
     X = fs.matrix(values)
     y = df["x_nm"].to_numpy(dtype=float) * 1e-9
     return X, y, fs.names
@@ -55,8 +60,9 @@ def paper_scale_problem(seed: int = 2024, n_rows: int = 9701):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rows", type=int, default=9701)
-    ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--rows", type=int, default=PAPER_XY_CAL_ROWS)
+    ap.add_argument("--seed", type=int, default=None,
+                    help="the twin's seed (default: paper-thermal's own)")
     ap.add_argument("--repeat", type=int, default=5, help="timed runs of stepwisefit (best kept)")
     ap.add_argument("--skip-loop", action="store_true", help="do not run the slow reference")
     args = ap.parse_args(argv)
@@ -64,7 +70,8 @@ def main(argv=None) -> int:
     X, y, names = paper_scale_problem(args.seed, args.rows)
     Z = (X - X.mean(0)) / X.std(0)
     sv = np.linalg.svd(Z, compute_uv=False)
-    print(f"problem: {X.shape[1]} candidates x {X.shape[0]} rows, seed {args.seed}; "
+    print(f"problem: {X.shape[1]} candidates x {X.shape[0]} rows of paper-thermal, seed "
+          f"{'scenario' if args.seed is None else args.seed}; "
           f"condition number of the standardised candidates {sv[0] / sv[-1]:.3g}")
     print(f"BLAS threads: OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
 

@@ -18,7 +18,6 @@ from deltatwin.models.kinematics import forward
 from deltatwin.models.params import load_params
 from deltatwin.twin.dataset import write_dataset
 from deltatwin.twin.scenario import Scenario
-from tests.calibration.synthetic import thermal_campaign
 
 REPO = Path(__file__).resolve().parents[2]
 SCALE = 0.15          # 270 readings: 27 calibration and 27 validation positions x 5 forces
@@ -188,10 +187,9 @@ def test_new_zeros_are_re_estimated(magnetic, files):
     assert abs(rep["axes"]["val"]["all"]["mean_nm"]) < 1e-6
 
 
-def test_dgm_gets_the_same_view(tmp_path):
+def test_dgm_gets_the_same_view(tmp_path, small_thermal_campaign):
     """The black-box path: a DGM (model.json) compared on data whose session zeros moved."""
-    df, meta, _ = thermal_campaign(np.random.default_rng(7), n_positions=50, n_xy=260, n_z=260,
-                                   sensors=("base", "arm1", "rod1"), air=("air_x",))
+    df, meta = small_thermal_campaign
     dgm = DGM().fit(df, meta)
     dgm.save(tmp_path / "model.json")
     model = load_model_file(tmp_path / "model.json")

@@ -34,18 +34,25 @@ def test_error_figures_label_both_90_percent_figures():
     assert f["max_abs"] == pytest.approx(10.0)
 
 
-def test_dgm_fits_synthetic_thermal_data(thermal_data, thermal_dgm):
+def test_dgm_fits_the_twins_thermal_campaign(thermal_data, thermal_dgm):
     df, meta = thermal_data
     m = thermal_dgm
     assert m.output_names_ == ["x", "y", "z"]
     assert len(m.features_) == 217                      # 9 structure sensors, air excluded
     assert "air_x" not in m.sensors_ and "base" in m.sensors_
+    floor = meta["truth"]["noise_floor_nm"]
     ev = evaluate(m, df)
     for ax, rec in ev["outputs"].items():
         assert 3 <= rec["terms_kept"] <= 60
-        assert rec["val"]["n"] > 200
-        assert rec["val"]["err_p90"] < 40.0, ax          # 5 nm noise, smooth truth
-        assert rec["cal"]["err_p90"] < 40.0, ax
+        measured = df[f"{ax}_nm"].notna()
+        assert rec["val"]["n"] == int(((df.split == "val") & measured).sum()), ax
+        # the twin's data hold what a polynomial DGM cannot follow (loop drift, the air's
+        # index, sensor lag): the paper's complete model reached 9-19 x its noise floor
+        # (+-71..150 nm against 5 nm std); 25 x leaves room for 3 % of its rows
+        assert rec["val"]["err_p90"] < 25 * floor[ax], ax
+        assert rec["cal"]["err_p90"] < 25 * floor[ax], ax
+        # validation rows are not fitted: they cannot beat the noise
+        assert rec["val"]["err_p90"] > floor[ax], ax
     # the fit uses only the rows where the axis was measured, calibration split
     assert m.output("z").n_cal == int(((df.split == "cal") & df.z_nm.notna()).sum())
 
@@ -155,15 +162,21 @@ def test_direct_igm_force_model(force_data, force_igm):
     df, meta = force_data
     ev = evaluate(force_igm, df)
     assert len(force_igm.features_) == 79
+    # the second paper's validation at the end-effector, +-159/143/142 nm: the same model
+    # class on the twin's force campaign (its cubic in X, Y, Z cannot follow the Delta's
+    # inverse kinematics to the noise floor, a few nm here)
+    paper_val_nm = {"x": 159.0, "y": 143.0, "z": 142.0}
     for mot, rec in ev["outputs"].items():
-        assert rec["val"]["err_p90"] < 400.0, mot
+        assert rec["val"]["err_p90"] < max(paper_val_nm.values()), mot
         assert 5 <= rec["terms_kept"] <= 60
+    floor = meta["truth"]["noise_floor_nm"]
     for ax in "xyz":
-        assert ev["position"][ax]["val"]["err_p90"] < 400.0
+        assert floor[ax] < ev["position"][ax]["val"]["err_p90"] < paper_val_nm[ax], ax
     rungs = ladder(df, meta, "force")
     worst_geo = max(rungs[0]["outputs"][k]["val"]["err_p90"] for k in ("q1", "q2", "q3"))
     worst_force = max(rungs[1]["outputs"][k]["val"]["err_p90"] for k in ("q1", "q2", "q3"))
-    assert worst_geo > 2 * worst_force                   # force terms matter
+    # force terms matter: they remove an order of magnitude more than the noise floor
+    assert worst_geo - worst_force > 10 * max(floor.values())
 
 
 # ----- bad input --------------------------------------------------------------------------
