@@ -64,7 +64,7 @@ def test_thermal_ladder_json_and_text(files, capsys):
         lad = r["ladder"]
         assert [x["name"][:1] for x in lad] == ["g", "A", "B", "C"]
         assert all(set(x) >= {"name", "terms_kept", "val_err90_nm"} for x in lad)
-        assert lad[0]["val_err90_nm"] > 5 * lad[-1]["val_err90_nm"]
+        assert lad[0]["val_err90_nm"] > 5 * lad[-1]["val_err90_nm"], ax
         assert lad[-1]["terms_kept"] == r["terms_kept"]
     text = format_report(rep)
     assert "DGM (thermal features, 85 candidate terms)" in text
