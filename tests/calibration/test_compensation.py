@@ -13,7 +13,6 @@ from deltatwin.calibration.physics.inverse import PhysicsInverse, with_motor_coo
 from deltatwin.calibration.physics.measurements import measurements
 from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.twin.scenario import Scenario
-from tests.calibration.synthetic import STRUCTURE_SENSORS
 
 STROKE = 0.065
 
@@ -70,7 +69,7 @@ def _log(sensors, rng, n=40):
 
 def test_stepwise_command_with_the_zero_transfer(thermal_dgm):
     rng = np.random.default_rng(4)
-    log = _log(STRUCTURE_SENSORS, rng)
+    log = _log(tuple(thermal_dgm.sensors_), rng)      # the DGM's structure sensors
     comp = StepwiseCompensator(thermal_dgm)
     comp.zero(log.frame().iloc[[0]])
     target = np.array([1.2e-3, -0.8e-3, 0.5e-3])
