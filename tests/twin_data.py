@@ -14,7 +14,7 @@ from pathlib import Path
 
 import tomli_w
 
-from deltatwin.calibration.blackbox.features import DEFAULT_WINDOW_S
+from deltatwin.calibration.streams import DEFAULT_WINDOW_S
 from deltatwin.twin.instruments.simulated import InstrumentSettings
 from deltatwin.twin.scenario import SCENARIO_DIR, Scenario
 
