@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "deltatwin.commands.emulate",
     "deltatwin.commands.campaign",
     "deltatwin.commands.compensate",
+    "deltatwin.commands.sweep",
 )
 
 EXIT_DONE = 0
