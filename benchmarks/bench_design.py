@@ -30,13 +30,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from deltatwin.calibration.design.poses import selection_study
 from deltatwin.calibration.design.power import (
     monte_carlo_power,
     power_figure,
     power_table,
     predicted_power_curve,
 )
-from deltatwin.calibration.design.poses import selection_study
 from deltatwin.calibration.design.sweep import (
     SweepSpec,
     deterministic_columns,
@@ -144,8 +144,8 @@ def sweeps(folder: Path, n_cases: int, scale: float, rng) -> pd.DataFrame:
     same = all(recs["pool1"][cols].equals(recs[k][cols]) for k in ("pool2", "dask"))
     print(f"  target: identical records on pool and Dask -> {'MET' if same else 'NOT MET'} "
           f"({len(recs['pool1'])} records, {len(cols)} columns compared)")
-    print(f"  target: resume without recomputing -> "
-          f"{'MET' if kr['finished_untouched'] and kr['skipped_on_resume'] == kr['killed_after'] else 'NOT MET'}")
+    resumed = kr["finished_untouched"] and kr["skipped_on_resume"] == kr["killed_after"]
+    print(f"  target: resume without recomputing -> {'MET' if resumed else 'NOT MET'}")
     print(f"  throughput 2 workers / 1 worker: dask {dk['cases_per_s'] / one['cases_per_s']:.2f}x")
     return recs["pool1"], s.cases[0], mags
 

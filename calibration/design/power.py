@@ -31,11 +31,10 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from deltatwin.calibration.design.sweep import Case, case_scenario
 from deltatwin.calibration.diagnosis.diagnose import ALPHA, MIN_EXPLAINED
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.model import PhysicsModel, _projected
-from deltatwin.calibration.design.sweep import Case, case_scenario
-
 
 
 def linearised_power(fit: PhysicsFit, effect: str, true_values: dict | None, sigma_m: float,

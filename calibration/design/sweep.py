@@ -358,7 +358,8 @@ def _execute(cases: list, workers: int, scheduler: str | None):
     if not cases:
         return
     if scheduler:
-        from distributed import Client, as_completed as dask_completed
+        from distributed import Client
+        from distributed import as_completed as dask_completed
 
         with Client(scheduler) as client:
             futures = client.map(run_case, cases, pure=False)
