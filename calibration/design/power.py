@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from deltatwin.calibration.design.sweep import Case, case_scenario
+from deltatwin.calibration.design.sweep import case_scenario
 from deltatwin.calibration.diagnosis.diagnose import ALPHA, MIN_EXPLAINED
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.model import PhysicsModel, _projected
@@ -143,26 +143,35 @@ def sigma_threshold(fit: PhysicsFit) -> float:
     return fit.noise_nm * 1e-9 / fit.identifiable_ratio
 
 
-def predicted_power_curve(case: Case, magnitudes, rng: np.random.Generator,
+def predicted_power_curve(cases, magnitudes, rng: np.random.Generator,
                           n_draws: int = 2000) -> pd.DataFrame:
-    """The linearised power of ``case``'s design at each magnitude: one campaign simulated with
-    the effect off (the case's seed), the baseline fitted, the effect's true values the
-    scenario's times the magnitude as the sweep makes them (0: off); the noise is the fit's
-    residual standard deviation on that campaign; ``rng`` draws the linearised noise."""
-    off = dataclasses.replace(case, magnitude=0.0)
-    sc = case_scenario(off)
-    df, meta = sc.simulate(case.scale)
-    fit = PhysicsFit(list(case.baseline), noise_nm=sc.settings.noise_floor_m * 1e9).fit(df, meta)
-    sigma = fit.identifiability_["residual_sigma_nm"] * 1e-9
-    full = next(e for e in case_scenario(dataclasses.replace(case, magnitude=1.0)).effects
-                if e.name == case.effect).values
-    rows = []
-    for m in magnitudes:
-        values = {**full, case.parameter: np.asarray(full[case.parameter], float) * m} \
-            if m else None
-        rows.append({"magnitude": float(m),
-                     **linearised_power(fit, case.effect, values, sigma, rng, n_draws)})
-    return pd.DataFrame(rows)
+    """The linearised power of a design at each magnitude, averaged over the simulated
+    campaigns of ``cases`` (Case objects of the design, e.g. a few replicates: a campaign plan
+    draws its positions from the seed, and the design's power is the mean over its draws). Per
+    campaign: simulated with the effect off, the baseline fitted, the effect's true values the
+    scenario's times the magnitude as the sweep makes them (0: off), the noise the fit's residual
+    standard deviation on that campaign; ``rng`` draws the linearised noise. Columns: magnitude,
+    power (mean), power_sd (its spread over the campaigns), power_f_bic, noncentrality (means),
+    campaigns."""
+    per = []
+    for case in cases:
+        sc = case_scenario(dataclasses.replace(case, magnitude=0.0))
+        df, meta = sc.simulate(case.scale)
+        fit = PhysicsFit(list(case.baseline),
+                         noise_nm=sc.settings.noise_floor_m * 1e9).fit(df, meta)
+        sigma = fit.identifiability_["residual_sigma_nm"] * 1e-9
+        full = next(e for e in case_scenario(dataclasses.replace(case, magnitude=1.0)).effects
+                    if e.name == case.effect).values
+        for m in magnitudes:
+            values = {**full, case.parameter: np.asarray(full[case.parameter], float) * m} \
+                if m else None
+            per.append({"magnitude": float(m),
+                        **linearised_power(fit, case.effect, values, sigma, rng, n_draws)})
+    g = pd.DataFrame(per).groupby("magnitude")
+    out = g[["power", "power_f_bic", "noncentrality", "median_explained", "sigma_nm"]].mean()
+    out["power_sd"] = g["power"].std(ddof=0)
+    out["campaigns"] = g.size()
+    return out.reset_index()
 
 
 def monte_carlo_power(records: pd.DataFrame) -> pd.DataFrame:
@@ -179,7 +188,8 @@ def monte_carlo_power(records: pd.DataFrame) -> pd.DataFrame:
 
 def power_table(predicted: pd.DataFrame, mc: pd.DataFrame) -> pd.DataFrame:
     """Predicted beside Monte Carlo power, per magnitude, with their difference."""
-    t = mc.merge(predicted[["magnitude", "power", "noncentrality"]], on="magnitude")
+    t = mc.merge(predicted[["magnitude", "power", "power_sd", "power_f_bic", "noncentrality"]],
+                 on="magnitude")
     t = t.rename(columns={"power": "predicted"})
     t["difference"] = t.mc_significant - t.predicted
     return t
