@@ -102,12 +102,13 @@ def _killed_and_resumed(spec: Path, out: Path, n_cases: int) -> dict:
 
 def _dask_cluster(folder: Path):
     sched_file = folder / "scheduler.json"
-    procs = [subprocess.Popen(["dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+    dask = str(Path(sys.executable).parent / "dask")     # the environment's, activated or not
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
                                "--no-dashboard", "--scheduler-file", str(sched_file)],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     while not sched_file.exists():
         time.sleep(0.1)
-    procs.append(subprocess.Popen(["dask", "worker", "--nworkers", "2", "--nthreads", "1",
+    procs.append(subprocess.Popen([dask, "worker", "--nworkers", "2", "--nthreads", "1",
                                    "--no-dashboard", "--scheduler-file", str(sched_file)],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
     address = json.loads(sched_file.read_text())["address"]
@@ -118,35 +119,56 @@ def _dask_cluster(folder: Path):
     return address, procs
 
 
-def sweeps(folder: Path, n_cases: int, scale: float, rng) -> pd.DataFrame:
-    mags, curve = _choose_magnitudes(folder, scale, rng)
-    spec = _spec(folder, n_cases // len(mags), mags, scale)
-    s = SweepSpec.load(spec)
+def sweeps(folder: Path, n_cases: int, scale: float, rng, reuse: bool):
+    """The three runs; with ``reuse``, a run whose folder already holds every case is not
+    repeated (its throughput was printed by the earlier run)."""
+    if reuse and (folder / "spec.toml").exists():
+        spec = folder / "spec.toml"
+        s = SweepSpec.load(spec)
+        mags = sorted({c.magnitude for c in s.cases})
+    else:
+        mags, _ = _choose_magnitudes(folder, scale, rng)
+        spec = _spec(folder, n_cases // len(mags), mags, scale)
+        s = SweepSpec.load(spec)
     print(f"sweep: {len(s.cases)} cases, magnitudes {mags} (chosen by the prediction), "
           f"scale {scale}")
-    one = run_sweep(s, folder / "pool1", workers=1)
-    print(f"  pool, 1 worker: {one['cases_per_s']:.3f} cases/s ({one['wall_s']:.0f} s)")
-    kr = _killed_and_resumed(spec, folder / "pool2", len(s.cases))
-    print(f"  pool, 2 workers, killed after {kr['killed_after']} records and resumed: "
-          f"{kr['skipped_on_resume']} skipped, {kr['ran']} run, finished files untouched: "
-          f"{kr['finished_untouched']}; {kr['cases_per_s']:.3f} cases/s including the restart")
+    complete = lambda name: reuse and len(finished(folder / name)) == len(s.cases)
+    if complete("pool1"):
+        print("  pool, 1 worker: records reused from an earlier run")
+        one = None
+    else:
+        one = run_sweep(s, folder / "pool1", workers=1)
+        print(f"  pool, 1 worker: {one['cases_per_s']:.3f} cases/s ({one['wall_s']:.0f} s)")
+    if complete("pool2"):
+        print("  pool, 2 workers killed and resumed: records reused from an earlier run")
+        kr = None
+    else:
+        kr = _killed_and_resumed(spec, folder / "pool2", len(s.cases))
+        print(f"  pool, 2 workers, killed after {kr['killed_after']} records and resumed: "
+              f"{kr['skipped_on_resume']} skipped, {kr['ran']} run, finished files untouched: "
+              f"{kr['finished_untouched']}; {kr['cases_per_s']:.3f} cases/s including the "
+              "restart")
     address, procs = _dask_cluster(folder)
     try:
-        dk = run_sweep(s, folder / "dask", scheduler=address)
+        dk = run_sweep(s, folder / "dask", scheduler=address, resume=reuse)
     finally:
         for p in reversed(procs):
             p.terminate()
             p.wait(timeout=60)
     print(f"  dask (scheduler + 2 worker processes on 127.0.0.1): {dk['cases_per_s']:.3f} "
-          f"cases/s ({dk['wall_s']:.0f} s)")
+          f"cases/s ({dk['wall_s']:.0f} s, {dk['ran']} cases run)")
     recs = {k: read_records(folder / k) for k in ("pool1", "pool2", "dask")}
     cols = deterministic_columns(recs["pool1"])
     same = all(recs["pool1"][cols].equals(recs[k][cols]) for k in ("pool2", "dask"))
-    print(f"  target: identical records on pool and Dask -> {'MET' if same else 'NOT MET'} "
-          f"({len(recs['pool1'])} records, {len(cols)} columns compared)")
-    resumed = kr["finished_untouched"] and kr["skipped_on_resume"] == kr["killed_after"]
-    print(f"  target: resume without recomputing -> {'MET' if resumed else 'NOT MET'}")
-    print(f"  throughput 2 workers / 1 worker: dask {dk['cases_per_s'] / one['cases_per_s']:.2f}x")
+    print(f"  target: identical records on pool (1 and 2 workers) and Dask -> "
+          f"{'MET' if same else 'NOT MET'} ({len(recs['pool1'])} records, {len(cols)} columns "
+          "compared)")
+    if kr:
+        resumed = kr["finished_untouched"] and kr["skipped_on_resume"] == kr["killed_after"]
+        print(f"  target: resume without recomputing -> {'MET' if resumed else 'NOT MET'}")
+    if one:
+        print(f"  throughput, 2 Dask workers / 1 pool worker: "
+              f"{dk['cases_per_s'] / one['cases_per_s']:.2f}x")
     return recs["pool1"], s, mags
 
 
@@ -203,19 +225,14 @@ def main() -> None:
                     help="simulated campaigns the power prediction averages over")
     ap.add_argument("--out", default=None, help="folder for the records, table and plot")
     ap.add_argument("--reuse", action="store_true",
-                    help="reuse the sweep records in --out (from an earlier run)")
+                    help="reuse the spec and the complete sweeps in --out (an earlier run)")
     ap.add_argument("--skip-poses", action="store_true", help="stop after the power table")
     args = ap.parse_args()
     rng = np.random.default_rng(20)
     folder = Path(args.out or tempfile.mkdtemp(prefix="bench-design-"))
     folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    if args.reuse:        # the records of an earlier run in --out: prediction and poses only
-        spec = SweepSpec.load(folder / "spec.toml")
-        records = read_records(folder / "pool1")
-        mags = sorted({c.magnitude for c in spec.cases})
-    else:
-        records, spec, mags = sweeps(folder, args.cases, args.sweep_scale, rng)
+    records, spec, mags = sweeps(folder, args.cases, args.sweep_scale, rng, args.reuse)
     power(records, spec, mags, folder, rng, args.campaigns)
     if args.skip_poses:
         return
