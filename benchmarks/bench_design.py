@@ -11,6 +11,8 @@
 3. Pose selection on hidden/magnetic-force at the paper's full grids (1080 calibration points
    at 5 forces, 625 validation): D- and I-optimal subsets of 1/3 of the points vs the full grid
    (target: validation error within 10 %) and a random third.
+4. The uncertainty budget of the force paper's campaign (paper-force at scale 0.3) fitted with
+   geometric errors, magnetic force, thermal expansion and loop drift.
 
     python benchmarks/bench_design.py                 # all (~20 min on 2 idle cores)
     python benchmarks/bench_design.py --cases 40 --pose-scale 0.3     # a quick look
@@ -30,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from deltatwin.calibration.design.budget import uncertainty_budget
 from deltatwin.calibration.design.poses import selection_study
 from deltatwin.calibration.design.power import (
     monte_carlo_power,
@@ -44,6 +47,7 @@ from deltatwin.calibration.design.sweep import (
     read_records,
     run_sweep,
 )
+from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.twin.scenario import Scenario
 
 SPEC = """
@@ -216,6 +220,23 @@ def poses(scale: float, rng) -> None:
               f"{ratio:.3f}: {'MET' if ratio <= 1.10 else 'NOT MET'}")
 
 
+def budget(scale: float) -> None:
+    """The force paper's campaign fitted with four effects: its uncertainty budget beside the
+    validation error the same fit reaches."""
+    sc = Scenario.load("paper-force")
+    df, meta = sc.simulate(scale)
+    fit = PhysicsFit(["geometric_errors", "magnetic_force", "thermal_expansion", "loop_drift"],
+                     noise_nm=sc.settings.noise_floor_m * 1e9).fit(df, meta)
+    servo = next(e for e in sc.effects if e.name == "servo_settling").values["angle_std_rad"]
+    b = uncertainty_budget(fit, df, meta, sc.settings.noise_floor_m, sc.settings.T_noise_C,
+                           float(servo), 200.0)
+    print(f"\nuncertainty budget (paper-force, scale {scale}, {len(df)} points; servo "
+          f"{servo:g} rad, pressure 200 Pa, thermometers {sc.settings.T_noise_C * 1e3:g} mK):")
+    print(b.to_string(index=False, float_format="%.2f"))
+    print(f"  combined {b.all_p90_nm.iloc[-1]:.1f} nm beside the fit's validation error "
+          f"{fit.val_['all']['err_p90']:.1f} nm (90 %)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", type=int, default=200)
@@ -227,16 +248,23 @@ def main() -> None:
     ap.add_argument("--reuse", action="store_true",
                     help="reuse the spec and the complete sweeps in --out (an earlier run)")
     ap.add_argument("--skip-poses", action="store_true", help="stop after the power table")
+    ap.add_argument("--budget-only", action="store_true",
+                    help="only the uncertainty budget of the force paper's campaign")
+    ap.add_argument("--budget-scale", type=float, default=0.3)
     args = ap.parse_args()
     rng = np.random.default_rng(20)
     folder = Path(args.out or tempfile.mkdtemp(prefix="bench-design-"))
     folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    if args.budget_only:
+        budget(args.budget_scale)
+        return
     records, spec, mags = sweeps(folder, args.cases, args.sweep_scale, rng, args.reuse)
     power(records, spec, mags, folder, rng, args.campaigns)
     if args.skip_poses:
         return
     poses(args.pose_scale, rng)
+    budget(args.budget_scale)
     print(f"\ntotal {time.perf_counter() - t0:.0f} s; results in {folder}")
 
 
