@@ -203,7 +203,7 @@ def power_figure(table: pd.DataFrame, title: str = ""):
     fig = Figure(figsize=(6.4, 4.2), layout="constrained")
     ax = fig.add_subplot()
     t = table.sort_values("magnitude")
-    ax.plot(t.magnitude, t.predicted, "-o", label="linearised (non-central F)")
+    ax.plot(t.magnitude, t.predicted, "-o", label="linearised prediction")
     ax.errorbar(t.magnitude, t.mc_significant, yerr=2 * t.mc_se, fmt="s", capsize=3,
                 label="Monte Carlo: significant (+-2 s.e.)")
     ax.plot(t.magnitude, t.mc_named, "x", label="Monte Carlo: named as the missing effect")
@@ -211,6 +211,6 @@ def power_figure(table: pd.DataFrame, title: str = ""):
     ax.set_ylabel("detection power")
     ax.set_ylim(-0.05, 1.05)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="upper left", fontsize=8)
     ax.set_title(title, fontsize=9)
     return fig
