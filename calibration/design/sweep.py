@@ -276,7 +276,10 @@ def run_case(case: Case) -> dict:
         else:
             ranks = [c["effect"] for c in d["ranking"]]
             mine = d["ranking"][ranks.index(case.effect)] if case.effect in ranks else None
-            rec.update(status="ok", val_err90_nm=d["val_err90_nm"],
+            # a fit that stops short returns its best answer with the reason: kept, and left
+            # out of the power rates (they count diagnoses of converged fits)
+            rec.update(status="ok" if fit.converged_ else f"not converged: {fit.status_}",
+                       val_err90_nm=d["val_err90_nm"],
                        n_identified=fit.identifiability_["n_identified_directions"],
                        missing_effect=d.get("missing_effect") or "",
                        named=d.get("missing_effect") == case.effect,
