@@ -116,3 +116,15 @@ def test_the_public_api_names_resolve():
         assert getattr(dt, name) is not None, name
     with pytest.raises(AttributeError, match="no attribute 'Nope'"):
         dt.Nope  # noqa: B018
+
+
+def test_every_package_folder_is_installed():
+    """A new subpackage must be listed in pyproject.toml, or the wheel silently lacks it."""
+    import tomllib
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(config["packages"])
+    for folder, package in {**LAYERS, "deltatwin": "deltatwin", "scenarios": "deltatwin.scenarios"}.items():
+        for init in (ROOT / folder).rglob("__init__.py"):
+            rel = init.parent.relative_to(ROOT / folder).parts
+            name = ".".join([package, *rel])
+            assert name in listed, f"{init.parent.relative_to(ROOT)}: {name} not in pyproject packages"
