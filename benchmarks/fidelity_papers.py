@@ -22,7 +22,7 @@ inst.robot.move_to(np.zeros(3))
 inst.interferometers.zero()
 inst.robot.move_to(q)
 diffs = []
-for cycle in range(20):
+for _cycle in range(20):
     r = {}
     for I in (0.0, 2.0):
         inst.coils.set_currents(np.full(3, I))
@@ -36,7 +36,8 @@ print("fixed pose q =", q.tolist(), "rad; wrench at 2 A:", np.round(truth.wrench
 print("2 A displacement X/Y/Z (mean of 20 cycles): " + " / ".join(f"{v:.0f}" for v in np.abs(diffs.mean(0)))
       + " nm (seed 291 / 700 / 168)")
 rep = 1.645 * diffs.std(axis=0, ddof=1)
-print("repeatability (90 %, 1.645 sigma): " + " / ".join(f"±{v:.0f}" for v in rep) + " nm (seed ±46 / 36 / 61)")
+print("repeatability (90 %, 1.645 sigma): " + " / ".join(f"±{v:.0f}" for v in rep)
+      + " nm (seed ±46 / 36 / 61)")
 
 df, _ = sc.simulate()
 worst = max(df[f"{a}_repeat_std_nm"].max() for a in "xyz")

@@ -53,7 +53,8 @@ if down.any():
     dz = (pose.p[down, 2] - home_p[2]) * 1e3
     print(f"where Fz < 0: {dz.min():.2f} .. {dz.max():.2f} mm in z from home (stroke grid: "
           f"{(pose.p[:, 2].min() - home_p[2]) * 1e3:.2f} .. {(pose.p[:, 2].max() - home_p[2]) * 1e3:.2f}); "
-          f"lateral distance from home {np.linalg.norm(pose.p[down, :2] - home_p[:2], axis=1).min() * 1e3:.2f}"
+          "lateral distance from home "
+          f"{np.linalg.norm(pose.p[down, :2] - home_p[:2], axis=1).min() * 1e3:.2f}"
           f" .. {np.linalg.norm(pose.p[down, :2] - home_p[:2], axis=1).max() * 1e3:.2f} mm")
     print(f"  largest own-pair angle there: {theta[down].max(axis=1).min():.1f} .. "
           f"{theta[down].max(axis=1).max():.1f} deg")

@@ -169,7 +169,8 @@ def _check(value, shape, rule, source, key):
     try:
         arr = np.array(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ParameterError(f"{source}: '{key}' must be a number or array of numbers, got {value!r}")
+        raise ParameterError(f"{source}: '{key}' must be a number or array of numbers, "
+                             f"got {value!r}") from None
     if arr.shape != shape:
         raise ParameterError(f"{source}: '{key}' must have shape {shape}, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
@@ -190,7 +191,8 @@ def _check_consistency(p: RobotParams) -> None:
     src = p.source
     lo, hi = p.stroke_rad
     if not lo < hi:
-        raise ParameterError(f"{src}: 'geometry.stroke_rad' must be [low, high] with low < high, got {p.stroke_rad}")
+        raise ParameterError(f"{src}: 'geometry.stroke_rad' must be [low, high] with low < high, "
+                             f"got {p.stroke_rad}")
     for part in ("base", "arms", "rods", "platform", "mirror_cube"):
         m = getattr(p, f"material_{part}")
         if m not in p.materials:
@@ -198,10 +200,12 @@ def _check_consistency(p: RobotParams) -> None:
                                  f"[materials.{m}] table (have {sorted(p.materials)})")
     rods = p.rod_length_m + p.d_rod_length_m
     if np.any(rods <= 0):
-        raise ParameterError(f"{src}: rod length with 'deviations.rod_length_m' must be > 0, got {rods.tolist()}")
+        raise ParameterError(f"{src}: rod length with 'deviations.rod_length_m' must be > 0, "
+                             f"got {rods.tolist()}")
     arms = p.arm_length_m + p.d_arm_length_m
     if np.any(arms <= 0):
-        raise ParameterError(f"{src}: arm length with 'deviations.arm_length_m' must be > 0, got {arms.tolist()}")
+        raise ParameterError(f"{src}: arm length with 'deviations.arm_length_m' must be > 0, "
+                             f"got {arms.tolist()}")
     if p.flexure_leaf_thickness_m >= p.flexure_leaf_width_m:
         raise ParameterError(f"{src}: 'flexure.leaf_thickness_m' ({p.flexure_leaf_thickness_m}) must be "
                              f"smaller than 'flexure.leaf_width_m' ({p.flexure_leaf_width_m})")
@@ -253,7 +257,7 @@ def params_from_dict(data: dict, source: str = "<dict>") -> RobotParams:
         try:
             materials[mname] = Material(**{k: float(mt[k]) for k in _MATERIAL_KEYS})
         except (TypeError, ValueError):
-            raise ParameterError(f"{source}: [materials.{mname}] values must be numbers")
+            raise ParameterError(f"{source}: [materials.{mname}] values must be numbers") from None
     return RobotParams(**kwargs, materials=materials, source=source)
 
 

@@ -1,16 +1,16 @@
 """Lumped thermal network of the robot, its measurement loop and the room.
 
-Nodes are parts with a heat capacity (J/K) joined by conductances (W/K); the room air, the
-Peltier-stabilised interferometer supports and the heat sources (motors, coils) are inputs.
-Temperature sensors with a real contact (effect ``sensor_contact``) are nodes too: a small
-capacity glued to its part and leaking a little to the air, so a sensor lags its part and misses
-part of its gradient to the room (the reason the seeds' temperature derivatives help).  The network is linear, C dT/dt = -K T + F u, and is
-integrated exactly (zero-order hold on a fixed grid) in its modal coordinates: with
-K V = C V diag(lam) and V^T C V = I every mode is a first-order filter (scipy.signal.lfilter),
-so three days at 1 s steps take milliseconds, and integrating in pieces (``ThermalState``,
-used by the simulated instruments as the campaign clock advances) gives the same temperatures.
-Units: degC, s, J/K, W/K, W.
-"""
+Nodes are parts with a heat capacity (J/K) joined by conductances (W/K); the room air, the Peltier-
+stabilised interferometer supports and the heat sources (motors, coils) are inputs. Temperature
+sensors with a real contact (effect ``sensor_contact``) are nodes too: a small capacity glued to its
+part and leaking a little to the air, so a sensor lags its part and misses part of its gradient to
+the room (the reason the seeds' temperature derivatives help).
+
+The network is linear, C dT/dt = -K T + F u, and is integrated exactly (zero-order hold on a fixed
+grid) in its modal coordinates: with K V = C V diag(lam) and V^T C V = I every mode is a
+first-order filter (scipy.signal.lfilter), so three days at 1 s steps take milliseconds, and
+integrating in pieces (``ThermalState``, used by the simulated instruments as the campaign clock
+advances) gives the same temperatures. Units: degC, s, J/K, W/K, W."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

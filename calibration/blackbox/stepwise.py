@@ -454,7 +454,8 @@ def stepwisefit(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=N
         inmodel=in_m, coef=coef, intercept=intercept, se=se_raw, tstat=t, pval=p,
         rmse=float(rmse * y_std), dfe=int(dfe), df0=int(df0), n_obs=N, history=history,
         history_in=np.array(hist_in, dtype=bool).reshape(len(hist_in), P), names=names,
-        constant=const, duplicate=dup, aliased=in_m & aliased, collinear=perfect & ~const, penter=penter, premove=premove,
+        constant=const, duplicate=dup, aliased=in_m & aliased, collinear=perfect & ~const,
+        penter=penter, premove=premove,
         stop_reason=stop, n_dropped=n_dropped, refit_rel_diff=float(refit_rel_diff),
         x_mean=mean, x_std=std, y_mean=y_mean, y_std=y_std)
 

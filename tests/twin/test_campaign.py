@@ -102,7 +102,8 @@ def test_thermal_network_pieces_equal_whole():
 
 @pytest.mark.parametrize("text, words", [
     ('[scenario]\nnmae = "x"\n[campaign]\nkind = "force"\n', ["nmae", "did you mean 'name'"]),
-    ('[effects]\non = ["magnetic_forse"]\n[campaign]\nkind = "force"\n', ["magnetic_forse", "magnetic_force"]),
+    ('[effects]\non = ["magnetic_forse"]\n[campaign]\nkind = "force"\n',
+     ["magnetic_forse", "magnetic_force"]),
     ('[effects]\non = ["room_climate"]\n[effects.room_climate]\npressure_std_Pa = "80 Pa"\n'
      '[campaign]\nkind = "force"\n', ["pressure_std_Pa", "expected a number"]),
     ('[instruments]\nnoise_floor_m = -5e-9\n[campaign]\nkind = "force"\n', ["noise_floor_m", ">= 0"]),
@@ -128,7 +129,8 @@ def test_cli_simulate_writes_atomically(tmp_path):
     df, meta = read_dataset(out)
     assert meta["seed"] == 2 and meta["source"] == "twin" and len(df) > 0
     bad = tmp_path / "bad.toml"
-    bad.write_text('[campaign]\nkind = "thermal"\nsessions = [{name = "xy", axes = ["w"], cal = 5, val = 5}]\n')
+    bad.write_text('[campaign]\nkind = "thermal"\n'
+                   'sessions = [{name = "xy", axes = ["w"], cal = 5, val = 5}]\n')
     out2 = tmp_path / "e.parquet"
     r = subprocess.run([sys.executable, "-m", "deltatwin.cli", "simulate", str(bad), "-o", str(out2),
                         "--quiet"], capture_output=True, text=True)

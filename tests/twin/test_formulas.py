@@ -107,7 +107,8 @@ def test_thermal_network_integration_equals_matrix_exponential():
     """The modal, filter-based integration of C dT/dt = -K T + F u against a plain zero-order-
     hold step built from the matrix exponential of the augmented system (scipy.linalg.expm,
     no eigen-decomposition), 3 h of random room, support and heater inputs at 1 s, with two
-    glued sensor nodes: agreement better than 1e-9 K; and uniform inputs with no heating give every node that temperature."""
+    glued sensor nodes: agreement better than 1e-9 K; and uniform inputs with no heating give every
+    node that temperature."""
     from scipy.linalg import expm
 
     from deltatwin.twin.thermal import GRID_S, Sensor, ThermalNetwork

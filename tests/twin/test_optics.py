@@ -134,7 +134,8 @@ def test_cosine_correction_recovers_the_distance_along_the_beam(axis):
     cube (exact, no noise) and the zero's dead path, gives the distance along the beam to the face
     since the zero: exactly for X and Y (each corrected by its own face's two tilts); for Z the
     two angles come from the side faces (ac2_rx, ac1_ry), which differ from the bottom face's own
-    tilts at third order (0.9 pm at 2 mrad). A dead path off by e leaves e (c0 / c - 1): 2 um off at 2 mrad ~ 1e-11 m."""
+    tilts at third order (0.9 pm at 2 mrad). A dead path off by e leaves e (c0 / c - 1): 2 um off at
+    2 mrad ~ 1e-11 m."""
     rng = np.random.default_rng(5)
     vertex, b = _head(axis, *HEADS["nominal"])
     p, R = _poses(rng, 10)
