@@ -379,7 +379,7 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
         for j in np.flatnonzero(changed):
             schedule.set_currents(start[j], I[j])
         move_start = start + changed * s.coil_settle_s
-        schedule.moves.extend((float(a), float(a + m), np.abs(v) / np.abs(v).max()
+        schedule.moves.extend((float(a), float(a + m), v / np.abs(v).max()
                                if np.abs(v).max() > 0 else np.abs(v))
                               for a, m, v in zip(move_start, move, dq))
         t = float(start[-1] + dur[-1])

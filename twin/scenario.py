@@ -23,7 +23,7 @@ import pandas as pd
 
 from deltatwin.models.params import ParameterError, load_params
 from deltatwin.twin.campaign import Plan, force_plan, run_campaign, simulate_campaign, thermal_plan
-from deltatwin.twin.effects import LIBRARY, EffectError, make_effect
+from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, make_effect
 from deltatwin.twin.instruments.optics import nominal_dead_path
 from deltatwin.twin.instruments.simulated import InstrumentSettings, SimulatedLab
 from deltatwin.twin.thermal import PART_NODES
@@ -156,13 +156,21 @@ class Scenario:
         on = eff_doc.pop("on", [])
         if not isinstance(on, list):
             raise ScenarioError(f"{f} [effects] on: expected a list of effect names")
+        # an entry of ``on`` is a library name or the researcher's own 'file.py:Class' (a
+        # relative path from this file's folder); parameter tables go by the effect's name
+        try:
+            classes = [effect_class(n, path.parent, f"{f} [effects] on") for n in on]
+        except EffectError as exc:
+            raise ScenarioError(str(exc)) from exc
+        names = [c.name for c in classes]
         for extra in eff_doc:
-            if extra not in on:
+            if extra not in names:
                 raise ScenarioError(f"{f} [effects.{extra}]: parameters for an effect that is not "
                                     f"in [effects] on = {on}" + ("" if extra in LIBRARY else
                                     f" (and not a known effect: {sorted(LIBRARY)})"))
         try:
-            effects = [make_effect(n, eff_doc.get(n), where=f"{f} [effects]") for n in on]
+            effects = [make_effect(c, eff_doc.get(c.name), where=f"{f} [effects]")
+                       for c in classes]
         except EffectError as exc:
             raise ScenarioError(str(exc)) from exc
         sensors = doc.get("sensors", {})
@@ -207,11 +215,12 @@ class Scenario:
                 if not isinstance(names, list) or not all(isinstance(x, str) for x in names):
                     raise ScenarioError(f"{f} [hidden] {key}: expected a list of effect names")
                 for x in names:
-                    if x not in LIBRARY:
+                    if x not in LIBRARY and x not in on:
                         close = difflib.get_close_matches(x, LIBRARY, n=1)
                         raise ScenarioError(f"{f} [hidden] {key}: unknown effect {x!r}"
                                             + (f" (did you mean {close[0]!r}?)" if close else ""))
-            not_on = [x for x in hidden["effects"] + hidden["baseline"] if x not in on]
+            not_on = [x for x in hidden["effects"] + hidden["baseline"]
+                      if x not in on and x not in [e.name for e in effects]]
             if not_on:
                 raise ScenarioError(f"{f} [hidden]: effect(s) {not_on} are not in [effects] on "
                                     f"= {on}: the data cannot hold them")

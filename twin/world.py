@@ -47,14 +47,14 @@ class Schedule:
     """What the campaign did, as it happened: moves and coil current settings (campaign time)."""
 
     def __init__(self):
-        self.moves: list[tuple[float, float, np.ndarray]] = []   # (start, end, |dq| share (3,))
+        self.moves: list[tuple[float, float, np.ndarray]] = []   # (start, end, dq / max|dq| (3,))
         self.current_t: list[float] = [-np.inf]
         self.current_I: list[np.ndarray] = [np.zeros(3)]
 
     def add_move(self, t_start: float, t_end: float, dq: np.ndarray) -> None:
-        dq = np.abs(np.asarray(dq, dtype=np.float64))
-        share = dq / dq.max() if dq.max() > 0 else dq
-        self.moves.append((float(t_start), float(t_end), share))
+        dq = np.asarray(dq, dtype=np.float64)
+        top = np.abs(dq).max()
+        self.moves.append((float(t_start), float(t_end), dq / top if top > 0 else dq))
 
     def set_currents(self, t: float, currents_A) -> None:
         self.current_t.append(float(t))
@@ -67,7 +67,7 @@ class Schedule:
             return out
         start = np.array([m[0] for m in self.moves])
         end = np.array([m[1] for m in self.moves])
-        share = np.array([m[2] for m in self.moves])
+        share = np.abs([m[2] for m in self.moves])
         k = np.searchsorted(start, t, side="right") - 1
         inside = (k >= 0) & (t < end[np.maximum(k, 0)])
         out[inside] = share[k[inside]]
@@ -80,6 +80,20 @@ class Schedule:
         changes = np.sort(self.current_t[1:])
         return (np.searchsorted(ends, t, side="right")
                 + np.searchsorted(changes, t, side="right")).astype(np.int64)
+
+    def move_direction(self, t: np.ndarray) -> np.ndarray:
+        """(n,3) the sign of each motor's last move begun by times t (0 before its first)."""
+        t = np.asarray(t, dtype=np.float64)
+        out = np.zeros((t.size, 3))
+        if not self.moves:
+            return out
+        start = np.array([m[0] for m in self.moves])
+        sign = np.sign([m[2] for m in self.moves])
+        for i in range(3):
+            moved = np.flatnonzero(sign[:, i] != 0)
+            k = np.searchsorted(start[moved], t, side="right") - 1
+            out[:, i] = np.where(k >= 0, sign[moved[np.maximum(k, 0)], i], 0.0) if moved.size else 0.0
+        return out
 
     def currents(self, t: np.ndarray) -> np.ndarray:
         """(n,3) coil currents (A) in force at times t."""
@@ -112,6 +126,9 @@ class Points:
             qu, inv = np.unique(self.q, axis=0, return_inverse=True)
             self._unique_q = (self.q, qu, inv.reshape(-1))
         return self._unique_q[1:]
+    # (N,3) sign of each motor's last move (+1, -1; 0 before its first): what a hysteresis
+    # depends on
+    move_direction: np.ndarray | None = None
 
 
 @dataclass
@@ -225,7 +242,8 @@ class Twin:
         return Points(t_s=t_s, q=q,
                       currents_A=np.atleast_2d(currents_A).astype(np.float64), node_T=node_T,
                       room_C=env(self.env.room_C), pressure_Pa=env(self.env.pressure_Pa),
-                      support_C=support_C, params=self.params, home_p=self.home_p)
+                      support_C=support_C, params=self.params, home_p=self.home_p,
+                      move_direction=self.schedule.move_direction(t_s))
 
     # -- geometry, load, optics ---------------------------------------------------------------
     def truth(self, pts: Points) -> Truth:
@@ -255,10 +273,13 @@ def point_geometry(params: RobotParams, geom, effects: list[Effect], pts: Points
 
 def kinematic_pose(params: RobotParams, geom, effects: list[Effect], pts: Points):
     """Geometry and kinematic pose at the points: the effects' part temperatures scale the
-    geometry per point (exact kinematics), otherwise one geometry for all (FK per unique q)."""
+    geometry per point and their motor angle errors move the motors (exact kinematics per
+    point), otherwise one geometry for all (FK per unique q)."""
     geom = point_geometry(params, geom, effects, pts)
-    if geom.batched:
-        return geom, forward(geom, pts.q)
+    # where the motors truly sit: the encoders' reading plus the effects' angle errors
+    errors = [d for d in (e.motor_angles(pts) for e in effects) if d is not None]
+    if geom.batched or errors:
+        return geom, forward(geom, pts.q + sum(errors) if errors else pts.q)
     qu, inv = pts.unique_q()
     ku = forward(geom, qu)
     return geom, Pose(ku.p[inv], ku.R[inv])

@@ -53,7 +53,8 @@ class PhysicsFit:
             raise FitError(f"noise_nm = {noise_nm}: must be a positive number of nanometres")
         if not 0 < identifiable_ratio:
             raise FitError(f"identifiable_ratio = {identifiable_ratio}: must be positive")
-        self.effects = list(effects)
+        # the model's effects by name (a user effect, file.py:Class, is known by its name after)
+        self.effects = PhysicsModel(effects, params).names
         self.params = params
         # values for effects outside the model are the laboratory's known constants (e.g. a
         # frame arm): kept for the candidates a diagnosis adds, checked against the library

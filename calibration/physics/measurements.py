@@ -13,7 +13,7 @@ from deltatwin.models.geometry import build_geometry
 from deltatwin.models.params import RobotParams
 from deltatwin.twin.campaign import COSINE_ANGLES
 from deltatwin.twin.dataset import temperature_columns
-from deltatwin.twin.effects import LIBRARY
+from deltatwin.twin.effects import effect_class
 from deltatwin.twin.instruments.optics import AXES, cosine_correction, cosine_factor, nominal_dead_path
 from deltatwin.twin.statics import Statics
 from deltatwin.twin.thermal import PART_NODES
@@ -138,11 +138,35 @@ def node_temperatures(sensor_T: dict, sensors: dict, T_ref_C: float, n: int) -> 
     return out
 
 
+def move_directions(t_s: np.ndarray, q: np.ndarray, session: np.ndarray):
+    """The sign of each motor's last move (+1, -1; 0 before its first), (N,3) at the rows and
+    (S,3) at the sessions' zeros (in order of first appearance), from the rows in time order:
+    each session starts with a move to home (q = 0) for its zero, then visits its rows."""
+    names = list(dict.fromkeys(session))
+    order = np.argsort(t_s, kind="stable")
+    first_t = np.array([t_s[session == s_].min() for s_ in names])
+    # the sequence of commanded positions: every zero just before its session's first row
+    key = np.concatenate([t_s[order], first_t])
+    rank = np.concatenate([np.ones(order.size), np.zeros(len(names))])   # zero first on ties
+    seq = np.lexsort((rank, key))
+    Q = np.concatenate([q[order], np.zeros((len(names), 3))])[seq]
+    step = np.sign(np.diff(Q, axis=0, prepend=np.zeros((1, 3))))
+    # carry the last non-zero move forward (a motor that did not move keeps its direction)
+    last = np.where(step != 0, np.arange(len(Q))[:, None], -1)
+    last = np.maximum.accumulate(last, axis=0)
+    d = np.where(last >= 0, step[np.maximum(last, 0), np.arange(3)], 0.0)
+    out = np.empty_like(d)
+    out[seq] = d
+    rows = np.empty((order.size, 3))
+    rows[order] = out[:order.size]
+    return rows, out[order.size:]
+
+
 def check_sensors(effects, meas: Measurements, where: str = "data") -> None:
     """A model whose effects read temperatures needs the data's sensors mapped to parts: without
     the map every part would sit at the reference temperature and the effect would silently do
     nothing."""
-    thermal = [n for n in effects if LIBRARY[n].reads_temperatures]
+    thermal = [n for n in effects if effect_class(n).reads_temperatures]
     if thermal and not meas.sensors:
         present = temperature_columns(meas.df)
         raise CalibrationInputError(
@@ -223,13 +247,15 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
     zero_row = n + np.array([names.index(s_) for s_ in session], dtype=np.int64)
     with_zeros = lambda v: np.concatenate([v, v[first]])
     node_T = {k: with_zeros(v) for k, v in node_T.items()}
+    row_dir, zero_dir = move_directions(t_s, q, session)
     pts = Points(t_s=with_zeros(t_s), q=np.concatenate([q, np.zeros((first.size, 3))]),
                  currents_A=np.concatenate([currents, np.zeros((first.size, 3))]),
                  node_T=node_T, room_C=with_zeros(room), pressure_Pa=with_zeros(pressure),
                  support_C={a: node_T["table"] for a in AXES}, params=params,
                  home_p=np.zeros(3),
                  sensor_readings={k: (part, with_zeros(T), with_zeros(r))
-                                  for k, (part, T, r) in streams.items()})
+                                  for k, (part, T, r) in streams.items()},
+                 move_direction=np.concatenate([row_dir, zero_dir]))
     return Measurements(df=df, sensors=dict(sensors), y=y, cos_scale=cos, cos_offset=cos_offset,
                         group=group,
                         groups=groups, cal=split == "cal", val=split == "val", points=pts,

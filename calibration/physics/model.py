@@ -21,7 +21,7 @@ from deltatwin.models.kinematics import (
     rod_vectors,
 )
 from deltatwin.models.params import RobotParams, load_params
-from deltatwin.twin.effects import LIBRARY, EffectError, make_effect
+from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, effect_spec, make_effect
 from deltatwin.twin.instruments.optics import AXES
 from deltatwin.twin.world import (
     geometry_temperatures,
@@ -106,13 +106,15 @@ class PhysicsModel:
 
     def __init__(self, effects, params: RobotParams | None = None, values: dict | None = None,
                  where: str = "--effects"):
-        names = list(dict.fromkeys(effects))
+        try:
+            classes = list(dict.fromkeys(effect_class(n, where=where) for n in effects))
+        except EffectError as exc:
+            raise FitError(str(exc)) from exc
+        names = [c.name for c in classes]
         values = values or {}
-        for n in names:
-            if n not in LIBRARY:
-                make_effect(n, where=where)          # raises with a suggestion
-            if not LIBRARY[n].model_stages():
-                raise FitError(f"{where}: effect {n!r} has no model form: it acts through "
+        for cls in classes:
+            if not cls.model_stages():
+                raise FitError(f"{where}: effect {cls.name!r} has no model form: it acts through "
                                "the thermal network (heat or environment; in measurements its "
                                "consequences arrive through the temperature sensors, so model "
                                "what it drives instead) or at random (servo settling: part of "
@@ -122,14 +124,14 @@ class PhysicsModel:
             raise FitError(f"{where}: values given for effect(s) {unknown} not in the model")
         self.params = params or load_params(None)
         self.effects, self.free, k = [], [], 0
-        for n in names:
-            cls = LIBRARY[n]
+        self.classes = dict(zip(names, classes))
+        for n, cls in self.classes.items():
             given = dict(values.get(n, {}))
             start = {p.name: np.broadcast_to(p.fit_start, np.shape(p.default)).copy()
                      for p in cls.free_parameters() if p.fit_start is not None}
             try:
                 # a fitted value may leave a parameter's physical range (reported, see fit)
-                e = make_effect(n, {**start, **given}, where=where, check_minimum=False)
+                e = make_effect(cls, {**start, **given}, where=where, check_minimum=False)
             except EffectError as exc:
                 raise FitError(str(exc)) from exc
             for p in cls.free_parameters():
@@ -140,6 +142,8 @@ class PhysicsModel:
                 k += size
             self.effects.append(e)
         self.names = names
+        # how each effect is named again in a file (a user effect: its file and class)
+        self.specs = [effect_spec(c) for c in classes]
 
     # -- parameter vector ---------------------------------------------------------------------
     @property
@@ -180,8 +184,9 @@ class PhysicsModel:
         re-used)."""
         out = {k: np.zeros(self.n_free, bool) for k in ("robot", "temperatures", "load_optics")}
         for f in self.free:
-            stages = LIBRARY[f.effect].model_stages()
-            key = ("temperatures" if {"sensed_parts", "part_temperatures"} & set(stages) else
+            stages = self.classes[f.effect].model_stages()
+            key = ("temperatures" if {"sensed_parts", "part_temperatures", "motor_angles"}
+                   & set(stages) else
                    "robot" if "robot" in stages else "load_optics")
             out[key][f.sl] = True
         return out

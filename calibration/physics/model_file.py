@@ -8,7 +8,7 @@ from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, _or_nan
 from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.files import toml_text
-from deltatwin.twin.effects import LIBRARY, EffectError
+from deltatwin.twin.effects import EffectError, effect_class
 
 FORMAT = "deltatwin-physics-model"
 FORMAT_VERSION = 1
@@ -17,7 +17,7 @@ FORMAT_VERSION = 1
 def fitted_toml(fit: PhysicsFit, data: str) -> str:
     """The fitted model as TOML: effects and every parameter value (SI), the fit's figures."""
     doc = {"format": FORMAT, "format_version": FORMAT_VERSION,
-           "model": {"effects": fit.effects, "data": data, "noise_nm": fit.noise_nm,
+           "model": {"effects": fit.model_.specs, "data": data, "noise_nm": fit.noise_nm,
                      "identifiable_ratio": fit.identifiable_ratio,
                      # the sensor -> part map the temperatures were taken from (the data's metadata)
                      "sensors": dict(fit.measurements_.sensors)},
@@ -55,9 +55,13 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
     # a fitted file cut short must not fall back on default values: every effect with free
     # parameters needs its table (a hand-written model without [fit] starts at the defaults)
     tables = doc.get("effects", {})
-    missing = [e for e in doc["model"]["effects"]
-               if "fit" in doc and e not in tables and e in LIBRARY
-               and LIBRARY[e].free_parameters()]
+    try:
+        # library names, or where the researcher's own effects came from (file.py:Class)
+        classes = [effect_class(e, where=f"{path} [model] effects") for e in doc["model"]["effects"]]
+    except EffectError as exc:
+        raise FitError(str(exc)) from exc
+    missing = [c.name for c in classes
+               if "fit" in doc and c.name not in tables and c.free_parameters()]
     if missing:
         raise FitError(f"{path}: no [effects.{missing[0]}] table"
                        + (f" (nor {', '.join(missing[1:])})" if missing[1:] else "")

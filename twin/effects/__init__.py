@@ -1,9 +1,29 @@
 """The library of physical effects: each a plug-in with a name, documented parameters (units,
 defaults) and the stages of the twin it changes (see base.py). A scenario switches them on by
-name; ``deltatwin effects`` lists them."""
+name; ``deltatwin effects`` lists them.
+
+The researcher's own effects join the library the same way (docs/effects.md), named by a spec:
+
+* ``path/to/my_effects.py:ClassName``: an ``Effect`` subclass in a Python file (a relative path
+  is taken from ``base_dir``: the working directory, or the scenario file's folder);
+* ``package.module:ClassName``: the same from an importable module;
+* a name exposed by an installed package's entry point in the ``deltatwin.effects`` group.
+
+Once resolved, a user effect is also known by its ``name``. Errors in its file (at import) or in
+its hooks (at evaluation) are reported as an ``EffectError`` naming the file and line.
+"""
 from __future__ import annotations
 
 import difflib
+import functools
+import importlib
+import importlib.util
+import inspect
+import keyword
+import sys
+import traceback
+from importlib.metadata import entry_points
+from pathlib import Path
 
 from deltatwin.twin.effects.air_refraction import AirRefraction
 from deltatwin.twin.effects.base import Effect, EffectError, Parameter
@@ -24,16 +44,186 @@ LIBRARY: dict[str, type[Effect]] = {cls.name: cls for cls in (
     GeometricErrors, ThermalExpansion, GravitySag, MagneticForce, LoopDrift, AirRefraction,
     BeamMisalignment, SensorContact, ServoSettling, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
 
+ENTRY_POINT_GROUP = "deltatwin.effects"
+HOOKS = ("robot", "environment", "heat_sources", "motor_settling", "thermometers",
+         "sensed_parts", "part_temperatures", "wrench", "optics")
 
-def make_effect(name: str, values: dict | None = None, where: str = "effects",
-                check_minimum: bool = True) -> Effect:
-    """The effect ``name`` with parameter ``values`` (validated; a fitted model's values may be
-    below a parameter's physical minimum with ``check_minimum=False``); errors name ``where``."""
-    if name not in LIBRARY:
-        close = difflib.get_close_matches(name, LIBRARY, n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise EffectError(f"{where}: unknown effect {name!r}{hint}; known: {sorted(LIBRARY)}")
-    return LIBRARY[name](where=f"{where}.{name}", check_minimum=check_minimum, **(values or {}))
+# user effects resolved so far: by their name, and the spec each was loaded from
+_USER: dict[str, type[Effect]] = {}
+_SOURCE: dict[type, str] = {}
 
 
-__all__ = ["LIBRARY", "Effect", "EffectError", "Parameter", "make_effect"]
+def _where_in(path: str, exc: BaseException) -> str:
+    """'file:line' of the deepest frame of ``exc``'s traceback inside ``path``."""
+    if isinstance(exc, SyntaxError) and exc.filename == path:
+        return f"{path}:{exc.lineno}"
+    frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == path]
+    return f"{path}:{frames[-1].lineno}" if frames else path
+
+
+def _guarded(cls: type[Effect], path: str) -> type[Effect]:
+    """``cls`` with every hook it defines reporting an exception as an EffectError naming the
+    user's file and line (the hooks' results are unchanged)."""
+    def wrap(hook, fn):
+        @functools.wraps(fn)
+        def call(self, *args, **kwargs):
+            try:
+                return fn(self, *args, **kwargs)
+            except EffectError:
+                raise
+            except Exception as exc:
+                raise EffectError(f"{_where_in(path, exc)}: effect {cls.name!r}, stage "
+                                  f"{hook!r}: {type(exc).__name__}: {exc}") from exc
+        return call
+    for hook in HOOKS:
+        if hook in vars(cls):
+            setattr(cls, hook, wrap(hook, vars(cls)[hook]))
+    return cls
+
+
+def _checked(obj, spec: str, where: str) -> type[Effect]:
+    """``obj`` if it is a well-formed Effect subclass (name, summary, parameters), else an
+    EffectError naming ``spec``."""
+    if not (isinstance(obj, type) and issubclass(obj, Effect)) or obj is Effect:
+        raise EffectError(f"{where}: {spec!r} is not a subclass of deltatwin.twin.effects.Effect "
+                          f"(got {obj!r})")
+    name = getattr(obj, "name", None)
+    if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name):
+        raise EffectError(f"{where}: {spec!r}: class attribute name = {name!r} must be an "
+                          "identifier (letters, digits, _), e.g. 'periodic_encoder'")
+    if name in LIBRARY and LIBRARY[name] is not obj:
+        raise EffectError(f"{where}: {spec!r}: name {name!r} is a library effect's; choose "
+                          "another name")
+    if not isinstance(getattr(obj, "summary", None), str):
+        raise EffectError(f"{where}: {spec!r}: needs a class attribute summary = '...' (what "
+                          "the effect does)")
+    bad = [p for p in obj.parameters if not isinstance(p, Parameter)]
+    if bad:
+        raise EffectError(f"{where}: {spec!r}: parameters must be Parameter(...) entries, got "
+                          f"{bad[0]!r}")
+    return obj
+
+
+def _load_file(path: Path, cls_name: str, spec: str, where: str) -> type[Effect]:
+    path = path.resolve()
+    if not path.is_file():
+        raise EffectError(f"{where}: {spec!r}: no such file {str(path)!r}")
+    module_name = f"deltatwin_user_effects.{path.stem}_{abs(hash(str(path))):x}"
+    module = sys.modules.get(module_name)
+    if module is None:
+        loader_spec = importlib.util.spec_from_file_location(module_name, path)
+        module = importlib.util.module_from_spec(loader_spec)
+        try:
+            loader_spec.loader.exec_module(module)
+        except Exception as exc:
+            raise EffectError(f"{_where_in(str(path), exc)}: error while loading {spec!r}: "
+                              f"{type(exc).__name__}: {exc}") from exc
+        sys.modules[module_name] = module
+    if not hasattr(module, cls_name):
+        found = [n for n, o in vars(module).items()
+                 if isinstance(o, type) and issubclass(o, Effect) and o is not Effect]
+        raise EffectError(f"{where}: {spec!r}: {str(path)!r} defines no {cls_name!r}; its "
+                          f"effects: {found}")
+    cls = _checked(getattr(module, cls_name), spec, where)
+    if cls not in _SOURCE:
+        _guarded(cls, str(path))
+        _SOURCE[cls] = f"{path}:{cls_name}"
+    return cls
+
+
+def _load_module(module_name: str, cls_name: str, spec: str, where: str) -> type[Effect]:
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as exc:
+        raise EffectError(f"{where}: {spec!r}: cannot import {module_name!r}: "
+                          f"{type(exc).__name__}: {exc}") from exc
+    if not hasattr(module, cls_name):
+        raise EffectError(f"{where}: {spec!r}: module {module_name!r} defines no {cls_name!r}")
+    cls = _checked(getattr(module, cls_name), spec, where)
+    if cls not in _SOURCE:
+        _guarded(cls, inspect.getsourcefile(cls) or module_name)
+        _SOURCE[cls] = f"{module_name}:{cls_name}"
+    return cls
+
+
+def _entry_point(name: str, where: str) -> type[Effect] | None:
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name == name:
+            try:
+                obj = ep.load()
+            except Exception as exc:
+                raise EffectError(f"{where}: entry point {name!r} ({ep.value}) of group "
+                                  f"{ENTRY_POINT_GROUP!r} fails to load: {type(exc).__name__}: "
+                                  f"{exc}") from exc
+            cls = _checked(obj, ep.value, where)
+            if cls not in _SOURCE:
+                _guarded(cls, inspect.getsourcefile(cls) or ep.value)
+                _SOURCE[cls] = name if cls.name == name else ep.value
+            return cls
+    return None
+
+
+def effect_class(spec, base_dir=None, where: str = "effects") -> type[Effect]:
+    """The Effect subclass a spec names: a library name, a user effect already resolved (by its
+    name), ``file.py:Class`` (relative to ``base_dir``, default the working directory),
+    ``module:Class``, an entry point of the ``deltatwin.effects`` group, or an Effect subclass
+    itself. Errors name ``where``."""
+    if isinstance(spec, type):
+        cls = _checked(spec, getattr(spec, "__name__", str(spec)), where)
+        if cls.name not in LIBRARY:
+            _USER.setdefault(cls.name, cls)
+        return cls
+    if not isinstance(spec, str) or not spec.strip():
+        raise EffectError(f"{where}: expected an effect name or 'file.py:Class', got {spec!r}")
+    spec = spec.strip()
+    if spec in LIBRARY:
+        return LIBRARY[spec]
+    if spec in _USER:
+        return _USER[spec]
+    target, sep, cls_name = spec.rpartition(":")
+    if sep and cls_name.isidentifier() and target:
+        if target.endswith(".py") or "/" in target or "\\" in target:
+            path = Path(target).expanduser()
+            if not path.is_absolute():
+                path = Path(base_dir or ".") / path
+            cls = _load_file(path, cls_name, spec, where)
+        else:
+            cls = _load_module(target, cls_name, spec, where)
+    else:
+        cls = _entry_point(spec, where)
+        if cls is None:
+            known = sorted(LIBRARY) + sorted(_USER)
+            close = difflib.get_close_matches(spec, known, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise EffectError(f"{where}: unknown effect {spec!r}{hint}; known: {known}; your "
+                              "own: 'my_effects.py:ClassName' (docs/effects.md)")
+    other = _USER.get(cls.name)
+    if other is not None and other is not cls:
+        raise EffectError(f"{where}: {spec!r}: effect name {cls.name!r} is already taken by "
+                          f"{effect_spec(other)!r}")
+    _USER[cls.name] = cls
+    return cls
+
+
+def effect_spec(cls: type[Effect]) -> str:
+    """How to name ``cls`` again in a file (a fitted model, a scenario): its library name, or
+    the absolute 'file.py:Class' / 'module:Class' / entry point it was loaded from."""
+    if LIBRARY.get(cls.name) is cls:
+        return cls.name
+    if cls in _SOURCE:
+        return _SOURCE[cls]
+    source = inspect.getsourcefile(cls)
+    return f"{Path(source).resolve()}:{cls.__qualname__}" if source else cls.name
+
+
+def make_effect(spec, values: dict | None = None, where: str = "effects",
+                check_minimum: bool = True, base_dir=None) -> Effect:
+    """The effect ``spec`` names (see ``effect_class``) with parameter ``values`` (validated; a
+    fitted model's values may be below a parameter's physical minimum with
+    ``check_minimum=False``); errors name ``where``."""
+    cls = effect_class(spec, base_dir, where)
+    return cls(where=f"{where}.{cls.name}", check_minimum=check_minimum, **(values or {}))
+
+
+__all__ = ["ENTRY_POINT_GROUP", "LIBRARY", "Effect", "EffectError", "Parameter", "effect_class",
+           "effect_spec", "make_effect"]

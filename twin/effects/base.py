@@ -46,7 +46,7 @@ class Parameter:
         return np.shape(self.default)
 
 
-MODEL_STAGES = ("robot", "sensed_parts", "part_temperatures", "wrench", "optics")
+MODEL_STAGES = ("robot", "sensed_parts", "part_temperatures", "motor_angles", "wrench", "optics")
 
 
 class Effect:
@@ -128,6 +128,12 @@ class Effect:
 
     def part_temperatures(self, points) -> dict | None:
         """Per-point part temperatures (degC) that scale the geometry, or None."""
+        return None
+
+    def motor_angles(self, points) -> np.ndarray | None:
+        """(N,3) rad by which each motor's true angle differs from what its encoder reads at
+        the points (``points.q``; an encoder's periodic or scale error, a backlash that follows
+        ``points.move_direction``), or None. Deterministic: the same in the twin and a model."""
         return None
 
     def wrench(self, points) -> np.ndarray | None:

@@ -1,0 +1,403 @@
+"""Which recorded variable a model's residual depends on, when no library effect explains it.
+
+The variables are the ones a laboratory thinks in (``laboratory_variables``): time, each
+temperature and its rate, the motor coordinates, the Cartesian position, the force and the coil
+currents, the autocollimators' rotations, the direction of each motor's last move, the session.
+Each variable is a *family* of regressors (``family_columns``): a cubic polynomial of the
+standardised variable; for a coordinate or time also the sine and cosine at the peak of the
+residual's periodogram against it (``scipy.signal.lombscargle``: irregular sampling), and for
+time the best single step (an event: a mirror knocked, a laser relocked); for the session a
+per-session drift in time (its offset is the session's zero, already removed).
+
+Attribution is joint, by validation: group forward selection over the families fits the residual
+on the calibration rows (each session-axis zero re-estimated there, as in the fit) and keeps
+adding the family that lowers the *validation* residual power most, while the addition is
+significant on the calibration rows (partial F test, the scanned period or step time counted as
+a parameter, Bonferroni over the families tried) and explains at least ``MIN_SHARE`` of the
+validation residual power. Each selected variable is then credited with what it explains beyond
+the others: the validation power that returns when it alone is dropped from the joint fit. This
+is what ranks a large, non-polynomial perturbation (a periodic encoder error) above a small
+smooth one a cubic fits well, and what keeps time from being credited with a temperature's
+work (or the reverse) when the room climbs and both rise together.
+
+Units: residuals in m inside, reported in nm (``explained_nm``: the rms over the validation
+readings of the part the variable alone explains).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from deltatwin.calibration.blackbox.features import causal_derivatives
+from deltatwin.calibration.physics.measurements import move_directions
+from deltatwin.models.geometry import build_geometry
+from deltatwin.models.kinematics import forward
+from deltatwin.models.params import load_params
+from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES
+
+ALPHA = 1e-3          # significance of an added family (before Bonferroni)
+MIN_SHARE = 0.02      # an added family explains at least this share of the validation power
+MAX_FAMILIES = 6
+OVERSAMPLING = 3      # periodogram frequencies per 1 / range
+SCANNED = {"sine": 1, "step": 1}   # parameters chosen by a scan (period, step time)
+
+
+@dataclass(frozen=True)
+class Variable:
+    """A recorded or derived variable: ``values`` (N,) in SI, ``kind`` decides its family."""
+    name: str
+    values: np.ndarray
+    kind: str        # "time", "coordinate", "smooth", "sign", "session"
+
+
+def _rates(t: np.ndarray, session: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Causal rate (unit/s) of ``v`` within each session, rows in any order."""
+    out = np.empty_like(v)
+    for s in dict.fromkeys(session):
+        rows = np.flatnonzero(session == s)
+        rows = rows[np.argsort(t[rows], kind="stable")]
+        out[rows] = causal_derivatives(t[rows], v[rows], degree=1)[0]
+    return out
+
+
+def laboratory_variables(df: pd.DataFrame) -> list[Variable]:
+    """The variables a residual can depend on, named by their column (rates
+    ``dT_<sensor>_dt_K_per_s``; ``x_m``, ``y_m``, ``z_m``: the nominal robot's forward
+    kinematics of the motor coordinates; ``dir_q<i>``: sign of motor i's last move)."""
+    t = df["t_s"].to_numpy(dtype=np.float64)
+    session = df["session"].astype(str).to_numpy() if "session" in df else np.full(len(df), "1")
+    out = [Variable("t_s", t, "time")]
+    for c in df.columns:
+        if c.startswith("T_") and c.endswith("_C"):
+            v = df[c].to_numpy(dtype=np.float64)
+            out.append(Variable(c, v, "smooth"))
+            out.append(Variable(f"dT_{c[2:-2]}_dt_K_per_s", _rates(t, session, v), "smooth"))
+    if all(f"q{i}_rad" in df for i in (1, 2, 3)):
+        q = df[["q1_rad", "q2_rad", "q3_rad"]].to_numpy(dtype=np.float64)
+        out += [Variable(f"q{i + 1}_rad", q[:, i], "coordinate") for i in range(3)]
+        ok = np.all(np.isfinite(q), axis=1)
+        p = np.full((len(df), 3), np.nan)
+        qu, inv = np.unique(q[ok], axis=0, return_inverse=True)
+        p[ok] = forward(build_geometry(load_params(None)), qu).p[inv.reshape(-1)]
+        out += [Variable(f"{a}_m", p[:, k], "coordinate") for k, a in enumerate(AXES)]
+        if ok.all():
+            rows, _ = move_directions(t, q, session)
+            out += [Variable(f"dir_q{i + 1}", rows[:, i], "sign") for i in range(3)]
+    for c in ("F_N", "coil1_A", "coil2_A", "coil3_A") + tuple(f"{a}_arcsec" for a in AC_CHANNELS):
+        if c in df:
+            out.append(Variable(c, df[c].to_numpy(dtype=np.float64), "smooth"))
+    if len(set(session)) > 1:
+        out.append(Variable("session", session, "session"))
+    return _distinct([v for v in out if v.kind == "session" or np.nanstd(v.values) > 0])
+
+
+def _distinct(variables: list[Variable]) -> list[Variable]:
+    """The variables without those that carry the same information as an earlier one (an
+    affine function of it: the coil currents of a campaign that sets F = k I on all coils are
+    the force)."""
+    out, seen = [], []
+    for v in variables:
+        if v.kind != "session":
+            x = np.where(np.isfinite(v.values), v.values, 0.0)
+            z = (x - x.mean()) / x.std()
+            if any(abs(float(z @ w)) / z.size > 1 - 1e-9 for w in seen):
+                continue
+            seen.append(z)
+        out.append(v)
+    return out
+
+
+class Residual:
+    """A residual (N,3) prepared for regression: per axis the rows with a reading, the
+    calibration / validation masks, and each (session, axis) zero removed with its
+    calibration-row mean (the same zeros a fit re-estimates)."""
+
+    def __init__(self, res: np.ndarray, cal: np.ndarray, val: np.ndarray, session: np.ndarray,
+                 time_s: np.ndarray):
+        self.res, self.cal, self.val, self.session, self.time = res, cal, val, session, time_s
+        self.scans: dict = {}     # variable -> scanned period / step moment (shared by users)
+        self.axes = []
+        for k in range(res.shape[1]):
+            rows = np.isfinite(res[:, k])
+            if (rows & cal).sum() < 20 or (rows & val).sum() < 5:
+                continue
+            groups = session[rows]
+            means = {g: float(np.mean(res[rows & cal & (session == g), k]))
+                     if np.any(rows & cal & (session == g)) else 0.0 for g in set(groups)}
+            r = res[rows, k] - np.array([means[g] for g in groups])
+            self.axes.append((k, rows, r))
+
+    @classmethod
+    def of(cls, df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray) -> Residual:
+        """The residual ``res`` (N,3) m of the rows of ``df`` (its sessions and times)."""
+        session = (df["session"].astype(str).to_numpy() if "session" in df
+                   else np.full(len(df), "1"))
+        return cls(res, np.asarray(cal, bool), np.asarray(val, bool), session,
+                   df["t_s"].to_numpy(dtype=np.float64))
+
+    def only(self, k: int) -> Residual:
+        """The same residual restricted to axis ``k``."""
+        out = object.__new__(Residual)
+        out.__dict__.update(self.__dict__)
+        out.axes = [a for a in self.axes if a[0] == k]
+        return out
+
+    def demeaned(self, X: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Columns X (N,p) on ``rows`` minus their calibration mean within each session."""
+        Xr = X[rows].copy()
+        s, c = self.session[rows], self.cal[rows]
+        for g in set(s):
+            m = s == g
+            Xr[m] -= X[rows][m & c].mean(axis=0) if np.any(m & c) else 0.0
+        return Xr
+
+    def fit(self, X: np.ndarray):
+        """Least squares of every axis on columns X (N,p) over the calibration rows: per axis
+        (axis, rows, coefficients, fitted (rows,), residual (rows,)); and totals
+        {rss_cal, n_cal, val_power, rank}."""
+        per_axis, rss, n_cal, val_power, rank = [], 0.0, 0, 0.0, 0
+        for k, rows, r in self.axes:
+            Xd = self.demeaned(X, rows) if X.shape[1] else np.zeros((rows.sum(), 0))
+            c = self.cal[rows]
+            if Xd.shape[1]:
+                scale = np.std(Xd[c], axis=0)
+                scale[scale == 0] = 1.0
+                coef, _, rk, _ = np.linalg.lstsq(Xd[c] / scale, r[c], rcond=None)
+                coef = coef / scale
+            else:
+                coef, rk = np.zeros(0), 0
+            fitted = Xd @ coef
+            e = r - fitted
+            rss += float(e[c] @ e[c])
+            n_cal += int(c.sum())
+            val_power += float(np.sum(e[self.val[rows]] ** 2))
+            rank += int(rk)
+            per_axis.append((k, rows, coef, fitted, e))
+        return per_axis, {"rss_cal": rss, "n_cal": n_cal, "val_power": val_power, "rank": rank}
+
+    def val_power(self) -> float:
+        return sum(float(np.sum(r[self.val[rows]] ** 2)) for _, rows, r in self.axes)
+
+    def n_val(self) -> int:
+        return sum(int(self.val[rows].sum()) for _, rows, _ in self.axes)
+
+
+def _standard(v: np.ndarray, cal: np.ndarray) -> np.ndarray:
+    m = np.isfinite(v) & cal
+    s = np.std(v[m])
+    return (v - np.mean(v[m])) / (s if s > 0 else 1.0)
+
+
+def periodogram(x: np.ndarray, y: np.ndarray, omega0: float, d_omega: float, count: int,
+                chunk: int = 2 ** 21) -> np.ndarray:
+    """Lomb-Scargle power of the centred series ``y`` sampled at ``x`` at the angular
+    frequencies ``omega0 + k d_omega``, k < ``count`` (the classical normalisation of
+    ``scipy.signal.lombscargle``, which this reproduces to ~1e-12; every sample's phasor is
+    advanced from one frequency to the next by one complex product instead of a sine and a
+    cosine per sample and frequency: several times faster)."""
+    out = np.empty(count)
+    n = x.size
+    step = max(chunk // max(n, 1), 1)
+    turn = np.exp(1j * d_omega * x)
+    for i in range(0, count, step):
+        m = min(step, count - i)
+        z = np.empty((m, n), complex)
+        z[0] = np.exp(1j * (omega0 + i * d_omega) * x)
+        z[1:] = turn
+        np.cumprod(z, axis=0, out=z)
+        c, s = z.real, z.imag
+        cy, sy = c @ y, s @ y
+        z2 = np.sum(z * z, axis=1)                          # sum exp(2 i omega x)
+        c2, s2 = z2.real, z2.imag
+        two_tau = np.arctan2(s2, c2)                        # 2 omega tau
+        ct, st = np.cos(0.5 * two_tau), np.sin(0.5 * two_tau)
+        # sum cos^2(omega (x - tau)) = (n + |sum exp(2 i omega x)|) / 2, sin^2: (n - ...) / 2
+        r2 = np.abs(z2)
+        out[i:i + m] = ((ct * cy + st * sy) ** 2 / (n + r2)
+                        + (ct * sy - st * cy) ** 2 / np.maximum(n - r2, 1e-12 * n))
+    return out
+
+
+def peak_period(v: np.ndarray, target: Residual, fixed: np.ndarray | None = None,
+                nyquist_factor: float = 2.5) -> float | None:
+    """The period (unit of ``v``) at which the residual (summed over axes, calibration rows,
+    after ``fixed`` columns) varies most, from a Lomb-Scargle periodogram (irregular sampling;
+    readings at the same value of ``v`` averaged first) over periods from the range of ``v``
+    down to 1 / ``nyquist_factor`` of its mean spacing of distinct values (random positions
+    resolve periods below their mean spacing, a campaign's near-regular times do not); None if
+    ``v`` has too few distinct values."""
+    X = np.zeros((v.size, 0)) if fixed is None else fixed
+    per_axis, _ = target.fit(X)
+    series = []
+    for _, rows, _, _, e in per_axis:
+        c = target.cal[rows]
+        x, inv = np.unique(v[rows][c], return_inverse=True)
+        inv = inv.reshape(-1)
+        y = np.bincount(inv, e[c]) / np.bincount(inv)
+        if x.size >= 20 and np.std(y) > 0:
+            series.append((x, y - y.mean()))
+    if not series:
+        return None
+    span = max(np.ptp(x) for x, _ in series)
+    n_distinct = max(x.size for x, _ in series)
+    d_omega = 2 * np.pi / (OVERSAMPLING * span)
+    omega0 = 2 * np.pi / span
+    count = int((2 * np.pi * nyquist_factor * n_distinct / span - omega0) / d_omega)
+    if count < 1:
+        return None
+    power = np.zeros(count)
+    for x, y in series:
+        # the sample's own origin keeps omega * x small (float64 phases)
+        power += periodogram(x - x[0], y, omega0, d_omega, count) / np.var(y)
+    best = int(np.argmax(power))
+    return float(2 * np.pi / (omega0 + best * d_omega)) if power[best] > 0 else None
+
+
+def best_step(t: np.ndarray, target: Residual, fixed: np.ndarray | None = None) -> float | None:
+    """The time (s) of the single step that best fits the residual (summed over axes,
+    calibration rows, after ``fixed``): for a centred residual e and an indicator h of
+    t > tau the reduction is (e . h_c)^2 / (h_c . h_c), scanned over every calibration time by
+    cumulative sums."""
+    X = np.zeros((t.size, 0)) if fixed is None else fixed
+    per_axis, _ = target.fit(X)
+    gain_t, gain = [], []
+    for _, rows, _, _, e in per_axis:
+        c = target.cal[rows]
+        tc, ec = t[rows][c], e[c] - e[c].mean()
+        o = np.argsort(tc, kind="stable")
+        tc, ec = tc[o], ec[o]
+        n = tc.size
+        k = np.arange(1, n)                          # rows after the step: n - k
+        tail = np.cumsum(ec[::-1])[::-1][1:]         # sum of e over rows k..n-1
+        hh = (n - k) * k / n                         # |h_c|^2
+        gain_t.append(0.5 * (tc[:-1] + tc[1:]))
+        gain.append(tail ** 2 / hh)
+    if not gain_t:
+        return None
+    taus = np.unique(np.concatenate(gain_t))
+    total = np.zeros(taus.size)
+    for tt, g in zip(gain_t, gain):
+        # each axis' gain at the candidate times (a step between two of its samples)
+        idx = np.clip(np.searchsorted(tt, taus), 0, tt.size - 1)
+        total += g[idx]
+    return float(taus[np.argmax(total)]) if total.size else None
+
+
+def family_columns(var: Variable, target: Residual) -> tuple[np.ndarray, int, dict]:
+    """The regressors of one variable (N,p), the number of scanned parameters, and how they
+    were built ({"period": ..., "step_s": ...})."""
+    v, cal = var.values, target.cal
+    if var.kind == "session":
+        t = target.time
+        names = list(dict.fromkeys(v))
+        cols = np.column_stack([np.where(v == s, t - t[v == s].mean(), 0.0) for s in names])
+        return cols / 3600.0, 0, {}
+    if var.kind == "sign":
+        return v[:, None].astype(np.float64), 0, {}
+    x = _standard(v, cal)
+    poly = np.column_stack([x, x ** 2, x ** 3])
+    info = scans(var, target, poly)
+    extra = []
+    if "period" in info:
+        extra += [np.sin(2 * np.pi * v / info["period"]), np.cos(2 * np.pi * v / info["period"])]
+    if "step_s" in info:
+        extra.append((v > info["step_s"]).astype(np.float64))
+    scanned = SCANNED["sine"] * ("period" in info) + SCANNED["step"] * ("step_s" in info)
+    return np.column_stack([poly] + extra) if extra else poly, scanned, info
+
+
+def scans(var: Variable, target: Residual, poly: np.ndarray | None = None) -> dict:
+    """The scanned parameters of a coordinate's or time's family on ``target`` (once per
+    variable, kept on the target): the periodogram's peak period after the cubic polynomial
+    and, for time, the best step moment."""
+    if var.name in target.scans:
+        return target.scans[var.name]
+    info = {}
+    if var.kind in ("coordinate", "time"):
+        if poly is None:
+            x = _standard(var.values, target.cal)
+            poly = np.column_stack([x, x ** 2, x ** 3])
+        period = peak_period(var.values, target, poly, 0.5 if var.kind == "time" else 2.5)
+        if period:
+            info["period"] = period
+    if var.kind == "time":
+        tau = best_step(var.values, target)
+        if tau is not None:
+            info["step_s"] = tau
+    target.scans[var.name] = info
+    return info
+
+
+def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
+              min_share: float = MIN_SHARE) -> dict:
+    """Rank the laboratory variables by the validation residual power each explains beyond the
+    others (module docstring). ``target``: the residual of the rows of ``df``
+    (``Residual.of``).
+
+    Returns {"variables": [{variable, explained_nm, explained_fraction, by_axis_nm, p_value,
+    columns}, ...] strongest first, "val_rms_nm", "explained_fraction" (all selected
+    together), "tried"}."""
+    variables = laboratory_variables(df)
+    p0 = target.val_power()
+    n_val = max(target.n_val(), 1)
+    out = {"val_rms_nm": float(np.sqrt(p0 / n_val) * 1e9), "variables": [],
+           "explained_fraction": 0.0, "tried": [v.name for v in variables]}
+    if not target.axes or p0 <= 0:
+        return out
+    families = {}
+    for var in variables:
+        X, scanned, info = family_columns(var, target)
+        ok = np.all(np.isfinite(X), axis=1)
+        X = np.where(ok[:, None], X, 0.0)    # a row without the variable adds nothing
+        families[var.name] = (X, scanned, info)
+    chosen: list[str] = []
+    design = lambda names: (np.column_stack([families[n][0] for n in names]) if names
+                            else np.zeros((len(df), 0)))
+    _, current = target.fit(design(chosen))
+    p_values = {}
+    limit = alpha / max(len(families), 1)
+    while len(chosen) < MAX_FAMILIES:
+        best = None
+        for name in families:
+            if name in chosen:
+                continue
+            _, after = target.fit(design(chosen + [name]))
+            k = after["rank"] - current["rank"] + families[name][1] * len(target.axes)
+            df2 = after["n_cal"] - after["rank"] - len(target.axes)
+            if k <= 0 or df2 <= 0 or after["rss_cal"] >= current["rss_cal"]:
+                continue
+            F = ((current["rss_cal"] - after["rss_cal"]) / k) / (after["rss_cal"] / df2)
+            p = float(stats.f.sf(F, k, df2))
+            gain = current["val_power"] - after["val_power"]
+            if p < limit and gain >= min_share * p0 and (best is None or gain > best[1]):
+                best = (name, gain, p, after)
+        if best is None:
+            break
+        chosen.append(best[0])
+        p_values[best[0]] = best[2]
+        current = best[3]
+    if not chosen:
+        return out
+    full_axes, full = target.fit(design(chosen))
+    ranked = []
+    for name in chosen:
+        others = [c for c in chosen if c != name]
+        without_axes, without = target.fit(design(others))
+        unique = max(without["val_power"] - full["val_power"], 0.0)
+        by_axis = {}
+        for (k, rows, _, _, e_full), (_, _, _, _, e_wo) in zip(full_axes, without_axes):
+            v = target.val[rows]
+            by_axis[AXES[k]] = float(np.sqrt(max(np.sum(e_wo[v] ** 2) - np.sum(e_full[v] ** 2),
+                                                 0.0) / max(v.sum(), 1)) * 1e9)
+        info = families[name][2]
+        ranked.append({"variable": name, "explained_nm": float(np.sqrt(unique / n_val) * 1e9),
+                       "explained_fraction": unique / p0, "by_axis_nm": by_axis,
+                       "p_value": p_values[name],
+                       "columns": {k: float(v) for k, v in info.items()}})
+    ranked.sort(key=lambda r: -r["explained_nm"])
+    out["variables"] = ranked
+    out["explained_fraction"] = 1.0 - full["val_power"] / p0
+    return out
