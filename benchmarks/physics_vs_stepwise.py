@@ -19,7 +19,7 @@ counted on either side. The physics model is given the scenario's values of the 
 fit does not adjust (loop geometry, wavelength, sensor glue: what a laboratory measures).
 Prints val err90 per axis, the ratio and the two criteria, and the
 recorded variables the physics fit's validation residual still depends on
-(calibration.diagnosis.residual_dependence), which says where a shortfall comes from:
+(calibration.diagnosis.diagnose.residual_dependence), which says where a shortfall comes from:
 
     python benchmarks/physics_vs_stepwise.py               # full scale
     python benchmarks/physics_vs_stepwise.py --scale 0.25
@@ -92,11 +92,10 @@ def main(argv=None) -> int:
     print(f"val err90 at least {ERROR_RATIO:g}x lower on every axis (worst ratio "
           f"{min(ratios.values()):.2f}): {'MET' if err_ok else 'NOT MET'}")
     print(f"at most {PARAMETER_RATIO:g}x the parameters: {'MET' if par_ok else 'NOT MET'}")
-    res = fit.residual_.copy()
-    res[~fit.measurements_.val] = float("nan")
-    print("physics validation residual still depends on (cubic fit, R^2 per axis): "
-          + ", ".join(f"{d['variable']} ({d['axis']}: {d['r2']:.2f})"
-                      for d in residual_dependence(df, res)[:8]))
+    meas = fit.measurements_
+    dep = residual_dependence(meas.df, fit.residual_, meas.cal, meas.val, form=False)
+    print("physics validation residual still depends on (rms each explains beyond the others): "
+          + ", ".join(f"{d['variable']} ({d['explained_nm']:.1f} nm)" for d in dep["depends_on"]))
     return 0
 
 

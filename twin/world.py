@@ -91,8 +91,9 @@ class Schedule:
         sign = np.sign([m[2] for m in self.moves])
         for i in range(3):
             moved = np.flatnonzero(sign[:, i] != 0)
-            k = np.searchsorted(start[moved], t, side="right") - 1
-            out[:, i] = np.where(k >= 0, sign[moved[np.maximum(k, 0)], i], 0.0) if moved.size else 0.0
+            if moved.size:
+                k = np.searchsorted(start[moved], t, side="right") - 1
+                out[:, i] = np.where(k >= 0, sign[moved[np.maximum(k, 0)], i], 0.0)
         return out
 
     def currents(self, t: np.ndarray) -> np.ndarray:

@@ -18,10 +18,10 @@ An effect is *significant* when p < ``alpha``, the BIC falls, and it explains at
 ``min_explained`` of the validation residual — the guard against fitting noise with many
 parameters. Significant effects rank first, by BIC; the rest by explained fraction.
 
-The ``unexplained`` part regresses the residual on each recorded variable (time, each
-temperature and its causal rate, motor coordinates, force, autocollimator angles) with a cubic
-polynomial (statsmodels OLS) and lists those it still depends on (F test, Bonferroni over all
-tests) by R^2.
+The ``unexplained`` part names what the residual still depends on: the laboratory variables
+ranked by the validation residual each explains beyond the others (attribution.py) and, when no
+library effect is claimed, the proposed form of the missing term (term_form.py), for the
+researcher's own effect (docs/effects.md).
 """
 from __future__ import annotations
 
@@ -40,12 +40,14 @@ from deltatwin.calibration.blackbox.features import (
     geometric,
     thermal_preset,
 )
+from deltatwin.calibration.diagnosis.attribution import Residual, attribute
 from deltatwin.calibration.diagnosis.compare import evaluate
 from deltatwin.calibration.diagnosis.conditions import (
     extrapolated_variables,
     extrapolation_message,
 )
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
+from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.model import (
@@ -56,10 +58,9 @@ from deltatwin.calibration.physics.model import (
     model_effects,
     residuals,
 )
-from deltatwin.calibration.streams import causal_derivatives
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.effects import EffectError
-from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES
+from deltatwin.twin.instruments.optics import AXES
 
 ALPHA = 1e-3
 MIN_EXPLAINED = 0.1
@@ -199,51 +200,24 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
             "significant": bool(p_value < ALPHA and d_bic < 0 and useful)}
 
 
-def recorded_variables(df: pd.DataFrame) -> dict[str, np.ndarray]:
-    """The variables a residual can depend on, by name (column names; rates as dT_<s>_dt)."""
-    out = {"t_s": df["t_s"].to_numpy(dtype=np.float64)}
-    t = out["t_s"]
-    order = np.argsort(t, kind="stable")
-    sensors = [c for c in df.columns if c.startswith("T_") and c.endswith("_C")]
-    T = df[sensors].to_numpy(dtype=np.float64)
-    rate = np.empty_like(T)
-    if sensors:     # every sensor in one call: the windows' normal equations are shared
-        rate[order] = causal_derivatives(t[order], T[order], degree=1)[0]
-    for k, c in enumerate(sensors):
-        out[c] = T[:, k]
-        out[f"dT_{c[2:-2]}_dt_K_per_s"] = rate[:, k]
-    for c in ("q1_rad", "q2_rad", "q3_rad", "F_N", "coil1_A", "coil2_A", "coil3_A") + tuple(
-            f"{a}_arcsec" for a in AC_CHANNELS):
-        if c in df:
-            out[c] = df[c].to_numpy(dtype=np.float64)
-    return {k: v for k, v in out.items() if np.nanstd(v) > 0}
-
-
-def residual_dependence(df: pd.DataFrame, res: np.ndarray, alpha: float = ALPHA) -> list[dict]:
-    """Variables the residual (N,3) still depends on: cubic OLS of each axis' residual on each
-    variable; significant after Bonferroni, sorted by R^2 (largest first)."""
-    # statsmodels costs ~1 s of imports: only when this test runs
-    import statsmodels.api as sm
-
-    variables = recorded_variables(df)
-    tests = []
-    for k, a in enumerate(AXES):
-        e = res[:, k]
-        ok = np.isfinite(e)
-        if ok.sum() < 20:
-            continue
-        for name, v in variables.items():
-            m = ok & np.isfinite(v)
-            if m.sum() < 20:
-                continue
-            x = (v[m] - v[m].mean()) / v[m].std()
-            X = sm.add_constant(np.column_stack([x, x ** 2, x ** 3]), has_constant="add")
-            r = sm.OLS(e[m] * 1e9, X).fit()
-            tests.append({"variable": name, "axis": a, "r2": float(r.rsquared),
-                          "p_value": float(r.f_pvalue)})
-    limit = alpha / max(len(tests), 1)
-    hits = [t for t in tests if t["p_value"] < limit and t["r2"] >= 0.05]
-    return sorted(hits, key=lambda t: -t["r2"])
+def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
+                        form: bool = True) -> dict:
+    """What the residual (N,3) m still depends on: the laboratory variables ranked by the
+    validation power each explains beyond the others (attribution.py) and, with ``form``, the
+    proposed form of the missing term (term_form.py); with the message that says both."""
+    target = Residual.of(df, res, cal, val)
+    att = attribute(df, target)
+    out = {"depends_on": att["variables"], "explained_fraction": att["explained_fraction"],
+           "val_rms_nm": att["val_rms_nm"]}
+    if form:
+        out["form"] = missing_term_form(df, target)
+    names = [f"{d['variable']} ({d['explained_nm']:.1f} nm)" for d in att["variables"]]
+    out["message"] = (f"it depends on {', '.join(names)}, strongest first (rms of the "
+                      "validation residual each explains beyond the others)" if names else
+                      "it does not depend on any recorded variable (noise-like)")
+    if out.get("form"):
+        out["message"] += f"; proposed form: {form_message(out['form'])}"
+    return out
 
 
 def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
@@ -299,24 +273,21 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     out["extrapolation"] = {"variables": extrapolated,
                             "message": extrapolation_message(extrapolated)}
     best = next((c for c in ranking if c["significant"]), None)
-    dependence = residual_dependence(meas.df, fit.residual_)
+    dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val, form=best is None)
     if best:
-        effects = ",".join(fit.effects + [best["effect"]])
+        effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]
         known = "".join(f" --set {e}.{k}={','.join(str(x) for x in np.ravel(v))}"
                         for e, values in fit.known_.items() for k, v in values.items())
         out["next_command"] = f"deltatwin fit {data} --effects {effects}{known} -o fitted.toml"
         out["scenario_change"] = (f"add \"{best['effect']}\" to the model's effects "
                                   f"(a scenario's [hidden] baseline, or --effects)")
-        out["unexplained"] = {"claimed": False, "depends_on": dependence[:10]}
+        out["unexplained"] = {"claimed": False, **dependence}
     else:
-        names = sorted({d["variable"] for d in dependence})
         out["missing_effect"] = None
-        out["unexplained"] = {
-            "claimed": False, "depends_on": dependence[:10],
-            "message": ("no library effect explains the residual significantly"
-                        + (f"; it still depends on: {', '.join(names[:8])}" if names else
-                           "; it does not depend on any recorded variable (noise-like)"))}
+        out["unexplained"] = {"claimed": False, **dependence,
+                              "message": ("no library effect explains the residual "
+                                          "significantly; " + dependence["message"])}
         if out["at_floor"]:
             out["unexplained"]["message"] += (
                 f"; the model is at the {floor_kind} floor ({floor_all:.1f} nm: what the twin's "
@@ -431,18 +402,15 @@ def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "D
     ranking.sort(key=lambda c: (not c["significant"], -c["explained_fraction"]))
     fig = figures_nm(res, meas.val)
     best = next((c for c in ranking if c["significant"]), None)
-    dependence = residual_dependence(meas.df, np.where(meas.val[:, None], res, np.nan))
-    names = sorted({d["variable"] for d in dependence})
+    dependence = residual_dependence(meas.df, res, meas.cal, meas.val, form=best is None)
     message = (f"the residual correlates with the {best['family']!r} family (explains "
                f"{100 * best['explained_fraction']:.0f} % of the validation residual)"
                if best else "no feature family explains the residual significantly")
-    message += (f"; it depends on: {', '.join(names[:8])}" if names else
-                "; it does not depend on any recorded variable (noise-like)")
     return {"model": "DGM", "features": ev.description["features"],
             "val_err90_nm": fig["all"]["err_p90"],
             "val_err90_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
             "ranking": ranking, "correlated_family": best["family"] if best else None,
-            "unexplained": {"depends_on": dependence[:10], "message": message}}
+            "unexplained": {**dependence, "message": f"{message}; {dependence['message']}"}}
 
 
 def ranking_table(diagnosis: dict) -> pd.DataFrame:

@@ -130,8 +130,9 @@ def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
             lines += ["", d["unexplained"]["message"] + "."]
         dep = d["unexplained"]["depends_on"][:5]
         if dep:
-            lines += ["", "The residual still depends on: " + "; ".join(
-                f"{x['variable']} ({x['axis']}, R² {x['r2']:.2f})" for x in dep) + "."]
+            lines += ["", "The residual still depends on (validation rms each explains beyond "
+                      "the others): " + "; ".join(f"{x['variable']} ({x['explained_nm']:.1f} nm)"
+                                                  for x in dep) + "."]
         lines.append("")
     lines += ["## Where it fails", "", "![residual map](residual_map.png)", "",
               "![error vs variables](error_vs.png)", ""]

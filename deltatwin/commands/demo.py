@@ -73,8 +73,8 @@ def run(args) -> int:
         if k == 0:
             worst = sorted(((v, a) for a, v in row["val_err90_by_axis_nm"].items()), reverse=True)
             say(f"  where it fails: worst axis {worst[0][1]} ({worst[0][0]:.1f} nm); the residual "
-                "depends on " + ", ".join(sorted({x['variable'] for x in
-                                                 d['unexplained']['depends_on'][:6]})))
+                "depends on " + (", ".join(x["variable"] for x in
+                                           d["unexplained"]["depends_on"][:6]) or "nothing"))
         top = d["ranking"][:3]
         say("  diagnosis: " + "; ".join(f"{c['effect']} explains {100 * c['explained_fraction']:.0f} %"
                                         f"{' (significant)' if c['significant'] else ''}" for c in top))
