@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "deltatwin.commands.simulate",
     "deltatwin.commands.calibrate",
     "deltatwin.commands.fit",
+    "deltatwin.commands.effect",
     "deltatwin.commands.compare",
     "deltatwin.commands.view",
     "deltatwin.commands.emulate",

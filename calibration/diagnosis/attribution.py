@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy import optimize, stats
 
 from deltatwin.calibration.blackbox.features import causal_derivatives
 from deltatwin.calibration.physics.measurements import move_directions
@@ -253,7 +253,16 @@ def peak_period(v: np.ndarray, target: Residual, fixed: np.ndarray | None = None
         # the sample's own origin keeps omega * x small (float64 phases)
         power += periodogram(x - x[0], y, omega0, d_omega, count) / np.var(y)
     best = int(np.argmax(power))
-    return float(2 * np.pi / (omega0 + best * d_omega)) if power[best] > 0 else None
+    if power[best] <= 0:
+        return None
+    # the peak between the grid's frequencies (a period off by a fraction of a bin leaves a
+    # beat in the residual over the range)
+    total = lambda w: -sum(periodogram(x - x[0], y, w, d_omega, 1)[0] / np.var(y)
+                           for x, y in series)
+    w0 = omega0 + best * d_omega
+    peak = optimize.minimize_scalar(total, bounds=(w0 - d_omega, w0 + d_omega), method="bounded",
+                                    options={"xatol": 1e-6 * d_omega})
+    return float(2 * np.pi / (peak.x if peak.fun <= -power[best] else w0))
 
 
 def best_step(t: np.ndarray, target: Residual, fixed: np.ndarray | None = None) -> float | None:

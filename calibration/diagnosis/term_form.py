@@ -111,7 +111,8 @@ class Candidate:
             per = c_nm[0] * si ** self.power
             base = (f"({v} - {self.centre / si:.4g} {unit})" if self.centre
                     else f"({v}/{unit})" if unit else v)
-            out.update(coefficient_nm=float(per), power=self.power, centre=self.centre,
+            out.update(coefficient_nm=float(per), coefficient_si=float(coef_m[0]),
+                       power=self.power, centre=self.centre,
                        display_unit=unit,
                        formula=f"{per:.3g} nm * {base}" + (f"^{self.power}"
                                                             if self.power > 1 else ""))

@@ -140,6 +140,9 @@ def run_diagnose(args) -> int:
         print(f"\nmissing effect: {d['missing_effect']}; add it with:\n  {d['next_command']}")
     else:
         print("\n" + d["unexplained"]["message"])
+        if d["unexplained"].get("form"):
+            print("write it as your own effect (docs/effects.md): deltatwin diagnose ... --json "
+                  "> diagnosis.json; deltatwin effect new NAME --from diagnosis.json")
     return 0
 
 

@@ -3,13 +3,7 @@ simulated data to test that the diagnosis names what they depend on and proposes
 (tests/calibration/test_outside_library.py, benchmarks/outside_library.py)."""
 import numpy as np
 
-from deltatwin.twin.effects import Effect, Parameter
-
-
-def shift_reading(optics, axis: str, d_m: np.ndarray) -> None:
-    """Add ``d_m`` (N,) m to the reading of ``axis``: the interferometer head moves back along
-    its beam, lengthening the path it counts."""
-    optics.head[axis] = optics.head[axis] - d_m[:, None] * optics.direction[axis]
+from deltatwin.twin.effects import Effect, Parameter, shift_reading
 
 
 class PeriodicEncoder(Effect):

@@ -26,7 +26,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from deltatwin.twin.effects.air_refraction import AirRefraction
-from deltatwin.twin.effects.base import Effect, EffectError, Parameter
+from deltatwin.twin.effects.base import Effect, EffectError, Parameter, shift_reading
 from deltatwin.twin.effects.beam_misalignment import BeamMisalignment
 from deltatwin.twin.effects.coil_heating import CoilHeating
 from deltatwin.twin.effects.geometric_errors import GeometricErrors
@@ -226,4 +226,4 @@ def make_effect(spec, values: dict | None = None, where: str = "effects",
 
 
 __all__ = ["ENTRY_POINT_GROUP", "LIBRARY", "Effect", "EffectError", "Parameter", "effect_class",
-           "effect_spec", "make_effect"]
+           "effect_spec", "make_effect", "shift_reading"]

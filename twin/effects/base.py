@@ -46,6 +46,14 @@ class Parameter:
         return np.shape(self.default)
 
 
+def shift_reading(optics, axis: str, d_m: np.ndarray) -> None:
+    """In an ``optics`` hook: add ``d_m`` (N,) m to what the interferometer of ``axis`` reads
+    (its head moves back along its beam, lengthening the path it counts): the simplest way to
+    write a term found in the residual of a reading."""
+    optics.head[axis] = optics.head[axis] - np.asarray(d_m, dtype=np.float64)[:, None] \
+        * optics.direction[axis]
+
+
 MODEL_STAGES = ("robot", "sensed_parts", "part_temperatures", "motor_angles", "wrench", "optics")
 
 
