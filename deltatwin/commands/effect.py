@@ -54,7 +54,7 @@ class {cls}(Effect):
 '''
 
 
-def _camel(name: str) -> str:
+def camel(name: str) -> str:
     return "".join(p.capitalize() for p in name.split("_"))
 
 
@@ -112,7 +112,7 @@ def skeleton(name: str, diagnosis: dict | None = None, source: str = "") -> str:
     """The Python source of the effect ``name``: from the proposed form of ``diagnosis`` (its
     ``unexplained.form``), or a minimal working example (a constant X offset)."""
     form = ((diagnosis or {}).get("unexplained") or {}).get("form") or []
-    cls = _camel(name)
+    cls = camel(name)
     params, body, uses_force = [], [], False
     for f in form:
         exprs = []
@@ -173,8 +173,8 @@ def run_new(args) -> int:
     if out.exists() and not args.force:
         raise ValueError(f"{out} exists; use --force to overwrite it")
     atomic_write_text(out, skeleton(name, diagnosis, str(args.from_diagnosis or "")))
-    print(f"wrote {out}: class {_camel(name)} (effect {name!r}); use it with "
-          f"--effects ...,{out}:{_camel(name)}")
+    print(f"wrote {out}: class {camel(name)} (effect {name!r}); use it with "
+          f"--effects ...,{out}:{camel(name)}")
     return 0
 
 
