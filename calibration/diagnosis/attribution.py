@@ -25,6 +25,7 @@ readings of the part the variable alone explains).
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,9 +35,11 @@ from scipy import optimize, stats
 from deltatwin.calibration.blackbox.features import causal_derivatives
 from deltatwin.calibration.physics.measurements import move_directions
 from deltatwin.models.geometry import build_geometry
-from deltatwin.models.kinematics import forward
+from deltatwin.models.kinematics import KinematicsError, forward
 from deltatwin.models.params import load_params
 from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES
+
+log = logging.getLogger(__name__)
 
 ALPHA = 1e-3          # significance of an added family (before Bonferroni)
 MIN_SHARE = 0.02      # an added family explains at least this share of the validation power
@@ -79,10 +82,13 @@ def laboratory_variables(df: pd.DataFrame) -> list[Variable]:
         q = df[["q1_rad", "q2_rad", "q3_rad"]].to_numpy(dtype=np.float64)
         out += [Variable(f"q{i + 1}_rad", q[:, i], "coordinate") for i in range(3)]
         ok = np.all(np.isfinite(q), axis=1)
-        p = np.full((len(df), 3), np.nan)
         qu, inv = np.unique(q[ok], axis=0, return_inverse=True)
-        p[ok] = forward(build_geometry(load_params(None)), qu).p[inv.reshape(-1)]
-        out += [Variable(f"{a}_m", p[:, k], "coordinate") for k, a in enumerate(AXES)]
+        try:
+            p = np.full((len(df), 3), np.nan)
+            p[ok] = forward(build_geometry(load_params(None)), qu).p[inv.reshape(-1)]
+            out += [Variable(f"{a}_m", p[:, k], "coordinate") for k, a in enumerate(AXES)]
+        except KinematicsError as exc:     # not this robot's coordinates: no Cartesian position
+            log.warning("attribution without the Cartesian position: %s", exc)
         if ok.all():
             rows, _ = move_directions(t, q, session)
             out += [Variable(f"dir_q{i + 1}", rows[:, i], "sign") for i in range(3)]

@@ -5,7 +5,8 @@ optimizer), for a static model's residual.
 ``candidate_library`` builds the functions of the laboratory variables (attribution.py), each a
 ``Candidate`` (one or two columns and how to print it with its coefficients):
 polynomials of degree 1 to 3 of each coordinate, of time and of the force (powers of the
-force); a sine and cosine of each coordinate and of time at the period the residual's
+force), and the force's powers times each Cartesian coordinate (a load's effect follows the
+compliance, which varies over the workspace); a sine and cosine of each coordinate and of time at the period the residual's
 Lomb-Scargle periodogram peaks at (irregular sampling); a step and a ramp in time at the scanned
 moment that fits best; the direction of each motor's last move (a direction-dependent offset);
 each temperature and temperature rate; coil currents and rotations.
@@ -103,6 +104,14 @@ class Candidate:
         elif self.kind == "ramp":
             out.update(coefficient_nm_per_h=float(c_nm[0] * 3600.0), moment_s=self.moment_s,
                        formula=f"{c_nm[0] * 3600.0:.3g} nm/h * max(t - {self.moment_s:.0f} s, 0)")
+        elif self.kind == "product":
+            by, centre = self.extra["by"], self.extra["centre"]
+            per = c_nm[0] * 1e-3          # nm per N^k per mm
+            out.update(coefficient_nm=float(per), coefficient_si=float(coef_m[0]),
+                       power=self.power, by=by, centre=centre,
+                       formula=f"{per:.3g} nm * (F/N)" + (f"^{self.power}" if self.power > 1
+                                                          else "")
+                               + f" * ({_short(by)} - {centre * 1e3:.4g} mm)/mm")
         elif self.kind == "sign":
             out.update(coefficient_nm=float(c_nm[0]),
                        formula=f"{c_nm[0]:.1f} nm * sign(last move of {v[4:]})")
@@ -153,6 +162,17 @@ def candidate_library(variables: list[Variable], target: Residual) -> list[Candi
             best = int(np.argmin(rss))
             out.append(Candidate("ramp", var.name, ramps[best], scanned=1,
                                  moment_s=float(taus[best])))
+    # a load's effect depends on where the platform is (the compliance varies over the
+    # workspace): powers of the force times the Cartesian position
+    by_name = {v.name: v for v in variables}
+    if "F_N" in by_name:
+        F = by_name["F_N"].values
+        for c in ("x_m", "y_m", "z_m"):
+            if c in by_name:
+                centre = float(np.nanmean(by_name[c].values[target.cal]))
+                for k in (1, 2, 3):
+                    out.append(Candidate("product", "F_N", (F ** k * (by_name[c].values - centre))
+                                         [:, None], power=k, extra={"by": c, "centre": centre}))
     return out
 
 

@@ -94,6 +94,12 @@ def _term_code(axis: str, term: dict, k: int) -> tuple[list[str], str, str | Non
         p = f"self.{tag}_{kind}_{unit_c.replace('/', '_per_')}"
         expr = (f"{p} * ({v} > self.{tag}_moment_s)" if kind == "step"
                 else f"{p} * np.maximum({v} - self.{tag}_moment_s, 0.0)")
+    elif kind == "product":
+        power, by, centre, c_si = term["power"], term["by"], term["centre"], term["coefficient_si"]
+        params = [f'Parameter("{tag}_m", "m/N^{power}/m", {_num(c_si)}, "{axis}: coefficient of '
+                  f'F^{power} ({by} - centre)", fit_scale={_num(max(abs(c_si), 1e-30))}),',
+                  f'Parameter("{tag}_centre", "m", {_num(centre)}, "{axis}: centre of {by}"),']
+        expr = f"self.{tag}_m * {v} ** {power} * ({AT_OPTICS[by]} - self.{tag}_centre)"
     elif kind == "sign":
         c = term["coefficient_nm"] * 1e-9
         params = [f'Parameter("{tag}_m", "m", {_num(c)}, "{axis}: offset along the last move of '
