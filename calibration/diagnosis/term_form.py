@@ -6,9 +6,9 @@ optimizer), for a static model's residual.
 ``Candidate`` (one or two columns and how to print it with its coefficients):
 polynomials of degree 1 to 3 of each coordinate, of time and of the force (powers of the
 force), and the force's powers times each Cartesian coordinate (a load's effect follows the
-compliance, which varies over the workspace); a sine and cosine of each coordinate and of time at the period the residual's
-Lomb-Scargle periodogram peaks at (irregular sampling); a step and a ramp in time at the scanned
-moment that fits best; the direction of each motor's last move (a direction-dependent offset);
+compliance, which varies over the workspace); a sine and cosine of each coordinate and of time
+at the period the residual's Lomb-Scargle periodogram peaks at (irregular sampling); a step
+and a ramp in time at the scanned moment that fits best; the direction of each motor's last move (a direction-dependent offset);
 each temperature and temperature rate; coil currents and rotations.
 
 ``sparse_form`` is the optimizer: forward selection per axis (the candidate that lowers the
@@ -182,7 +182,7 @@ def sparse_form(candidates: list[Candidate], target: Residual, alpha: float = AL
     [{axis, terms: [{formula, explained_fraction, ...}], explained_fraction, val_rms_nm,
     val_rms_after_nm}], axes whose residual no candidate explains left out."""
     out = []
-    for k, rows, r in target.axes:
+    for k, rows, _ in target.axes:
         axis = target.only(k)
         p0 = axis.val_power()
         if p0 <= 0:
@@ -195,7 +195,7 @@ def sparse_form(candidates: list[Candidate], target: Residual, alpha: float = AL
         limit = alpha / max(len(candidates), 1)
         while len(chosen) < max_terms:
             best = None
-            for i, cand in enumerate(candidates):
+            for i in range(len(candidates)):
                 if i in chosen:
                     continue
                 _, after = axis.fit(design(chosen + [i]))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import difflib
 import functools
+import hashlib
 import importlib
 import importlib.util
 import inspect
@@ -108,7 +109,9 @@ def _load_file(path: Path, cls_name: str, spec: str, where: str) -> type[Effect]
     path = path.resolve()
     if not path.is_file():
         raise EffectError(f"{where}: {spec!r}: no such file {str(path)!r}")
-    module_name = f"deltatwin_user_effects.{path.stem}_{abs(hash(str(path))):x}"
+    # one module per file content: a file edited (or rewritten) in the same session reloads
+    digest = hashlib.sha1(str(path).encode() + b"\0" + path.read_bytes()).hexdigest()[:16]
+    module_name = f"deltatwin_user_effects.{path.stem}_{digest}"
     module = sys.modules.get(module_name)
     if module is None:
         loader_spec = importlib.util.spec_from_file_location(module_name, path)
@@ -198,7 +201,7 @@ def effect_class(spec, base_dir=None, where: str = "effects") -> type[Effect]:
             raise EffectError(f"{where}: unknown effect {spec!r}{hint}; known: {known}; your "
                               "own: 'my_effects.py:ClassName' (docs/effects.md)")
     other = _USER.get(cls.name)
-    if other is not None and other is not cls:
+    if other is not None and other is not cls and effect_spec(other) != effect_spec(cls):
         raise EffectError(f"{where}: {spec!r}: effect name {cls.name!r} is already taken by "
                           f"{effect_spec(other)!r}")
     _USER[cls.name] = cls

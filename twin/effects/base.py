@@ -6,7 +6,8 @@ network's inputs, the part temperatures that scale the geometry, the wrench on t
 the instruments' optics. An effect overrides the hooks of the stages it changes and nothing
 else; an effect that is off is simply absent, and every stage then keeps its ideal value
 (parts at the reference temperature, no load, beams on their nominal lines, vacuum-like air
-index constant). Adding an effect = one module in twin/effects/ + one line in LIBRARY.
+index constant). Adding an effect = one module in twin/effects/ + one line in LIBRARY, or a
+researcher's own file / package (twin/effects/__init__.py, docs/effects.md).
 
 The same effect is also a term of a physics model fitted to measurements (calibration/physics.py):
 there the stages that act on the robot (``robot``, ``part_temperatures``, ``wrench``, ``optics``)
