@@ -71,6 +71,11 @@ def _short(name: str) -> str:
     return name
 
 
+def _about(v: str, centre: float, unit: str) -> str:
+    """'(q1 - 0.3 mrad)', '(q1 + 0.3 mrad)'."""
+    return f"({v} {'-' if centre >= 0 else '+'} {abs(centre):.4g} {unit})"
+
+
 @dataclass
 class Candidate:
     """One function of the library: ``columns`` (N,k) SI, the ``kind`` (poly, sine, step,
@@ -111,14 +116,14 @@ class Candidate:
                        power=self.power, by=by, centre=centre,
                        formula=f"{per:.3g} nm * (F/N)" + (f"^{self.power}" if self.power > 1
                                                           else "")
-                               + f" * ({_short(by)} - {centre * 1e3:.4g} mm)/mm")
+                               + f" * {_about(_short(by), centre * 1e3, 'mm')}/mm")
         elif self.kind == "sign":
             out.update(coefficient_nm=float(c_nm[0]),
                        formula=f"{c_nm[0]:.1f} nm * sign(last move of {v[4:]})")
         else:
             # a power of the variable in its display unit, about its centre when it has one
             per = c_nm[0] * si ** self.power
-            base = (f"({v} - {self.centre / si:.4g} {unit})" if self.centre
+            base = (_about(v, self.centre / si, unit) if self.centre
                     else f"({v}/{unit})" if unit else v)
             out.update(coefficient_nm=float(per), coefficient_si=float(coef_m[0]),
                        power=self.power, centre=self.centre,

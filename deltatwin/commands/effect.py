@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import keyword
 import math
+import textwrap
 from pathlib import Path
 
 from deltatwin.files import atomic_write_text
@@ -68,8 +69,10 @@ def _term_code(axis: str, term: dict, k: int) -> tuple[list[str], str, str | Non
     v = AT_OPTICS.get(var)
     tag = f"{axis}{k}"
     if v is None:
-        return [], "", (f"        # {term['formula']}: {var} is not known at the optics "
-                        "stage; read it from the stage that has it (docs/effects.md)")
+        return [], "", "\n".join(textwrap.wrap(
+            f"{term['formula']}: {var} is not known at the optics stage; read it from the "
+            "stage that has it (docs/effects.md)", 92, initial_indent="        # ",
+            subsequent_indent="        # "))
     kind = term["kind"]
     unit = UNITS.get(var[0], "-")
     if kind == "sine":
@@ -131,10 +134,14 @@ def skeleton(name: str, diagnosis: dict | None = None, source: str = "") -> str:
             exprs.append(expr)
             uses_force |= "FORCE_PER_A" in expr
         if exprs:
-            body.append(f"        # proposed: {'; '.join(t['formula'] for t in f['terms'])} "
-                        f"(explains {100 * f['explained_fraction']:.0f} % of the validation "
-                        "residual)")
-            body.append(f'        shift_reading(optics, "{f["axis"]}", ' + " + ".join(exprs) + ")")
+            said = (f"proposed: {'; '.join(t['formula'] for t in f['terms'])} (explains "
+                    f"{100 * f['explained_fraction']:.0f} % of the validation residual)")
+            body += textwrap.wrap(said, 92, initial_indent="        # ",
+                                  subsequent_indent="        # ")
+            summands = [x for e in exprs for x in e.split(" + ")]
+            body.append(f'        shift_reading(optics, "{f["axis"]}", (')
+            body += [f"            {'+ ' if i else ''}{x}" for i, x in enumerate(summands)]
+            body[-1] += "))"
     if not form:
         params = ['Parameter("offset_m", "m", 0.0, "a constant offset of the X reading", '
                   "fit_scale=10e-9),"]
