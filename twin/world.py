@@ -7,7 +7,8 @@ Stages, in the order data flows (each effect joins the stages it overrides, twin
 3. heat: motor and coil powers from what the campaign did (``heat_sources`` over the Schedule);
 4. thermal network (twin/thermal.py): the sensors' contact with their parts (``thermometers``),
    node and sensor temperatures, integrated up to any time;
-5. geometry: per-point part temperatures (``part_temperatures``) -> exact kinematics;
+5. geometry: per-point part temperatures (``part_temperatures``) and where the motors truly
+   sit (``motor_angles``: encoder errors, backlash) -> exact kinematics;
 6. load: the wrench (``wrench``: gravity, coils) through the statics -> the platform's pose;
 7. optics: beams, fold mirror and air index (``optics``) -> optical paths and the index the
    instruments divide by; autocollimator tilts.
