@@ -49,7 +49,8 @@ def test_readme_python_block_runs(tmp_path):
 
 
 DOCS = sorted((README.parent / "docs").glob("*.md")) + [README]
-COMMAND = re.compile(r"^\s*(deltatwin (?!\w+: )[^#&|\n`]*?)\s*(?:#.*|&.*|\|.*)?$", re.M)
+# a command up to a comment, a chain, a pipe or a redirection (> file: shell, not an option)
+COMMAND = re.compile(r"^\s*(deltatwin (?!\w+: )[^#&|>\n`]*?)\s*(?:#.*|&.*|\|.*|>.*)?$", re.M)
 
 
 def _documented_commands() -> list[tuple[str, str]]:

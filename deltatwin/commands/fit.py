@@ -139,11 +139,28 @@ def run_diagnose(args) -> int:
     if d["missing_effect"]:
         print(f"\nmissing effect: {d['missing_effect']}; add it with:\n  {d['next_command']}")
     else:
-        print("\n" + d["unexplained"]["message"])
-        if d["unexplained"].get("form"):
-            print("write it as your own effect (docs/effects.md): deltatwin diagnose ... --json "
-                  "> diagnosis.json; deltatwin effect new NAME --from diagnosis.json")
+        print("\nno library effect explains the residual significantly")
+        _print_unexplained(d["unexplained"])
     return 0
+
+
+def _print_unexplained(u: dict) -> None:
+    """What the residual still depends on and the proposed form, one line each."""
+    if not u["depends_on"]:
+        print("the residual does not depend on any recorded variable (noise-like)")
+        return
+    print("it depends on (strongest first: rms of the validation residual each explains beyond "
+          "the others):")
+    for v in u["depends_on"]:
+        axes = ", ".join(f"{a} {x:.1f}" for a, x in v["by_axis_nm"].items())
+        print(f"  {v['variable']:<24} {v['explained_nm']:6.1f} nm  ({axes} nm)")
+    if u.get("form"):
+        print("proposed form of the missing term (share of the validation residual explained):")
+        for f in u["form"]:
+            print(f"  {f['axis']}: " + " + ".join(t["formula"] for t in f["terms"])
+                  + f"  ({100 * f['explained_fraction']:.0f} %)")
+        print("write it as your own effect (docs/effects.md):\n  deltatwin diagnose ... --json "
+              "> diagnosis.json && deltatwin effect new NAME --from diagnosis.json")
 
 
 def _diagnose_stepwise(args, df, meta) -> int:
@@ -162,5 +179,8 @@ def _diagnose_stepwise(args, df, meta) -> int:
         print(f"  {c['family']:<28} {c['n_terms']:5d} {'yes' if c['in_model'] else 'no':>9} "
               f"{100 * c['explained_fraction']:8.1f}% {c['val_err90_after_nm']:13.1f} nm "
               f"{c['p_value']:9.2g}  {'yes' if c['significant'] else 'no'}")
-    print("\n" + d["unexplained"]["message"])
+    print("\n" + (f"the residual correlates with the {d['correlated_family']!r} family"
+                  if d["correlated_family"] else
+                  "no feature family explains the residual significantly"))
+    _print_unexplained(d["unexplained"])
     return 0
