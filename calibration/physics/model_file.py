@@ -57,7 +57,8 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
     tables = doc.get("effects", {})
     try:
         # library names, or where the researcher's own effects came from (file.py:Class)
-        classes = [effect_class(e, where=f"{path} [model] effects") for e in doc["model"]["effects"]]
+        classes = [effect_class(e, where=f"{path} [model] effects")
+                   for e in doc["model"]["effects"]]
     except EffectError as exc:
         raise FitError(str(exc)) from exc
     missing = [c.name for c in classes

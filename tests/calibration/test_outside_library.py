@@ -23,7 +23,9 @@ from tests.calibration.outside_effects import CASES, run_case
 SCALE = 0.15   # of the hidden scenarios' full campaign (their reduced scale is 0.25-0.3)
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+# the force case's fits take ~20 s: slow (the others ~10 s each)
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "quadratic-force"
+                                  else n for n in sorted(CASES)])
 def test_term_outside_the_library_is_named_and_its_form_proposed(name, tmp_path):
     case = CASES[name]
     r = run_case(case, tmp_path, scale=SCALE, max_claims=0)
@@ -194,6 +196,7 @@ def test_users_effect_from_an_entry_point(tmp_path, monkeypatch):
     assert effect_spec(cls) == "ripple_c"
 
 
+@pytest.mark.slow
 def test_cli_effect_new_from_a_diagnosis_and_fit_with_it(tmp_path):
     sc = Scenario.load("hidden/gravity-sag")
     sc.effects.append(make_effect(CASES["mirror-step"][2], CASES["mirror-step"][3]))
