@@ -192,9 +192,15 @@ def run_new(args) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("effect", help="write your own effect (docs/effects.md)")
+    p = sub.add_parser("effect", help="write your own effect (docs/effects.md)",
+                       description="The researcher's own physical effects (docs/effects.md): use "
+                                   "them with --effects ...,./FILE.py:Class or in a scenario.")
     s = p.add_subparsers(dest="action", required=True, metavar="ACTION")
-    n = s.add_parser("new", help="write a documented effect skeleton NAME.py")
+    n = s.add_parser("new", help="write a documented effect skeleton NAME.py",
+                     description="Write NAME.py: an Effect subclass, documented, that works as it "
+                                 "is (a constant X offset to replace) or, with --from, holds the "
+                                 "missing term's form a diagnosis proposed, its coefficients as "
+                                 "free parameters.")
     n.add_argument("name", help="the effect's name, a lower-case identifier (periodic_encoder)")
     n.add_argument("--from", dest="from_diagnosis", metavar="DIAGNOSIS_JSON",
                    help="seed it from the missing term's form a diagnosis proposed "

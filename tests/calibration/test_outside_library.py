@@ -28,7 +28,10 @@ SCALE = 0.15   # of the hidden scenarios' full campaign (their reduced scale is 
                                   else n for n in sorted(CASES)])
 def test_term_outside_the_library_is_named_and_its_form_proposed(name, tmp_path):
     case = CASES[name]
-    r = run_case(case, tmp_path, scale=SCALE, max_claims=0)
+    # the force campaign at its reduced scale (455 rows): at SCALE (270 rows) the form of a term
+    # the force's own parameters partly absorb explains 73 % of the largest axis, not 80 %
+    r = run_case(case, tmp_path, scale=None if name == "quadratic-force" else SCALE,
+                 max_claims=0)
     d = r["diagnosis"]
     assert d["missing_effect"] is None, [(c["effect"], c["explained_fraction"])
                                          for c in d["ranking"]]
