@@ -8,8 +8,9 @@ polynomials of degree 1 to 3 of each coordinate, of time and of the force (power
 force), and the force's powers times each Cartesian coordinate (a load's effect follows the
 compliance, which varies over the workspace); a sine and cosine of each coordinate and of time
 at the period the residual's Lomb-Scargle periodogram peaks at (irregular sampling); a step
-and a ramp in time at the scanned moment that fits best; the direction of each motor's last move (a direction-dependent offset);
-each temperature and temperature rate; coil currents and rotations.
+and a ramp in time at the scanned moment that fits best; the direction of each motor's last
+move (a direction-dependent offset); each temperature and temperature rate; coil currents and
+rotations.
 
 ``sparse_form`` is the optimizer: forward selection per axis (the candidate that lowers the
 calibration residual most joins), kept only while it is significant (partial F test on the
