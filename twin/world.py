@@ -273,15 +273,21 @@ def point_geometry(params: RobotParams, geom, effects: list[Effect], pts: Points
     return build_geometry(params, temps) if temps else geom
 
 
+def motor_positions(effects: list[Effect], pts: Points) -> np.ndarray:
+    """Where the motors truly sit (N,3) rad: the encoders' reading ``pts.q`` plus the effects'
+    angle errors (``pts.q`` itself when no effect has any)."""
+    errors = [d for d in (e.motor_angles(pts) for e in effects) if d is not None]
+    return pts.q + sum(errors) if errors else pts.q
+
+
 def kinematic_pose(params: RobotParams, geom, effects: list[Effect], pts: Points):
     """Geometry and kinematic pose at the points: the effects' part temperatures scale the
     geometry per point and their motor angle errors move the motors (exact kinematics per
     point), otherwise one geometry for all (FK per unique q)."""
     geom = point_geometry(params, geom, effects, pts)
-    # where the motors truly sit: the encoders' reading plus the effects' angle errors
-    errors = [d for d in (e.motor_angles(pts) for e in effects) if d is not None]
-    if geom.batched or errors:
-        return geom, forward(geom, pts.q + sum(errors) if errors else pts.q)
+    q = motor_positions(effects, pts)
+    if geom.batched or q is not pts.q:
+        return geom, forward(geom, q)
     qu, inv = pts.unique_q()
     ku = forward(geom, qu)
     return geom, Pose(ku.p[inv], ku.R[inv])

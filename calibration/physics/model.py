@@ -26,6 +26,7 @@ from deltatwin.twin.instruments.optics import AXES
 from deltatwin.twin.world import (
     geometry_temperatures,
     kinematic_pose,
+    motor_positions,
     observe,
     point_geometry,
 )
@@ -287,7 +288,8 @@ class PhysicsModel:
                 # a part temperature: the geometry at the points and what the optics read
                 pts.node_T = meas.part_temperatures(self.effects)
                 geom_j = point_geometry(stage.params, stage.geom, self.effects, pts)
-                return (rod_residuals(geom_j, q, stage.kin),
+                # (or a motor angle error: where the motors sit)
+                return (rod_residuals(geom_j, motor_positions(self.effects, pts), stage.kin),
                         self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
 
             d_rods, J[:, :, j] = richardson_derivative(evaluate, self.scales[j])

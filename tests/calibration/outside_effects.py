@@ -78,9 +78,6 @@ class QuadraticForceY(Effect):
 # (hidden/gravity-sag, hidden/magnetic-force for the force) and, for the hard cases where time
 # and temperatures climb together, paper-thermal on a symmetric portal frame.
 PORTAL = {"loop_drift": {"frame_arm_m": [0.0, 0.0]}}
-# Gauss-Newton steps: a baseline that lacks the term converges slowly (on the force case the
-# magnetic force's parameters chase the quadratic term: 20 steps were not enough)
-MAX_ITERATIONS = 60
 CASES = {
     "periodic-encoder": ("hidden/gravity-sag", ["geometric_errors", "gravity_sag"], PeriodicEncoder,
                          {"sin_rad": 0.5e-6}, "q1_rad", None),
@@ -142,7 +139,7 @@ def run_case(case: tuple, workdir, scale: float | None = None, max_claims: int =
     cls, expected = case[2], case[4]
     model, claims, start = list(baseline), [], dict(known)
     while True:
-        fit = PhysicsFit(model, start=start, max_iterations=MAX_ITERATIONS).fit(df, meta)
+        fit = PhysicsFit(model, start=start).fit(df, meta)
         d = diagnose(fit)
         if not claims:
             first = (fit, d)
@@ -159,15 +156,13 @@ def run_case(case: tuple, workdir, scale: float | None = None, max_claims: int =
            "named_first": bool(named) and named[0] == expected and d["missing_effect"] is None,
            "form": form, "form_explained": main_axis["explained_fraction"] if main_axis else 0.0,
            "diagnosis": d, "floor_nm": max(floor.values()), "model": model}
-    own = PhysicsFit(model + [cls], start={**start, cls.name: case[3]},
-                     max_iterations=MAX_ITERATIONS).fit(df, meta)
+    own = PhysicsFit(model + [cls], start={**start, cls.name: case[3]}).fit(df, meta)
     out["own_err90_nm"] = own.val_["all"]["err_p90"]
     out["proposed_err90_nm"] = float("nan")
     if form:
         name = f"proposed_{cls.name}"
         path = Path(workdir) / f"{name}.py"
         path.write_text(skeleton(name, d))
-        proposed = PhysicsFit(model + [f"{path}:{camel(name)}"], start=start,
-                              max_iterations=MAX_ITERATIONS).fit(df, meta)
+        proposed = PhysicsFit(model + [f"{path}:{camel(name)}"], start=start).fit(df, meta)
         out["proposed_err90_nm"] = proposed.val_["all"]["err_p90"]
     return out
