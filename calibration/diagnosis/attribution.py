@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy import optimize, stats
+from scipy import optimize, special
 
 from deltatwin.calibration.blackbox.features import causal_derivatives
 from deltatwin.calibration.physics.measurements import move_directions
@@ -385,7 +385,7 @@ def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
             if k <= 0 or df2 <= 0 or after["rss_cal"] >= current["rss_cal"]:
                 continue
             F = ((current["rss_cal"] - after["rss_cal"]) / k) / (after["rss_cal"] / df2)
-            p = float(stats.f.sf(F, k, df2))
+            p = float(special.fdtrc(k, df2, F))
             gain = current["val_power"] - after["val_power"]
             if p < limit and gain >= min_share * p0 and (best is None or gain > best[1]):
                 best = (name, gain, p, after)

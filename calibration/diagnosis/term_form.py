@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy import special
 
 from deltatwin.calibration.diagnosis.attribution import (
     Residual,
@@ -215,7 +215,7 @@ def sparse_form(candidates: list[Candidate], target: Residual, alpha: float = AL
             if kk <= 0 or df2 <= 0 or after["rss_cal"] >= current["rss_cal"]:
                 break
             F = ((current["rss_cal"] - after["rss_cal"]) / kk) / (after["rss_cal"] / df2)
-            if (stats.f.sf(F, kk, df2) >= limit
+            if (special.fdtrc(kk, df2, F) >= limit
                     or current["val_power"] - after["val_power"] < min_share * p0):
                 break
             chosen.append(i)
