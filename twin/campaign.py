@@ -254,7 +254,7 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
         ifm_std = np.full((R, 3), np.nan)
         ac = np.full((R, 4), np.nan)
         for r in range(R):
-            for attempt in range(settings.max_rereads + 1):
+            for _attempt in range(settings.max_rereads + 1):
                 reading = inst.interferometers.read()
                 if all(reading.std_m[a] < settings.std_limit_m for a in axes):
                     break

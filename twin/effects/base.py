@@ -81,7 +81,7 @@ class Effect:
             try:
                 v = np.asarray(raw, dtype=np.float64)
             except (TypeError, ValueError):
-                raise EffectError(f"{where}.{p.name}: expected a number ({p.unit}), got {raw!r}")
+                raise EffectError(f"{where}.{p.name}: expected a number ({p.unit}), got {raw!r}") from None
             if v.shape != p.shape:
                 raise EffectError(f"{where}.{p.name}: expected shape {p.shape} ({p.unit}), "
                                   f"got {v.shape}")
