@@ -37,6 +37,19 @@ log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
 
 
+def journal_path(output, journal=None, resume: bool = False) -> Path:
+    """The journal of a run writing ``output`` (``journal`` if given, else ``OUTPUT.journal``),
+    checked against ``resume``: resuming needs it, a new run must not find one (JournalError)."""
+    path = Path(journal) if journal else Path(output).with_name(Path(output).name + ".journal")
+    if resume and not path.exists():
+        raise JournalError(f"--resume: no journal {path} to resume (run without --resume to "
+                           "start)")
+    if not resume and path.exists():
+        raise JournalError(f"{path} exists: continue that run with --resume, or remove the "
+                           "journal (or choose another output) to start anew")
+    return path
+
+
 def _lock_exclusively(file) -> None:
     """An exclusive, non-blocking lock held while the file is open (OSError if another process
     holds it): flock on POSIX, msvcrt's byte-range lock on Windows."""

@@ -10,7 +10,6 @@ dataset is written (atomically) once every point is in the journal, which is kep
 """
 from __future__ import annotations
 
-import logging
 import sys
 import time
 from pathlib import Path
@@ -110,22 +109,16 @@ def run(args) -> int:
         raise ValueError("--ports is only for --instruments serial")
     if args.scale is not None and not 0 < args.scale <= 1:
         raise ValueError(f"--scale must be in (0, 1], got {args.scale}")
+    from deltatwin.twin.journal import journal_path as journal_file
+
     t0 = time.perf_counter()
     sc = Scenario.load(args.scenario, seed=args.seed)
     scale = sc.reduced_scale if args.reduced else args.scale
     output = args.output or Path(f"{sc.name}.parquet")
-    journal_path = args.journal or output.with_name(output.name + ".journal")
-    if args.resume and not journal_path.exists():
-        raise ValueError(f"--resume: no journal {journal_path} to resume (run without --resume "
-                        "to start the campaign)")
-    if not args.resume and journal_path.exists():
-        raise ValueError(f"{journal_path} exists: continue that campaign with --resume, or "
-                        "remove the journal (or choose another output) to start anew")
+    journal_path = journal_file(output, args.journal, args.resume)
     if args.instruments == "serial":
         from deltatwin.hw.ports import load_ports
         ports = load_ports(args.ports)
-    if not args.quiet:
-        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     twin, plan = sc.build(scale)
     header = journal_header(sc, 1.0 if scale is None else float(scale), len(plan),

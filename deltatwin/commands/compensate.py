@@ -16,7 +16,6 @@ its calibration data (``--data``; a physics model names its own).
 from __future__ import annotations
 
 import hashlib
-import logging
 import sys
 import time
 from pathlib import Path
@@ -181,6 +180,8 @@ def run(args) -> int:
         raise ValueError(f"--after-h must be >= 0 hours, got {args.after_h}")
     if args.view is not None:
         check_writable(args.view)
+    from deltatwin.twin.journal import journal_path as journal_file
+
     t0 = time.perf_counter()
     sc = Scenario.load(args.scenario)
     comp = load_compensator(args.model)
@@ -192,17 +193,10 @@ def run(args) -> int:
         data = None
     cal_df, cal_meta = read_dataset(data) if data is not None else (None, None)
     output = args.output or Path(f"{sc.name}-compensated.parquet")
-    journal_path = args.journal or output.with_name(output.name + ".journal")
-    if args.resume and not journal_path.exists():
-        raise ValueError(f"--resume: no journal {journal_path} to resume")
-    if not args.resume and journal_path.exists():
-        raise ValueError(f"{journal_path} exists: continue that run with --resume, or remove "
-                         "the journal (or choose another output) to start anew")
+    journal_path = journal_file(output, args.journal, args.resume)
     if args.instruments == "serial":
         from deltatwin.hw.ports import load_ports
         ports = load_ports(args.ports)
-    if not args.quiet:
-        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     seed = sc.seed if args.seed is None else args.seed
     rng = np.random.default_rng(seed)

@@ -221,7 +221,7 @@ def test_refusals(tmp_path, capsys):
     out = tmp_path / "run.parquet"
     assert main([*campaign_cmd(out, FAULT_SCALE), "--instruments", "sim"]) == 0
     assert main([*campaign_cmd(out, FAULT_SCALE), "--instruments", "sim"]) == 2
-    assert "run.parquet.journal exists: continue that campaign with --resume" in \
+    assert "run.parquet.journal exists: continue that run with --resume" in \
         capsys.readouterr().err
     assert main([*campaign_cmd(out, FAULT_SCALE, "--resume", "--seed", "2"),
                  "--instruments", "sim"]) == 2
