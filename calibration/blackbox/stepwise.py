@@ -327,13 +327,19 @@ def _stepcalc(Rc, ry, inm, N, tol, xsq, sstotal):
     return b, se, t, p, rmse, dfe, df0, aliased, ssresid, perfect
 
 
+# p-values this close (relative) are one tie: columns whose partial F tests are equal in exact
+# arithmetic (x6 = x2 + 2 x3 with x2 in the model) differ by rounding only, and which rounding
+# wins changes with the BLAS and numpy builds; MATLAB gives exact ties to the lowest index
+TIE_REL = 1e-9
+
+
 def _next_step(inm, keep, eligible, p, penter, premove):
     """MATLAB's ``stepnext``: (column, action) or (-1, '')."""
     out = np.flatnonzero(~inm & ~keep & eligible)
     if out.size:
         po = p[out]
         po = np.where(np.isnan(po), np.inf, po)
-        k = int(np.argmin(po))          # first minimum = lowest index on ties
+        k = int(np.argmax(po <= po.min() * (1 + TIE_REL)))   # lowest index among the tied
         if po[k] < penter:
             return int(out[k]), "add"
     tin = np.flatnonzero(inm & ~keep)
@@ -342,7 +348,7 @@ def _next_step(inm, keep, eligible, p, penter, premove):
         nan = np.flatnonzero(np.isnan(pin))
         if nan.size:
             return int(tin[nan[0]]), "remove"
-        k = int(np.argmax(pin))         # first maximum = lowest index on ties
+        k = int(np.argmax(pin >= pin.max() * (1 - TIE_REL)))  # lowest index among the tied
         if pin[k] > premove:
             return int(tin[k]), "remove"
     return -1, ""
