@@ -23,6 +23,7 @@ from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES, cosine_correcti
 from deltatwin.twin.instruments.simulated import (
     InstrumentSettings,
     SimulatedLab,
+    air_sensor_readings,
     autocollimator_values,
     interferometer_values,
     scan_temperatures,
@@ -102,9 +103,11 @@ def force_plan(stroke, cal_levels: int, val_levels: int, forces_N, force_per_A: 
 
 
 def _rows(plan: Plan, t_s, ifm, ifm_std, ac, T, sensors, zero_ac, cosine: bool,
-          dead_path: dict) -> pd.DataFrame:
+          dead_path: dict, air: dict | None = None) -> pd.DataFrame:
     """Dataset rows from per-point arrays: ifm (N, readings, 3 axes; NaN where not measured),
-    ac (N, readings, 4), T (N, n_sensors); zero_ac (N,4) the session zero's angles."""
+    ac (N, readings, 4), T (N, n_sensors); zero_ac (N,4) the session zero's angles; ``air``
+    the barometer's and hygrometer's records ({"p_Pa": (N,), "RH_pct": (N,)}, those the
+    laboratory has)."""
     df = pd.DataFrame({"t_s": t_s, "pos_id": plan.pos_id.astype(np.int64), "split": plan.split,
                        "session": np.array([plan.sessions[k][0] for k in plan.session]),
                        "q1_rad": plan.q[:, 0], "q2_rad": plan.q[:, 1], "q3_rad": plan.q[:, 2]})
@@ -125,6 +128,8 @@ def _rows(plan: Plan, t_s, ifm, ifm_std, ac, T, sensors, zero_ac, cosine: bool,
             df[f"{a}_repeat_std_nm"] = np.std(x, axis=1, ddof=1) * 1e9
     for j, name in enumerate(sensors):
         df[f"T_{name}_C"] = T[:, j]
+    for column, values in (air or {}).items():
+        df[column] = values
     for i in range(3):
         df[f"coil{i + 1}_A"] = plan.currents_A[:, i]
     df["F_N"] = plan.F_N
@@ -276,6 +281,10 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
         point = {"pos_id": int(plan.pos_id[k]), "t_s": t_end, **zero, "rezero": bool(rezero),
                  "ifm_m": ifm, "ifm_std_m": ifm_std, "ac_rad": ac,
                  "T_C": [scan.temperatures_C[s] for s in sensors]}
+        if inst.barometer is not None:
+            point["p_Pa"] = inst.barometer.read().pressure_Pa
+        if inst.hygrometer is not None:
+            point["RH_pct"] = inst.hygrometer.read().humidity_pct
         if controller is not None:
             point.update(q_cmd_rad=q_k, control=control)
         if k in done:                             # replay: the rebuilt world must agree
@@ -294,8 +303,9 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
     arr = lambda key: np.array([p[key] for p in pts], dtype=np.float64)
     if controller is not None:
         plan = dataclasses.replace(plan, q=arr("q_cmd_rad"))
+    air = {c: arr(c) for c in ("p_Pa", "RH_pct") if all(c in p for p in pts)}
     return _rows(plan, arr("t_s"), arr("ifm_m"), arr("ifm_std_m"), arr("ac_rad"), arr("T_C"),
-                 sensors, arr("zero_ac_rad"), cosine, dead_path)
+                 sensors, arr("zero_ac_rad"), cosine, dead_path, air)
 
 
 def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosine: bool,
@@ -407,6 +417,7 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
     ac_noise = lab.ac_bank.take(0, ac_reads)[ac_rows.reshape(-1)]
     scan_k = np.floor(t_s / s.scan_period_s).astype(int)
     T = scan_temperatures(twin, s, lab.T_bank, lab.sensors, scan_k)
+    air = air_sensor_readings(twin, s, lab.air_bank, scan_k)
 
     def dataset(noise, ac_noise, zero_ac, s, truth_mid=truth_mid, zero_path=zero_path):
         ifm = np.full((n, R, 3), np.nan)
@@ -425,7 +436,7 @@ def simulate_campaign(plan: Plan, twin: Twin, settings: InstrumentSettings, cosi
             flat_std[np.ix_(m, cols)] = stds
         ang, _ = autocollimator_values(truth_ac, ac_noise, s)
         return _rows(plan, t_s, ifm, ifm_std, ang.reshape(n, R, 4), T, lab.sensors, zero_ac,
-                     cosine, dead_path)
+                     cosine, dead_path, air)
 
     df = dataset(noise, ac_noise, zero_ac, s)
     if not noise_free:

@@ -25,13 +25,16 @@ METADATA_KEY = b"deltatwin"
 REQUIRED_COLUMNS = ("t_s", "pos_id", "split", "q1_rad", "q2_rad", "q3_rad")
 AXES = ("x", "y", "z")
 SPLITS = ("cal", "val")
-_UNIT_SUFFIX = re.compile(r"_(s|rad|nm|arcsec|C|A|N|m|K|Pa)$")
+_UNIT_SUFFIX = re.compile(r"_(s|rad|nm|arcsec|C|A|N|m|K|Pa|pct)$")
 # numeric columns of the format (docs/data-format.md): checked for numbers, plausible sizes
 _NUMERIC = re.compile(r"^([xyz]_nm|T_\w+_C|coil\d+_A|F_N|ac\d+_r[xyz]_arcsec|p_Pa|RH_pct|"
                       r"std_[xyz]_nm|t_s|q[123]_rad)$")
 _AXIS_LIKE = re.compile(r"^[xyz]_(?!nm$)[A-Za-z]+$")     # x_um, y_mm: a reading in another unit
 PLAUSIBLE_ABS = {"nm": 1e9, "C": 1000.0, "A": 100.0, "N": 1e4, "arcsec": 1e6, "rad": 10.0,
-                 "Pa": 1e7, "s": 1e10}                  # |value| above: not a measurement
+                 "Pa": 1e7, "s": 1e10, "pct": 100.0}    # |value| above: not a measurement
+# the laboratory air's records: a barometric pressure (absolute, Pa) and a relative humidity (%)
+AIR_RANGES = {"p_Pa": (50e3, 120e3, "an absolute barometric pressure in pascal (hPa x 100)"),
+              "RH_pct": (0.0, 100.0, "a relative humidity in percent")}
 
 
 class DatasetError(ValueError):
@@ -95,6 +98,13 @@ def validate(df: pd.DataFrame, where: str = "dataset") -> None:
             raise DatasetError(f"{where}: column '{c}' at row(s) {bad[:10].tolist()}: "
                                f"{col[bad[0]]!r} is not a plausible value in {unit} (|value| <= "
                                f"{limit:g}; an empty cell means not measured)")
+    for c, (lo, hi, what) in AIR_RANGES.items():
+        if c in df.columns:
+            col = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
+            bad = np.flatnonzero(np.isfinite(col) & ((col < lo) | (col > hi)))
+            if bad.size:
+                raise DatasetError(f"{where}: column '{c}' at row(s) {bad[:10].tolist()}: "
+                                   f"{col[bad[0]]!r} is not {what} ({lo:g} .. {hi:g})")
     dup = df.duplicated()
     if dup.any():
         rows = np.flatnonzero(dup.to_numpy())

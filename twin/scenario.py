@@ -195,8 +195,13 @@ class Scenario:
             raise ScenarioError(f"{f} [instruments] cosine_correction: expected true or false")
         fields = {fl.name: fl for fl in dataclasses.fields(InstrumentSettings)}
         _check_keys(f"{f} [instruments]", inst, fields)
+        switches = {k: inst.pop(k) for k in InstrumentSettings.SWITCHES if k in inst}
+        for k, v in switches.items():
+            if not isinstance(v, bool):
+                raise ScenarioError(f"{f} [instruments] {k} = {v!r}: expected true (the "
+                                    "laboratory records it) or false")
         ranges = InstrumentSettings.RANGES
-        settings = InstrumentSettings(**{
+        settings = InstrumentSettings(**switches, **{
             k: _number(f"{f} [instruments] {k}", v, ranges[k][0], fields[k].type == "int",
                        ranges[k][1], above=not ranges[k][2])
             for k, v in inst.items()})

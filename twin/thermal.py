@@ -80,6 +80,7 @@ class Inputs:
     supports_C: dict[str, np.ndarray] = field(default_factory=dict)
     power_W: dict[str, np.ndarray] = field(default_factory=dict)
     pressure_Pa: np.ndarray | None = None     # barometric pressure (not a network input)
+    vapour_Pa: np.ndarray | None = None       # water-vapour partial pressure (not an input)
 
 
 class ThermalNetwork:

@@ -27,14 +27,21 @@ from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import Pose, forward
 from deltatwin.models.params import RobotParams
 from deltatwin.twin.effects import Effect
-from deltatwin.twin.instruments.optics import AXES, Optics, autocollimator_angles, optical_path
+from deltatwin.twin.instruments.optics import (
+    AXES,
+    Optics,
+    autocollimator_angles,
+    optical_path,
+    saturation_vapour_pressure,
+)
 from deltatwin.twin.noise import NoiseBank
 from deltatwin.twin.statics import Statics
 from deltatwin.twin.thermal import GRID_S, SUPPORTS, Inputs, ThermalNetwork, sensor_set
 
 # a new stream goes at the end: a child's draws depend only on its position
 STREAMS = ("robot", "environment", "interferometers", "autocollimators", "thermometers",
-           "campaign", "servo")
+           "campaign", "servo", "air_sensors")
+STANDARD_VAPOUR_PA = 1000.0    # the air's water vapour when no climate sets it (43 % RH at 20 degC)
 COMPENSATION_SENSORS = {f"comp_{a}": f"air_{a}" for a in AXES}
 
 
@@ -118,6 +125,9 @@ class Points:
     pose: Pose | None = None     # kinematic pose, set by the twin before the load stage
     # a model fitted to measurements: sensor name -> (part, smoothed reading degC, rate K/s)
     sensor_readings: dict | None = None
+    # the air's water-vapour partial pressure (Pa); None in a model without a humidity record
+    # (the air is then taken at the humidity the interferometers assume)
+    vapour_Pa: np.ndarray | None = None
     _unique_q: tuple | None = field(default=None, repr=False)
 
     def unique_q(self) -> tuple[np.ndarray, np.ndarray]:
@@ -177,7 +187,8 @@ class Twin:
         T_ref = params.reference_temperature_C
         self.env = Inputs(t_grid=t_grid, room_C=np.full(t_grid.size, T_ref),
                           supports_C={s: np.full(t_grid.size, T_ref) for s in SUPPORTS},
-                          pressure_Pa=np.full(t_grid.size, 101325.0))
+                          pressure_Pa=np.full(t_grid.size, 101325.0),
+                          vapour_Pa=np.full(t_grid.size, STANDARD_VAPOUR_PA))
         for e in self.effects:
             e.environment(self.env, self.rng["environment"])
         self.t_grid = t_grid
@@ -245,7 +256,20 @@ class Twin:
                       currents_A=np.atleast_2d(currents_A).astype(np.float64), node_T=node_T,
                       room_C=env(self.env.room_C), pressure_Pa=env(self.env.pressure_Pa),
                       support_C=support_C, params=self.params, home_p=self.home_p,
-                      move_direction=self.schedule.move_direction(t_s))
+                      move_direction=self.schedule.move_direction(t_s),
+                      vapour_Pa=env(self.env.vapour_Pa))
+
+    def air(self, t_s) -> dict[str, np.ndarray]:
+        """The laboratory air at times ``t_s``: barometric pressure (Pa), water-vapour partial
+        pressure (Pa) and the relative humidity (%) it makes at the beams' mean air temperature
+        (where a hygrometer by the beams measures it)."""
+        t_s = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        env = lambda arr: np.interp(t_s, self.t_grid, arr)
+        T = self.node_temperatures(t_s)
+        beams_C = np.mean([T[f"air_{a}"] for a in AXES], axis=0)
+        vapour = env(self.env.vapour_Pa)
+        return {"pressure_Pa": env(self.env.pressure_Pa), "vapour_Pa": vapour,
+                "humidity_pct": 100.0 * vapour / saturation_vapour_pressure(beams_C)}
 
     # -- geometry, load, optics ---------------------------------------------------------------
     def truth(self, pts: Points) -> Truth:

@@ -14,7 +14,13 @@ from deltatwin.models.params import RobotParams
 from deltatwin.twin.campaign import COSINE_ANGLES
 from deltatwin.twin.dataset import temperature_columns
 from deltatwin.twin.effects import effect_class
-from deltatwin.twin.instruments.optics import AXES, cosine_correction, cosine_factor, nominal_dead_path
+from deltatwin.twin.instruments.optics import (
+    AXES,
+    cosine_correction,
+    cosine_factor,
+    nominal_dead_path,
+    vapour_pressure,
+)
 from deltatwin.twin.statics import Statics
 from deltatwin.twin.thermal import PART_NODES
 from deltatwin.twin.world import Points
@@ -238,7 +244,17 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
     streams = sensor_streams(df, sensors, where=where)
     node_T = node_temperatures({k: v[1] for k, v in streams.items()}, sensors, T_ref, n)
     room = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
+    # the laboratory's barometer and hygrometer, when it records them (the air_refraction
+    # effect's air); without a record the air is taken at what the interferometers assume
+    for c in ("p_Pa", "RH_pct"):
+        if c in df and not np.all(np.isfinite(df[c].to_numpy(dtype=np.float64))):
+            bad = np.flatnonzero(~np.isfinite(df[c].to_numpy(dtype=np.float64)))
+            raise CalibrationInputError(f"{where}: column '{c}' is empty at row(s) "
+                                        f"{bad[:10].tolist()}: the air record must cover every "
+                                        "row (or drop the column: the air is then unrecorded)")
     pressure = df["p_Pa"].to_numpy(dtype=np.float64) if "p_Pa" in df else np.full(n, 101325.0)
+    vapour = (vapour_pressure(df["RH_pct"].to_numpy(dtype=np.float64), room)
+              if "RH_pct" in df else None)
     t_s = df["t_s"].to_numpy(dtype=np.float64)
     # each session's zero: the robot at home with the coils off, in the conditions of the
     # session's first row (the zero is taken just before it)
@@ -251,6 +267,7 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
     pts = Points(t_s=with_zeros(t_s), q=np.concatenate([q, np.zeros((first.size, 3))]),
                  currents_A=np.concatenate([currents, np.zeros((first.size, 3))]),
                  node_T=node_T, room_C=with_zeros(room), pressure_Pa=with_zeros(pressure),
+                 vapour_Pa=None if vapour is None else with_zeros(vapour),
                  support_C={a: node_T["table"] for a in AXES}, params=params,
                  home_p=np.zeros(3),
                  sensor_readings={k: (part, with_zeros(T), with_zeros(r))

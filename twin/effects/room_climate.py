@@ -1,5 +1,5 @@
 """The laboratory's air: air conditioning, then the room's free day/night oscillation; the
-barometric pressure."""
+barometric pressure and humidity."""
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +22,8 @@ class RoomClimate(Effect):
     name = "room_climate"
     summary = ("Air conditioning holds the room at its set point until it is switched off; the "
                "room then drifts to its free level with a day/night swing and a random slow "
-               "wander (first-order room air); the pressure wanders around its mean.")
+               "wander (first-order room air); the pressure and the air's water vapour wander around "
+               "their means.")
     parameters = (
         Parameter("ac_setpoint_C", "degC", 20.0, "air-conditioning set point"),
         Parameter("ac_off_s", "s", -3600.0, "time the air conditioning is switched off "
@@ -36,6 +37,11 @@ class RoomClimate(Effect):
         Parameter("pressure_mean_Pa", "Pa", 101325.0, "mean barometric pressure", 0.0),
         Parameter("pressure_std_Pa", "Pa", 80.0, "std of the barometric wander", 0.0),
         Parameter("pressure_time_s", "s", 86400.0, "correlation time of the pressure", 1.0),
+        Parameter("vapour_mean_Pa", "Pa", 1000.0, "mean water-vapour partial pressure (43 % "
+                  "relative humidity at 20 degC)", 0.0),
+        Parameter("vapour_std_Pa", "Pa", 0.0, "std of the water vapour's wander (a closed "
+                  "laboratory's few %RH: ~50 Pa)", 0.0),
+        Parameter("vapour_time_s", "s", 6 * 3600.0, "correlation time of the water vapour", 1.0),
     )
 
     def environment(self, env, rng):
@@ -50,3 +56,8 @@ class RoomClimate(Effect):
         env.room_C = lfilter([1 - a], [1.0, -a], target, zi=[a * target[0]])[0]
         env.pressure_Pa = self.pressure_mean_Pa + ornstein_uhlenbeck(
             rng, t, self.pressure_std_Pa, self.pressure_time_s)
+        # the vapour's draws come from a child of the stream (spawning does not advance it):
+        # the effects drawing after this one keep the draws they had before it was added
+        env.vapour_Pa = self.vapour_mean_Pa + (ornstein_uhlenbeck(
+            rng.spawn(1)[0], t, self.vapour_std_Pa, self.vapour_time_s)
+            if self.vapour_std_Pa > 0 else np.zeros(t.size))

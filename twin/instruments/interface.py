@@ -8,7 +8,8 @@ Failures are exceptions that carry the instrument's name and its own reason (err
 text when the instrument gives one), never silent NaNs; a reading outside an instrument's range
 is reported as such in the reading, not clipped.
 
-Units: SI (m, rad, s, degC for temperatures, A). Readings are relative to the instrument's zero.
+Units: SI (m, rad, s, degC for temperatures, A, Pa); relative humidity in % (its instruments'
+own unit). Interferometer readings are relative to the instrument's zero.
 """
 from __future__ import annotations
 
@@ -60,6 +61,22 @@ class TemperatureScan:
     """Temperatures (degC) by sensor name, from the scan completed at ``t_s``."""
     t_s: float
     temperatures_C: dict[str, float]
+
+
+@dataclass(frozen=True)
+class PressureReading:
+    """Barometric pressure (Pa, absolute) of the laboratory air, from the barometer's latest
+    completed measurement at ``t_s``."""
+    t_s: float
+    pressure_Pa: float
+
+
+@dataclass(frozen=True)
+class HumidityReading:
+    """Relative humidity (%, over water) of the air by the beams, from the hygrometer's latest
+    completed measurement at ``t_s``."""
+    t_s: float
+    humidity_pct: float
 
 
 class Clock(ABC):
@@ -129,9 +146,26 @@ class CoilSupply(ABC):
         """Measured coil currents (A), (n_coils,)."""
 
 
+class Barometer(ABC):
+    """What an interferometer's air compensation needs beyond the air temperature: the
+    pressure (a lab without one, as in the papers, leaves its wander unrecorded)."""
+    name = "barometer"
+
+    @abstractmethod
+    def read(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> PressureReading: ...
+
+
+class Hygrometer(ABC):
+    name = "hygrometer"
+
+    @abstractmethod
+    def read(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> HumidityReading: ...
+
+
 @dataclass
 class InstrumentSet:
-    """Everything a campaign talks to. ``coils`` is None where no force simulator is fitted."""
+    """Everything a campaign talks to. ``coils`` is None where no force simulator is fitted,
+    ``barometer`` and ``hygrometer`` where the laboratory records no pressure or humidity."""
     clock: Clock
     robot: Robot
     interferometers: Interferometers
@@ -139,10 +173,12 @@ class InstrumentSet:
     thermometers: ThermometerScanner
     coils: CoilSupply | None = None
     extra: dict = field(default_factory=dict)
+    barometer: Barometer | None = None
+    hygrometer: Hygrometer | None = None
 
     def close(self) -> None:
         for inst in (self.robot, self.interferometers, self.autocollimators,
-                     self.thermometers, self.coils):
+                     self.thermometers, self.coils, self.barometer, self.hygrometer):
             close = getattr(inst, "close", None)
             if close is not None:
                 close()

@@ -107,6 +107,18 @@ def autocollimator_angles(R: np.ndarray) -> dict[str, np.ndarray]:
             "ac2_rx": np.arctan2(-ny[:, 2], -ny[:, 1]), "ac2_rz": np.arctan2(ny[:, 0], -ny[:, 1])}
 
 
+def saturation_vapour_pressure(T_C):
+    """Saturation vapour pressure over water (Pa) at T (degC): the CIPM-2007 air-density
+    formula's (Davis 1992), as Ciddor's and the NIST air-index calculator use it."""
+    T = np.asarray(T_C, dtype=np.float64) + 273.15
+    return np.exp(1.2378847e-5 * T ** 2 - 1.9121316e-2 * T + 33.93711047 - 6.3431645e3 / T)
+
+
+def vapour_pressure(humidity_pct, T_C):
+    """Water-vapour partial pressure (Pa) of air at relative humidity (%) and T (degC)."""
+    return np.asarray(humidity_pct, dtype=np.float64) / 100.0 * saturation_vapour_pressure(T_C)
+
+
 def air_index(T_C, p_Pa, vapour_Pa, wavelength_m: float = 632.99e-9):
     """Refractive index of air: Edlén (1966) as revised by Birch & Downs (1993, 1994).
     T in degC, total pressure and water-vapour partial pressure in Pa, vacuum wavelength in m."""

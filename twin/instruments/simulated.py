@@ -11,7 +11,15 @@ Instrument models (``InstrumentSettings``):
   the window's sample std is the acceptance statistic; resolution 1.24 nm;
 * autocollimators: face tilts + noise, 0.02 arcsec resolution, out of range flagged;
 * thermometers: PT100 sensor nodes of the thermal network (lag, missed gradients) scanned every
-  period, + noise, resolution; a scan returns the latest completed one.
+  period, + noise, resolution; a scan returns the latest completed one;
+* barometer and hygrometer (only where the scenario's laboratory has them: ``barometer``,
+  ``hygrometer``; the papers' had neither): the room's pressure and the relative humidity of the
+  air by the beams (the water vapour of the room over the saturation pressure at the beams' mean
+  air temperature) + noise, resolution, measured with every temperature scan (same timing).
+  Defaults from a Vaisala PTB330 class A barometer (resolution 0.1 Pa; repeatability +-3 Pa,
+  read as 2 sigma: 1.5 Pa std; its +-10 Pa accuracy is an offset, second order for a reading
+  relative to its zero) and a Vaisala HMT330 hygrometer (resolution 0.1 %RH; +-1 %RH accuracy,
+  an offset likewise; 0.2 %RH short-term noise).
 """
 from __future__ import annotations
 
@@ -23,12 +31,16 @@ import numpy as np
 from deltatwin.twin.instruments.interface import (
     AngleReading,
     Autocollimators,
+    Barometer,
     Clock,
     CoilSupply,
+    HumidityReading,
+    Hygrometer,
     InstrumentError,
     InstrumentSet,
     InterferometerReading,
     Interferometers,
+    PressureReading,
     Robot,
     TemperatureScan,
     ThermometerScanner,
@@ -64,6 +76,12 @@ class InstrumentSettings:
     wait_s: float = 5.0                   # the papers' wait after a move
     overhead_s: float = 1.5               # logging, correction, temperature read-out per point
     session_gap_s: float = 1800.0         # re-arranging the optics between sessions
+    barometer: bool = False               # the laboratory records the pressure (papers: no)
+    barometer_noise_Pa: float = 1.5
+    barometer_resolution_Pa: float = 0.1
+    hygrometer: bool = False              # the laboratory records the humidity (papers: no)
+    hygrometer_noise_pct: float = 0.2
+    hygrometer_resolution_pct: float = 0.1
 
     # the physically meaningful range of each setting: (lowest, highest, lowest allowed itself);
     # a scenario outside it is refused (a zero speed divides by zero, a zero range reads NaN,
@@ -81,7 +99,10 @@ class InstrumentSettings:
         "speed_rad_s": (0.0, 10.0, False), "coil_settle_s": (0.0, 600.0, True),
         "wait_s": (0.0, 3600.0, True), "overhead_s": (0.0, 600.0, True),
         "session_gap_s": (0.0, 7 * 86400.0, True),
+        "barometer_noise_Pa": (0.0, 1000.0, True), "barometer_resolution_Pa": (0.0, 1000.0, True),
+        "hygrometer_noise_pct": (0.0, 20.0, True), "hygrometer_resolution_pct": (0.0, 20.0, True),
     }
+    SWITCHES: ClassVar[tuple] = ("barometer", "hygrometer")   # true / false in a scenario
 
     def move_time(self, dq) -> float:
         return self.move_base_s + float(np.max(np.abs(dq))) / self.speed_rad_s
@@ -121,6 +142,30 @@ def thermometer_bank(rng, s: InstrumentSettings, n_sensors: int) -> NoiseBank:
     return NoiseBank(rng, lambda g, n: s.T_noise_C * g.standard_normal((n, n_sensors)))
 
 
+def air_sensor_bank(rng, s: InstrumentSettings) -> NoiseBank:
+    """Per scan: the barometer's (Pa) and the hygrometer's (%RH) noise."""
+    return NoiseBank(rng, lambda g, n: g.standard_normal((n, 2))
+                     * [s.barometer_noise_Pa, s.hygrometer_noise_pct])
+
+
+def air_sensor_readings(twin: Twin, s: InstrumentSettings, bank: NoiseBank, scan_index) -> dict:
+    """The laboratory's air records at the scans ``scan_index`` (n,), taken with the temperature
+    scans: ``{"p_Pa": (n,), "RH_pct": (n,)}``, each present where the laboratory has its
+    instrument (empty without a barometer or hygrometer)."""
+    scan_index = np.asarray(scan_index)
+    out = {}
+    if not (s.barometer or s.hygrometer):
+        return out
+    t = scan_index * s.scan_period_s
+    noise = bank.take(0, int(scan_index.max()) + 1)[scan_index]
+    air = twin.air(t)
+    if s.barometer:
+        out["p_Pa"] = quantize(air["pressure_Pa"] + noise[:, 0], s.barometer_resolution_Pa)
+    if s.hygrometer:
+        out["RH_pct"] = quantize(air["humidity_pct"] + noise[:, 1], s.hygrometer_resolution_pct)
+    return out
+
+
 def interferometer_values(optical_path_m, n_comp, zero_path, axes, noise_row,
                           s: InstrumentSettings):
     """Displacements (n, len(axes)) m and window stds from the optical paths and compensation
@@ -155,6 +200,7 @@ class SimulatedLab:
         self.ac_bank = autocollimator_bank(twin.rng["autocollimators"], settings)
         self.sensors = tuple(twin.sensors)
         self.T_bank = thermometer_bank(twin.rng["thermometers"], settings, len(self.sensors))
+        self.air_bank = air_sensor_bank(twin.rng["air_sensors"], settings)
         self.windows = 0
         self.ac_reads = 0
         self.zero_path = {a: 0.0 for a in AXES}
@@ -167,7 +213,16 @@ class SimulatedLab:
         return InstrumentSet(clock=SimClock(self), robot=SimRobot(self),
                              interferometers=SimInterferometers(self),
                              autocollimators=SimAutocollimators(self),
-                             thermometers=SimThermometers(self), coils=SimCoils(self))
+                             thermometers=SimThermometers(self), coils=SimCoils(self),
+                             barometer=SimBarometer(self) if self.s.barometer else None,
+                             hygrometer=SimHygrometer(self) if self.s.hygrometer else None)
+
+    def air_record(self, column: str) -> tuple[float, float]:
+        """(time of the latest completed scan, its air record ``column``)."""
+        k = int(np.floor(self.t / self.s.scan_period_s))
+        self.twin.advance(self.t, self.schedule)
+        return k * self.s.scan_period_s, float(
+            air_sensor_readings(self.twin, self.s, self.air_bank, np.array([k]))[column][0])
 
 
 class SimClock(Clock):
@@ -263,6 +318,22 @@ class SimThermometers(ThermometerScanner):
         T = scan_temperatures(lab.twin, lab.s, lab.T_bank, self.sensors, np.array([k]))[0]
         return TemperatureScan(t_s=k * lab.s.scan_period_s,
                                temperatures_C={n: float(v) for n, v in zip(self.sensors, T)})
+
+
+class SimBarometer(Barometer):
+    def __init__(self, lab):
+        self.lab = lab
+
+    def read(self, timeout_s=30.0):
+        return PressureReading(*self.lab.air_record("p_Pa"))
+
+
+class SimHygrometer(Hygrometer):
+    def __init__(self, lab):
+        self.lab = lab
+
+    def read(self, timeout_s=30.0):
+        return HumidityReading(*self.lab.air_record("RH_pct"))
 
 
 class SimCoils(CoilSupply):
