@@ -50,6 +50,11 @@ CASES = {
     "future format": (None, lambda p: p.with_suffix(".meta.json").write_text(
         json.dumps({"format_version": 99})), "format_version"),
     "missing column": (lambda df: df.drop(columns=["q2_rad"]), None, "q2_rad"),
+    "pressure in hPa": (lambda df: df.assign(p_Pa=1013.25), None, "p_Pa"),
+    "humidity above 100 %": (lambda df: df.assign(RH_pct=42.0 + 100.0 * (df.index == 3)), None,
+                             "RH_pct"),
+    "humidity as text": (lambda df: df.assign(RH_pct=np.where(df.index == 1, "45 %", "45")),
+                         None, "RH_pct"),
 }
 
 

@@ -165,3 +165,27 @@ def test_interferometer_noise_statistics_match_their_textbook_values():
     offset = np.random.default_rng(4).uniform(0, 1e-6, rows.shape[0])  # true paths, anywhere
     err = quantize(offset, s.resolution_m) - offset
     assert np.var(err) == pytest.approx(s.resolution_m ** 2 / 12, rel=0.01)
+
+
+def test_saturation_vapour_pressure_and_humidity_index_against_independent_references():
+    """The hygrometer's relative humidity becomes water vapour through the CIPM-2007 (Davis)
+    saturation pressure; checked against IAPWS (Wagner & Pruss 1993, a different formula:
+    2339.2 Pa at 20 degC) to 5e-4 relative over 15-30 degC, and the index from a relative
+    humidity against Ciddor (above) to 2e-8 over 18-26 degC, 0-80 %RH (the reference's 50 %
+    at 20 degC is its 1169 Pa)."""
+    from deltatwin.twin.instruments.optics import saturation_vapour_pressure, vapour_pressure
+
+    T = np.linspace(15.0, 30.0, 31) + 273.15
+    tau = 1.0 - T / 647.096
+    a = (-7.85951783, 1.84408259, -11.7866497, 22.6807411, -15.9618719, 1.80122502)
+    iapws = 22.064e6 * np.exp(647.096 / T * (a[0] * tau + a[1] * tau ** 1.5 + a[2] * tau ** 3
+                                              + a[3] * tau ** 3.5 + a[4] * tau ** 4
+                                              + a[5] * tau ** 7.5))
+    assert iapws[10] == pytest.approx(2339.2, abs=0.2)
+    assert np.abs(saturation_vapour_pressure(T - 273.15) / iapws - 1).max() < 5e-4
+    assert vapour_pressure(50.0, 20.0) == pytest.approx(1169.0, abs=1.0)
+    wl = 632.99e-9
+    T_C, rh = np.meshgrid(np.linspace(18, 26, 9), np.linspace(0, 80, 9), indexing="ij")
+    pv = vapour_pressure(rh, T_C)
+    diff = air_index(T_C, 101325.0, pv, wl) - ciddor_index(wl, T_C, 101325.0, pv)
+    assert np.abs(diff).max() < 2e-8
