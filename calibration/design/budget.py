@@ -14,11 +14,15 @@ source that matters only in a corner of the workspace counts as much as it cover
 * Interferometer: the readings' standard deviation (the validation readings carry it).
 * Thermometers: each sensor's reading uncertainty ``T_u_K`` through its lever (the model's
   prediction with that column shifted, a first-order difference), independent sensors.
-* Unrecorded pressure: an air pressure ``pressure_u_Pa`` off the one the interferometers assume
-  (the air_refraction effect's assumed_pressure_Pa shifted).
+* Pressure: the air's pressure at each reading ``pressure_u_Pa`` off the one at its session's
+  zero (the air_refraction effect's index change times the dead path: what an unrecorded
+  wander, or a barometer's noise, leaves; a constant offset of every reading and of the zero
+  would only scale the displacement).
 * Servo settling: each motor's settled angle off by ``servo_u_rad``, independent motors.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pandas as pd
@@ -75,10 +79,12 @@ def _shifted(fit: PhysicsFit, df: pd.DataFrame, meta: dict, column: str, step: f
 
 
 def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_m: float,
-                       T_u_K: float, servo_u_rad: float, pressure_u_Pa: float) -> pd.DataFrame:
+                       T_u_K: float, servo_u_rad: float, pressure_u_Pa: float,
+                       per_sensor: bool = False) -> pd.DataFrame:
     """The budget table: one row per source (``kind``: parameters / noise), its standard
     uncertainty's 90 % figure over the workspace per axis and pooled (nm), and its share of the
-    combined variance. ``df``/``meta``: the dataset ``fit`` was fitted to."""
+    combined variance. ``df``/``meta``: the dataset ``fit`` was fitted to. ``per_sensor``: one
+    thermometer row per sensor with a lever (``kind`` thermometer) besides their sum."""
     meas = fit.measurements_
     read = meas.group >= 0
     rows = []
@@ -100,22 +106,24 @@ def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_
         u_T = np.sqrt(sum((lever[c] * T_u_K) ** 2 for c in used))
         noise.append(("noise", f"thermometers ({len(used)} with a lever, {T_u_K * 1e3:g} mK each)",
                       u_T))
+    by_sensor = [("thermometer", f"{c} ({T_u_K * 1e3:g} mK)", np.abs(lever[c]) * T_u_K)
+                 for c in used] if per_sensor else []
     servo = np.sqrt(sum((_shifted(fit, df, meta, f"q{i}_rad", 1e-6) * servo_u_rad) ** 2
                         for i in (1, 2, 3)))
     noise.append(("noise", f"servo settling ({servo_u_rad:g} rad per motor)", servo))
     air = PhysicsModel(list(dict.fromkeys(fit.effects + ["air_refraction"])), fit.model_.params,
                        fit.model_.values())
-    p0 = air.theta()
     base = air.predict_path(meas)
-    vals = air.values()
-    vals["air_refraction"]["assumed_pressure_Pa"] = (
-        float(vals["air_refraction"]["assumed_pressure_Pa"]) + pressure_u_Pa)
-    moved = PhysicsModel(air.names, air.params, vals).predict_path(meas, p0)
-    noise.append(("noise", f"unrecorded pressure ({pressure_u_Pa:g} Pa)", np.abs(moved - base)))
+    pts = meas.points
+    readings = np.arange(pts.t_s.size) < len(df)     # the zero rows follow the readings
+    moved = air.predict_path(dataclasses.replace(meas, points=dataclasses.replace(
+        pts, pressure_Pa=pts.pressure_Pa + pressure_u_Pa * readings)))
+    noise.append(("noise", f"{'barometer' if 'p_Pa' in df else 'unrecorded pressure'} "
+                  f"({pressure_u_Pa:g} Pa)", np.abs(moved - base)))
     combined = np.sqrt(var_all + sum(u ** 2 for _, _, u in noise))
     table = []
     total_var = float(np.nanmean(np.where(read, combined ** 2, np.nan)))
-    for kind, name, u in rows + noise + [("combined", "all parameters (correlated) and noise",
+    for kind, name, u in rows + noise + by_sensor + [("combined", "all parameters (correlated) and noise",
                                           combined)]:
         f = _figures(np.where(read, u, np.nan), read)
         share = float(np.nanmean(np.where(read, u ** 2, np.nan))) / total_var

@@ -10,7 +10,7 @@ import pandas as pd
 from deltatwin.twin.dataset import temperature_columns
 
 OUTSIDE_FRACTION = 0.1   # flagged beyond 10 % of the calibration span past either end
-CONDITIONS = ("F_N", "coil1_A", "coil2_A", "coil3_A", "p_Pa", "humidity_pct")
+CONDITIONS = ("F_N", "coil1_A", "coil2_A", "coil3_A", "p_Pa", "RH_pct")
 
 
 def extrapolated_variables(df: pd.DataFrame) -> list[dict]:
