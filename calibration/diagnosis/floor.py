@@ -237,6 +237,29 @@ def record_achievable_floor(df, meta: dict, scenario=None, scale=None) -> dict:
     return floor["achievable_floor_nm"]
 
 
+def budget_lines(budget: dict | None) -> list[str]:
+    """The floor's budget as text lines (nm per axis per source, the biggest thermometers'
+    levers), for a command to print; [] without a budget."""
+    axes = [a for a in (*AXES, "all") if isinstance((budget or {}).get(a), dict)]
+    if not axes:
+        return []
+    sources = [k for k in budget[axes[0]] if k not in ("quadrature_sum_nm",
+                                                       "achievable_floor_nm")]
+    width = max(len(k) for k in [*sources, "quadrature_sum_nm"]) - 3
+    lines = ["what sets the achievable floor, nm (90 %) per axis:"]
+    lines.append(f"  {'source':<{width}}" + "".join(f"{a:>8}" for a in axes))
+    for k in [*sources, "quadrature_sum_nm", "achievable_floor_nm"]:
+        if all(k in budget[a] for a in axes):
+            lines.append(f"  {k[:-3]:<{width}}" + "".join(f"{budget[a][k]:8.1f}" for a in axes))
+    by_sensor = budget.get("thermometers_by_sensor_nm") or {}
+    top = sorted(by_sensor.items(), key=lambda kv: -max(kv[1].values(), default=0.0))[:4]
+    if top:
+        lines.append("  thermometers through their levers (first order), the largest: " + "; ".join(
+            f"{c} " + "/".join(f"{v:.1f}" for v in d.values()) for c, d in top)
+            + " nm (" + "/".join(next(iter(by_sensor.values())).keys()) + ")")
+    return lines
+
+
 def floor_of(meta: dict | None) -> tuple[dict | None, str]:
     """The floor a model is judged against, and its kind: the achievable floor when the data
     carry it, else the instrument (interferometer noise) floor, else none."""

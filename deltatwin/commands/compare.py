@@ -46,6 +46,8 @@ def _f(v, width=9, digits=1) -> str:
 
 def format_report(rep: dict) -> str:
     """Compact human-readable summary of a ``compare`` result."""
+    from deltatwin.calibration.diagnosis.floor import budget_lines
+
     m = rep["model"]
     name = ("physics model: " + ", ".join(m["effects"]) if m["kind"] == "physics"
             else f"DGM ({m['features']} features, outputs {','.join(m['outputs'])})")
@@ -61,6 +63,7 @@ def format_report(rep: dict) -> str:
     if isinstance(achievable, dict):
         lines.append("achievable floor (the twin's complete model refitted on these data): "
                      + ", ".join(f"{a} {v:.1f} nm" for a, v in achievable.items()))
+    lines.extend(budget_lines(rep.get("floor_budget_nm")))
     if rep.get("at_floor"):
         judged = rep["at_floor"]
         lines.append(f"at the {judged['kind']} floor (within {judged['factor']}x): "

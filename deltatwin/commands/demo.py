@@ -30,7 +30,11 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from deltatwin.calibration.diagnosis.diagnose import effect_ladder
-    from deltatwin.calibration.diagnosis.floor import AT_FLOOR, record_achievable_floor
+    from deltatwin.calibration.diagnosis.floor import (
+        AT_FLOOR,
+        budget_lines,
+        record_achievable_floor,
+    )
     from deltatwin.calibration.diagnosis.report import write_report
     from deltatwin.calibration.physics.model_file import fitted_toml
     from deltatwin.files import atomic_write_text
@@ -56,8 +60,10 @@ def run(args) -> int:
     df, meta = sc.simulate(None if args.scale == 1 else args.scale)
     data = out / "data.parquet"
     floor = meta["truth"]["noise_floor_nm"]
-    say("refitting the twin's complete model: the achievable floor")
-    achievable = record_achievable_floor(df, meta)
+    say("refitting the twin's complete model: the achievable floor, and once per source of it "
+        "(that source alone in the twin, the others perfect): its budget")
+    scale = None if args.scale == 1 else args.scale
+    achievable = record_achievable_floor(df, meta, sc, scale)
     write_dataset(df, meta, data)
     say(f"{len(df)} rows -> {data}; noise floor (interferometers) "
         + ", ".join(f"{k} {v:.1f}" for k, v in floor.items()) + " nm; achievable floor (the "
@@ -95,6 +101,7 @@ def run(args) -> int:
                "diagnosed_effect": diagnosed,
                "diagnosed_effects": [d["missing_effect"] for d in diagnoses if d["missing_effect"]],
                "noise_floor_nm": floor, "achievable_floor_nm": achievable,
+               "floor_budget_nm": meta["truth"]["floor_budget_nm"],
                "ladder": [{"model": r["model"], "effects": r["effects"],
                            "val_err90_nm": r["val_err90_nm"],
                            "at_floor": r["val_err90_nm"] <= AT_FLOOR * achievable["all"]}
@@ -113,6 +120,9 @@ def run(args) -> int:
           "(the interferometers alone)")
     print("  achievable floor: " + ", ".join(f"{k} {v:.1f}" for k, v in achievable.items())
           + f" nm (the twin's complete model refitted on these data; at the floor: within "
-          f"{AT_FLOOR}x)")
+          f"{AT_FLOOR}x). No model gets below it: the model reads the robot's conditions through "
+          "the lab's instruments, whose errors no effect can remove")
+    for line in budget_lines(meta["truth"]["floor_budget_nm"]):
+        print("  " + line)
     print(f"report: {report}" + (f"; recording: {recording}" if recording else ""))
     return 0

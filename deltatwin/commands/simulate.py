@@ -28,9 +28,9 @@ def run_simulate(args) -> int:
             df, meta = sc.simulate(scale)
         bar.update()
         if not args.no_floor:
-            bar.set_postfix_str("achievable floor")
+            bar.set_postfix_str("achievable floor and its budget")
             from deltatwin.calibration.diagnosis.floor import record_achievable_floor
-            record_achievable_floor(df, meta)
+            record_achievable_floor(df, meta, sc, scale)
         bar.update()
         bar.set_postfix_str("write")
         write_dataset(df, meta, args.output)
@@ -45,6 +45,9 @@ def run_simulate(args) -> int:
                                           meta["truth"]["achievable_floor_nm"].items()}
         summary["noise_floor_nm"] = {a: round(v, 1) for a, v in
                                      meta["truth"]["noise_floor_nm"].items()}
+        budget = meta["truth"]["floor_budget_nm"]
+        summary["floor_budget_nm"] = {a: {k: round(v, 1) for k, v in budget[a].items()}
+                                      for a in ("x", "y", "z", "all") if a in budget}
     T = df[[c for c in df.columns if c.startswith("T_")]].to_numpy()
     summary["temperature_range_C"] = [round(float(np.nanmin(T)), 3), round(float(np.nanmax(T)), 3)]
     print(strict_json(summary) if args.json else
@@ -83,7 +86,8 @@ def register(sub) -> None:
                    help="run point by point through the instrument interface (same data, slower)")
     p.add_argument("--no-floor", action="store_true",
                    help="do not refit the twin's complete model for the achievable floor "
-                        "(the floor a model is judged against; it costs one fit)")
+                        "(the floor a model is judged against) and its budget per source (one "
+                        "simulation and fit per source)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run_simulate)
     e = sub.add_parser("effects", help="list the physical effects and their parameters")

@@ -1,0 +1,79 @@
+"""The achievable floor's budget (issue 15): per source, nm per axis, measured in the twin by
+switching each source alone on and refitting the true model; it adds up in quadrature to the
+floor. For laboratory data, predicted from the instruments' specifications through a fitted
+model's sensitivities."""
+import numpy as np
+import pytest
+
+from deltatwin.calibration.diagnosis.floor import (
+    BUDGET_TOLERANCE,
+    REMAINDER,
+    budget_lines,
+    measured_floor_budget,
+    predicted_floor_budget,
+    true_fit,
+)
+from deltatwin.twin.instruments.optics import nominal_dead_path
+from deltatwin.twin.scenario import Scenario
+
+SCALE = 0.02
+
+
+@pytest.fixture(scope="module")
+def thermal():
+    sc = Scenario.load("paper-thermal")
+    df, meta = sc.simulate(SCALE)
+    fit = true_fit(df, meta)
+    return sc, df, meta, fit
+
+
+@pytest.fixture(scope="module")
+def budget(thermal):
+    sc, df, meta, fit = thermal
+    return measured_floor_budget(sc, SCALE, df, meta, fit)
+
+
+def test_the_sources_add_up_in_quadrature_to_the_achievable_floor(thermal, budget):
+    """paper-thermal (reduced): interferometers, thermometers, the unrecorded air and what
+    perfect instruments leave add up in quadrature to the true model's refitted floor within
+    BUDGET_TOLERANCE, per axis and pooled."""
+    _, _, _, fit = thermal
+    for a in ("x", "y", "z", "all"):
+        line = budget[a]
+        assert line["achievable_floor_nm"] == pytest.approx(fit.val_[a]["err_p90"])
+        assert set(line) >= {"interferometer_noise_nm", "thermometers_nm", "air_nm", REMAINDER}
+        assert "servo_settling_nm" not in line           # no settling in the thermal campaign
+        assert line["quadrature_sum_nm"] == pytest.approx(
+            line["achievable_floor_nm"], rel=BUDGET_TOLERANCE), (a, line)
+
+
+def test_the_thermometers_set_the_floor_through_the_frame_arm(budget):
+    """The robot hangs from a 0.6 m arm: on X the frame's and the table's thermometers, through
+    that lever, are the largest of the floor's sources, above the interferometers' noise; a
+    sensor on an arm (a short lever) is not."""
+    assert budget["x"]["thermometers_nm"] > budget["x"]["interferometer_noise_nm"]
+    by_sensor = budget["thermometers_by_sensor_nm"]
+    assert set(by_sensor) == {f"T_{s}_C" for s in Scenario.load("paper-thermal").sensors}
+    biggest = max(by_sensor, key=lambda c: by_sensor[c]["x"])
+    assert biggest in ("T_frame_C", "T_table_C")
+    assert by_sensor["T_arm1_C"]["x"] < 0.1 * by_sensor[biggest]["x"]
+    text = "\n".join(budget_lines(budget))
+    assert "thermometers" in text and "achievable_floor" in text and biggest in text
+
+
+def test_predicted_budget_of_laboratory_data(thermal):
+    """Laboratory data (no truth): the budget from the instruments' specifications and the
+    fitted model's sensitivities. Without a barometer the pressure line is 80 Pa through the
+    index's dn/dp (2.7e-9/Pa) over each beam's dead path (90 %: 1.645 sigma); the
+    thermometers' line is there, one row per sensor with a lever."""
+    sc, df, meta, fit = thermal
+    table = predicted_floor_budget(fit, df, meta, sc.settings).set_index("source")
+    air = table.loc["unrecorded pressure (80 Pa)"]
+    dead = nominal_dead_path(sc.params.mirror_cube_size_m)
+    for a in ("x", "y"):
+        assert air[f"{a}_p90_nm"] == pytest.approx(1.645 * 2.7e-9 * 80 * dead[a] * 1e9,
+                                                   rel=0.05)
+    assert any(s.startswith("thermometers (") for s in table.index)
+    sensors = table[table["kind"] == "thermometer"]
+    assert {s.split(" ")[0] for s in sensors.index} <= {c for c in df if c.startswith("T_")}
+    assert len(sensors) >= 5
