@@ -1,6 +1,6 @@
 """Benchmark: planning a campaign (issue 20). Prints each figure beside the target it is held to.
 
-1. A sweep of 4 magnitudes x 50 seeds = 200 cases (hidden/beam-misalignment, the Abbe offsets
+1. A sweep of 4 magnitudes x 50 seeds = 200 cases (quiet/beam-misalignment, the Abbe offsets
    scaled; fit: the known geometry; diagnose) on a local pool of 1 worker, on a pool of 2
    workers killed (SIGKILL) a third of the way and resumed, and on a Dask cluster of real
    `dask scheduler` / `dask worker` processes on 127.0.0.1 (2 worker processes, 1 thread each):
@@ -8,7 +8,7 @@
    The magnitudes are chosen by the prediction (those nearest 20, 50, 80 % power on a grid) plus
    0, so the Monte Carlo check falls where power is neither 0 nor 1.
 2. Predicted (linearised) vs Monte Carlo detection power at each magnitude: within +-0.1.
-3. Pose selection on hidden/magnetic-force at the paper's full grids (1080 calibration points
+3. Pose selection on quiet/magnetic-force at the paper's full grids (1080 calibration points
    at 5 forces, 625 validation): D- and I-optimal subsets of 1/3 of the points vs the full grid
    (target: validation error within 10 %) and a random third.
 4. The uncertainty budget of the force paper's campaign (paper-force at scale 0.3) fitted with
@@ -57,7 +57,7 @@ seed = 2020
 replicates = {replicates}
 
 [[study]]
-scenario = "hidden/beam-misalignment"
+scenario = "quiet/beam-misalignment"
 effect = "beam_misalignment"
 parameter = "abbe_offset_m"
 magnitudes = {magnitudes}
@@ -190,20 +190,20 @@ def power(records, spec: SweepSpec, mags, folder: Path, rng, campaigns: int) -> 
     worst = float(np.max(np.abs(t.difference)))
     print(f"  target: |predicted - Monte Carlo| <= 0.1 at every magnitude -> largest "
           f"{worst:.3f}: {'MET' if worst <= 0.1 else 'NOT MET'}")
-    fig = power_figure(t, "hidden/beam-misalignment: detection power")
+    fig = power_figure(t, "quiet/beam-misalignment: detection power")
     fig.savefig(folder / "power.png", dpi=120)
     t.to_csv(folder / "power.csv", index=False)
     print(f"  table and plot: {folder / 'power.csv'}, {folder / 'power.png'}")
 
 
 def poses(scale: float, rng) -> None:
-    sc = Scenario.load("hidden/magnetic-force")
+    sc = Scenario.load("quiet/magnetic-force")
     df, meta = sc.simulate(scale)
     n_cal = int((df["split"] == "cal").sum())
     t0 = time.perf_counter()
     r = selection_study(df, meta, ["geometric_errors", "magnetic_force"], n_cal // 3,
                         sc.settings.noise_floor_m, rng)
-    print(f"\npose selection (hidden/magnetic-force, scale {scale}: {r['n_candidates']} "
+    print(f"\npose selection (quiet/magnetic-force, scale {scale}: {r['n_candidates']} "
           f"calibration candidates, {r['n_selected']} chosen, {r['n_validation']} validation "
           f"points; noise floor {meta['truth']['noise_floor_nm']} nm; "
           f"{time.perf_counter() - t0:.0f} s):")

@@ -6,7 +6,7 @@ z), then times ``PhysicsFit(effects).fit(df, meta)`` as ``deltatwin fit`` runs i
 measured conditions (causal smoothing of every temperature stream), the Jacobians, the
 identifiability analysis and Gauss-Newton. The simulation is timed apart and not counted.
 
-Default: scenarios/hidden/thermal-and-loop.toml at full scale (12,000 rows, 36,000 readings)
+Default: scenarios/quiet/thermal-and-loop.toml at full scale (12,000 rows, 36,000 readings)
 fitted with its true model, geometric_errors + thermal_expansion + loop_drift: 70 free
 parameters, of which the data identify fewer (printed: free parameters AND identified
 directions, as the fit only moves the identified ones). ``--effects`` picks another set, e.g.
@@ -65,7 +65,7 @@ class CallCounter:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="hidden/thermal-and-loop")
+    ap.add_argument("--scenario", default="quiet/thermal-and-loop")
     ap.add_argument("--scale", type=float, default=1.0,
                     help="campaign size relative to the scenario's full scale (default 1)")
     ap.add_argument("--effects", default="geometric_errors,thermal_expansion,loop_drift")

@@ -5,7 +5,7 @@
    magnetic_force loop_drift air_refraction beam_misalignment), against 0.07 s;
 2. how ``simulate``, ``fit`` and ``diagnose`` (of the fitted model) scale with the rows: the
    exponent of time ~ rows^k from three campaign sizes (least squares on the logarithms); near
-   1 is linear, a rise shows a regression.  On hidden/thermal-and-loop with its true model
+   1 is linear, a rise shows a regression.  On quiet/thermal-and-loop with its true model
    (geometric_errors thermal_expansion loop_drift, 70 parameters), a fit that converges at
    every size (the seven effects on a reduced paper-thermal stop at the fit's iteration limit:
    a fit property, not a speed one);
@@ -38,7 +38,7 @@ import numpy as np
 
 SEVEN = ("geometric_errors", "thermal_expansion", "gravity_sag", "magnetic_force", "loop_drift",
          "air_refraction", "beam_misalignment")
-SCALING_SCENARIO = "hidden/thermal-and-loop"
+SCALING_SCENARIO = "quiet/thermal-and-loop"
 SCALING_EFFECTS = ("geometric_errors", "thermal_expansion", "loop_drift")
 EVALUATION_TARGET_S = 0.07
 SIDE_BY_SIDE_TARGET = 0.15

@@ -3,8 +3,8 @@
 Seven cases whose missing term is injected into simulated data by an effect outside the library
 (tests/calibration/outside_effects.py): a periodic encoder error in q1, a slow laser wavelength
 drift in time, a backlash depending on the direction of motor 2's last move, a 40 nm X mirror
-step at one moment (quiet laboratory, hidden/gravity-sag, baseline geometric_errors +
-gravity_sag), a quadratic force term on Y (hidden/magnetic-force, baseline geometric_errors +
+step at one moment (quiet laboratory, quiet/gravity-sag, baseline geometric_errors +
+gravity_sag), a quadratic force term on Y (quiet/magnetic-force, baseline geometric_errors +
 magnetic_force), and the wavelength drift and the mirror step again in paper-thermal's climbing
 room on a symmetric portal frame (baseline: every library effect of the scenario with a model
 form, the laboratory's constants known), where time and temperatures rise together.

@@ -5,7 +5,7 @@ dataset -> calibration -> report)::
 
     import deltatwin as dt
 
-    sc = dt.Scenario.load("hidden/magnetic-force", scale=0.3)   # a shipped scenario, or a path
+    sc = dt.Scenario.load("quiet/magnetic-force", scale=0.3)   # a shipped scenario, or a path
     df, meta = sc.simulate()                                      # the twin's campaign
     dt.write_dataset(df, meta, "data.parquet")                    # and back: dt.read_dataset
     fit = dt.PhysicsFit(["geometric_errors"]).fit(df, meta)       # a physics model

@@ -2,7 +2,7 @@
 
     python docs/render_view.py [--scale 1] [--out docs] [--keep DIR] [--shots default,...]
 
-Simulates the demo's campaign (scenarios/hidden/magnetic-force at ``--scale``), fits its
+Simulates the demo's campaign (scenarios/quiet/magnetic-force at ``--scale``), fits its
 effect ladder (``deltatwin demo``'s: the geometric baseline, then + magnetic_force), writes the
 recording with ``deltatwin.view.write_recording`` and opens it in the native viewer (the
 ``rerun`` binary of rerun-sdk) under Xvfb at 1600 x 1000, once per tab to show: the default
@@ -90,7 +90,7 @@ def demo_recording(scale: float, folder: Path):
     from deltatwin.calibration.diagnosis.diagnose import effect_ladder
     from deltatwin.twin.scenario import Scenario
     from deltatwin.view import LadderStep, write_recording
-    sc = Scenario.load("hidden/magnetic-force")
+    sc = Scenario.load("quiet/magnetic-force")
     df, meta = sc.simulate(scale)
     ladder, _, fits = effect_ladder(df, meta, sc.hidden["baseline"])
     steps = [LadderStep(r["model"], f.reading_m_, tuple(r["effects"]))

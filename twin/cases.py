@@ -14,6 +14,7 @@ given to every fit (``known``).
 """
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +56,9 @@ CLIMATE = {"thermal": {"ac_setpoint_C": 20.0, "ac_off_s": 1800.0, "free_mean_C":
                        "daily_amplitude_C": 1.4, "pressure_std_Pa": 80.0},
            "force": {"ac_off_s": 1e9, "pressure_std_Pa": 80.0}}
 NOISE_M = {"thermal": 5e-9, "force": 7e-9}
+# tests' scale: 5 % of the thermal campaign (1425 points, 4.5 h), 30 % of the force one (510)
+REDUCED = {"thermal": 0.05, "force": 0.3}
+KNOWN = {"loop_drift": {"frame_arm_m": list(FRAME_ARM_M)}}   # given to every fit
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,7 @@ class Case:
     hidden: tuple            # ((effect, magnitude), ...); empty for a null case
     baseline: tuple          # the model's effects
     known: dict = field(default_factory=dict)   # {effect: {parameter: value}}: lab constants
+    header: str = ""         # the scenario file's opening comment (default: a generated case)
 
     @property
     def hidden_effects(self) -> list[str]:
@@ -86,14 +91,19 @@ class Case:
                                         "coil_offset_m": [[-0.004, -0.008, 0.0]] * 3}
         for e, m in self.hidden:
             tables[e] = {**tables.get(e, {}), **_scaled(e, m, tables.get(e, {}))}
+        hidden = {"effects": self.hidden_effects, "baseline": list(self.baseline)}
+        if self.known:
+            hidden["known"] = self.known
         doc = {"scenario": {"name": self.name, "description": self.description(),
                             "seed": self.seed},
-               "hidden": {"effects": self.hidden_effects, "baseline": list(self.baseline)},
+               "hidden": hidden,
                "effects": {"on": effects, **{e: v for e, v in tables.items() if e in effects}},
                "sensors": {s: s for s in PAPER_SENSORS[self.kind]},
-               "instruments": {"noise_floor_m": NOISE_M[self.kind], "cosine_correction": True},
-               "campaign": CAMPAIGNS[self.kind]}
-        return toml_text(doc, "a generated discovery case (deltatwin.twin.cases)")
+               # the papers' laboratory recorded neither the pressure nor the humidity
+               "instruments": {"noise_floor_m": NOISE_M[self.kind], "cosine_correction": True,
+                               "barometer": False, "hygrometer": False},
+               "campaign": CAMPAIGNS[self.kind], "reduced": {"scale": REDUCED[self.kind]}}
+        return toml_text(doc, self.header or "a generated discovery case (deltatwin.twin.cases)")
 
     def description(self) -> str:
         hidden = ", ".join(f"{e} x{m:.3g}" for e, m in self.hidden) or "nothing (null case)"
@@ -102,10 +112,12 @@ class Case:
 
 def _scaled(effect: str, magnitude: float, given: dict) -> dict:
     """The strength parameters of ``effect`` at ``magnitude`` times their value (given here or
-    the library's default)."""
+    the library's default); none for an effect without a strength (STRENGTH) at magnitude 1."""
+    if effect not in STRENGTH and magnitude != 1.0:
+        raise ValueError(f"{effect}: no strength parameter to scale by {magnitude}")
     defaults = {p.name: p.default for p in LIBRARY[effect].parameters}
     out = {}
-    for name in STRENGTH[effect]:
+    for name in STRENGTH.get(effect, ()):
         value = np.asarray(given.get(name, defaults[name]), dtype=np.float64) * magnitude
         if name == "beam_room_fraction":
             value = np.minimum(value, 1.0)       # a fraction of the beam's path
@@ -137,8 +149,65 @@ def generate_cases(rng: np.random.Generator, n: int, kinds=("thermal", "force"),
             names = rng.choice(HIDEABLE[kind], size=min(k, len(HIDEABLE[kind])), replace=False)
             hidden = tuple((str(e), float(rng.choice(MAGNITUDES))) for e in names)
         baseline = tuple(e for e in MODEL[kind] if e not in dict(hidden))
-        known = {"loop_drift": {"frame_arm_m": list(FRAME_ARM_M)}}
+        known = KNOWN
         tag = "-".join(e for e, _ in hidden) or "null"
         cases.append(Case(name=f"case{i:03d}-{kind}-{tag}", kind=kind, seed=seed, hidden=hidden,
                           baseline=baseline, known=known))
     return cases
+
+
+# The shipped hidden scenarios (scenarios/hidden/), in the papers' conditions: one effect (or
+# two) hidden from the model of the paper's analysis, at the library's strength. Written from
+# these definitions by ``write_hidden_scenarios`` (a test checks the shipped files are current).
+HIDDEN_SCENARIOS = {
+    "loop-drift": ("thermal", 16, ("loop_drift",), "the measurement loop (table, frame, "
+                   "supports) expands with the room, the robot hanging from the frame's arm"),
+    "thermal-expansion": ("thermal", 15, ("thermal_expansion",),
+                          "the robot's parts expand with the room and the motors' heat"),
+    "sensor-contact": ("thermal", 18, ("sensor_contact",), "each thermometer lags its part and "
+                       "reads part of the way to the room air"),
+    "thermal-and-loop": ("thermal", 17, ("thermal_expansion", "loop_drift"),
+                         "the parts' expansion and the loop's drift together"),
+    "geometric-errors": ("thermal", 11, ("geometric_errors",),
+                         "the robot's lengths, joints and encoder zeros off their drawing"),
+    "gravity-sag": ("thermal", 13, ("gravity_sag",), "the platform's weight through the "
+                    "flexures' compliance (pose-dependent sag)"),
+    "beam-misalignment": ("thermal", 12, ("beam_misalignment",),
+                          "beams tilted and off the cube's centre (cosine and Abbe errors)"),
+    "air-refraction": ("thermal", 19, ("air_refraction",), "the beams' air index against the "
+                       "interferometers' compensation, with the pressure unrecorded"),
+    "magnetic-force": ("force", 14, ("magnetic_force",),
+                       "the coil-magnet force simulator through the compliance"),
+}
+
+
+def hidden_case(name: str) -> Case:
+    """The shipped hidden scenario ``name`` as a Case (HIDDEN_SCENARIOS)."""
+    kind, seed, hidden, what = HIDDEN_SCENARIOS[name]
+    baseline = tuple(e for e in MODEL[kind] if e not in hidden)
+    header = (f"Hidden: {', '.join(hidden)} ({what}); the model starts from the paper's "
+              f"analysis without it: {', '.join(baseline)}. The papers' conditions "
+              f"(deltatwin.twin.cases, the one place they are defined): {kind} campaign, "
+              + ("air conditioning off after half an hour, " if kind == "thermal" else
+                 "air conditioning on, servo settling, coils heating, ")
+              + f"{CLIMATE[kind]['pressure_std_Pa']:g} Pa of pressure wander with no barometer, "
+              f"the paper's {len(PAPER_SENSORS[kind])} sensors, the robot hanging from a "
+              f"{-FRAME_ARM_M[0]:g} m frame arm given to every fit as a known constant. "
+              "Generated by deltatwin.twin.cases.write_hidden_scenarios: edit there.")
+    return Case(name=f"hidden-{name}", kind=kind, seed=seed,
+                hidden=tuple((e, 1.0) for e in hidden), baseline=baseline, known=KNOWN,
+                header=textwrap.fill(header, 96))
+
+
+def write_hidden_scenarios(folder) -> list:
+    """Write every HIDDEN_SCENARIOS case as ``<folder>/<name>.toml`` (atomically); the paths."""
+    from pathlib import Path
+
+    from deltatwin.files import atomic_write_text
+
+    paths = []
+    for name in HIDDEN_SCENARIOS:
+        path = Path(folder) / f"{name}.toml"
+        atomic_write_text(path, hidden_case(name).toml())
+        paths.append(path)
+    return paths

@@ -3,7 +3,8 @@
 Tables: [scenario] name, description, seed; [robot] file (robot parameter TOML, default the
 nominal robot); [effects] on = [names] and one sub-table of parameters per effect;
 [sensors] sensor name = part; [instruments] InstrumentSettings fields + cosine_correction;
-[campaign] kind = "thermal" | "force" and its plan; [reduced] scale for tests.
+[campaign] kind = "thermal" | "force" and its plan; [reduced] scale for tests; [hidden] effects,
+baseline and known (the laboratory's constants given to every fit) for a hidden-effect case.
 Every key is checked: an unknown or misspelled key, a value of the wrong type or unit, an
 impossible value, all raise ScenarioError naming the file, the key and the reason.
 """
@@ -36,12 +37,13 @@ SCENARIO_DIR = Path(str(resources.files("deltatwin.scenarios")))
 
 def shipped_scenarios() -> list[str]:
     """Names of the shipped scenarios, as ``Scenario.load`` accepts them (``paper-thermal``,
-    ``hidden/gravity-sag``, ...)."""
+    ``hidden/gravity-sag`` in the papers' conditions, ``quiet/gravity-sag`` in a quiet
+    laboratory, ...)."""
     return sorted(p.relative_to(SCENARIO_DIR).with_suffix("").as_posix()
                   for p in SCENARIO_DIR.rglob("*.toml"))
 TABLES = {"scenario": {"name", "description", "seed"}, "robot": {"file"},
           "effects": None, "sensors": None, "instruments": None, "campaign": None,
-          "reduced": {"scale"}, "hidden": {"effects", "baseline"}}
+          "reduced": {"scale"}, "hidden": {"effects", "baseline", "known"}}
 CAMPAIGN_KEYS = {"thermal": {"kind", "warmup_s", "n_positions", "cal_fraction", "sessions"},
                  "force": {"kind", "warmup_s", "cal_levels", "val_levels", "forces_N",
                            "force_per_A", "readings", "order"}}
@@ -232,6 +234,16 @@ class Scenario:
             both = sorted(set(hidden["effects"]) & set(hidden["baseline"]))
             if both:
                 raise ScenarioError(f"{f} [hidden]: {both} both hidden and in the baseline")
+            # the laboratory's known constants, given to every fit (e.g. the frame's arm)
+            known = hidden.get("known", {})
+            if not isinstance(known, dict) or not all(isinstance(v, dict) for v in known.values()):
+                raise ScenarioError(f"{f} [hidden] known: expected a table of effect = "
+                                    "{parameter = value} (the laboratory's known constants)")
+            for x, values in known.items():
+                try:
+                    make_effect(x, values, where=f"{f} [hidden] known", base_dir=path.parent)
+                except EffectError as exc:
+                    raise ScenarioError(str(exc)) from exc
         sc = cls(path=path, text=text, name=name, seed=seed, params=params, effects=effects,
                  sensors=sensors, settings=settings, cosine=cosine, campaign=camp,
                  reduced_scale=red, hidden=hidden)

@@ -10,7 +10,7 @@ replicates::
     threads = 1             # BLAS and statics threads per case (processes run side by side)
 
     [[study]]
-    scenario = "hidden/magnetic-force"   # a scenario TOML path (relative to the spec) or name
+    scenario = "quiet/magnetic-force"   # a scenario TOML path (relative to the spec) or name
     effect = "magnetic_force"            # the effect whose magnitude is swept
     parameter = "coil_moment_per_A"      # the parameter scaled (its scenario value, or default)
     magnitudes = [0.0, 0.02, 0.05]       # factors on it; 0 switches the effect off

@@ -1,7 +1,8 @@
 """``deltatwin demo``: the main job on the embedded twin, end to end.
 
 Simulate a campaign whose data hold an effect the starting model lacks (a scenario of
-scenarios/hidden/), fit the starting model, show where it fails, name the missing effect, add
+scenarios/quiet/, a quiet laboratory, by default; scenarios/hidden/ in the papers' conditions),
+fit the starting model, show where it fails, name the missing effect, add
 it, refit, and print the falling-error ladder; write the dataset, the fitted models, a report
 (Markdown + PNG) and a Rerun recording into ``--out``."""
 from __future__ import annotations
@@ -12,7 +13,7 @@ from pathlib import Path
 
 from deltatwin.commands.output import strict_json
 
-DEFAULT_SCENARIO = "hidden/magnetic-force"
+DEFAULT_SCENARIO = "quiet/magnetic-force"
 
 
 def register(sub) -> None:
@@ -48,7 +49,7 @@ def run(args) -> int:
     sc = Scenario.load(args.scenario, seed=args.seed)
     if not sc.hidden:
         raise ValueError(f"{sc.path}: no [hidden] table (effects = [...], baseline = [...]); "
-                         "the demo needs a scenario of scenarios/hidden/")
+                         "the demo needs a scenario of scenarios/quiet/ or scenarios/hidden/")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     def say(message: str) -> None:
@@ -70,7 +71,7 @@ def run(args) -> int:
         "complete model, reading its conditions through the lab's other instruments) "
         + ", ".join(f"{k} {v:.1f}" for k, v in achievable.items()) + " nm")
     ladder, diagnoses, fits = effect_ladder(df, meta, sc.hidden["baseline"], data=str(data),
-                                            progress=say)
+                                            progress=say, known=sc.hidden.get("known"))
     for k, (row, fit) in enumerate(zip(ladder, fits)):
         atomic_write_text(out / f"model{k}.toml", fitted_toml(fit, str(data)))
         d = diagnoses[k]

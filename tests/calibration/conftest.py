@@ -30,7 +30,7 @@ def thermal_dgm(thermal_data):
 def force_data():
     """The force effect on its own (geometric errors + the coil-magnet force): the model the
     force tests are about, without the thermal drift the DirectIGM does not model."""
-    return Scenario.load("hidden/magnetic-force", scale=FORCE_SCALE).simulate(FORCE_SCALE)
+    return Scenario.load("quiet/magnetic-force", scale=FORCE_SCALE).simulate(FORCE_SCALE)
 
 
 @pytest.fixture(scope="session")

@@ -75,19 +75,19 @@ class QuadraticForceY(Effect):
 
 # The generated out-of-library cases: (case, scenario, baseline model effects, injected effect
 # and its values, the variable the term depends on, a scenario change). Quiet laboratory
-# (hidden/gravity-sag, hidden/magnetic-force for the force) and, for the hard cases where time
+# (quiet/gravity-sag, quiet/magnetic-force for the force) and, for the hard cases where time
 # and temperatures climb together, paper-thermal on a symmetric portal frame.
 PORTAL = {"loop_drift": {"frame_arm_m": [0.0, 0.0]}}
 CASES = {
-    "periodic-encoder": ("hidden/gravity-sag", ["geometric_errors", "gravity_sag"], PeriodicEncoder,
+    "periodic-encoder": ("quiet/gravity-sag", ["geometric_errors", "gravity_sag"], PeriodicEncoder,
                          {"sin_rad": 0.5e-6}, "q1_rad", None),
-    "wavelength-drift": ("hidden/gravity-sag", ["geometric_errors", "gravity_sag"], WavelengthDrift,
+    "wavelength-drift": ("quiet/gravity-sag", ["geometric_errors", "gravity_sag"], WavelengthDrift,
                          {"rate_per_s": 1e-10}, "t_s", None),
-    "backlash": ("hidden/gravity-sag", ["geometric_errors", "gravity_sag"], DirectionalBacklash,
+    "backlash": ("quiet/gravity-sag", ["geometric_errors", "gravity_sag"], DirectionalBacklash,
                  {"backlash_rad": 1e-6}, "dir_q2", None),
-    "mirror-step": ("hidden/gravity-sag", ["geometric_errors", "gravity_sag"], MirrorStep,
+    "mirror-step": ("quiet/gravity-sag", ["geometric_errors", "gravity_sag"], MirrorStep,
                     {"step_m": 40e-9, "moment_s": 3000.0}, "t_s", None),
-    "quadratic-force": ("hidden/magnetic-force", ["geometric_errors", "magnetic_force"],
+    "quadratic-force": ("quiet/magnetic-force", ["geometric_errors", "magnetic_force"],
                         QuadraticForceY, {"k_N_per_A2": 0.1}, "F_N", None),
 }
 PORTAL_CASES = {

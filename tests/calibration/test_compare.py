@@ -1,5 +1,5 @@
 """calibration/compare.py and ``deltatwin compare``: where a model fails, on data with a hidden
-effect (scenarios/hidden/magnetic-force, reduced scale), with real fits, real files and the
+effect (scenarios/quiet/magnetic-force, reduced scale), with real fits, real files and the
 real command line."""
 import json
 from pathlib import Path
@@ -26,7 +26,7 @@ FORCES_N = [0.0, 0.5, 1.0, 1.5, 2.0]
 
 @pytest.fixture(scope="module")
 def magnetic():
-    df, meta = Scenario.load("hidden/magnetic-force").simulate(SCALE)
+    df, meta = Scenario.load("quiet/magnetic-force").simulate(SCALE)
     return df, meta
 
 
@@ -260,7 +260,7 @@ def test_bad_input_exit_2_naming_the_problem(magnetic, files, tmp_path, capsys, 
         model = tmp_path / "fitted.txt"
         model.write_text((files / "fitted.toml").read_text())
     elif case == "scenario_as_model":
-        model = REPO / "scenarios" / "hidden" / "magnetic-force.toml"
+        model = REPO / "scenarios" / "quiet" / "magnetic-force.toml"
     elif case == "json_not_a_model":
         model = tmp_path / "model.json"
         model.write_text(json.dumps({"effects": ["geometric_errors"]}))

@@ -1,4 +1,4 @@
-"""The diagnosis loop on data with hidden effects (scenarios/hidden/, reduced scale): the true
+"""The diagnosis loop on data with hidden effects (scenarios/quiet/, reduced scale): the true
 effect is ranked first, adding it lowers the validation error >= 3x to within 1.5x the noise
 floor; two hidden effects are found one after the other; an effect outside the library is not
 claimed, and the variable it depends on is named."""
@@ -17,8 +17,8 @@ from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 from deltatwin.twin.effects import Effect, Parameter
 from deltatwin.twin.scenario import SCENARIO_DIR, Scenario, ScenarioError
 
-HIDDEN = sorted(p.stem for p in (SCENARIO_DIR / "hidden").glob("*.toml"))
-SINGLE = [n for n in HIDDEN if len(Scenario.load(f"hidden/{n}").hidden["effects"]) == 1]
+HIDDEN = sorted(p.stem for p in (SCENARIO_DIR / "quiet").glob("*.toml"))
+SINGLE = [n for n in HIDDEN if len(Scenario.load(f"quiet/{n}").hidden["effects"]) == 1]
 
 
 def _floor(meta) -> float:
@@ -26,14 +26,14 @@ def _floor(meta) -> float:
 
 
 def test_at_least_six_different_hidden_effects_are_shipped():
-    hidden = {Scenario.load(f"hidden/{n}").hidden["effects"][0] for n in SINGLE}
+    hidden = {Scenario.load(f"quiet/{n}").hidden["effects"][0] for n in SINGLE}
     assert len(hidden) >= 6, hidden
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", SINGLE)
 def test_hidden_effect_is_ranked_first_and_adding_it_reaches_the_noise_floor(name):
-    sc = Scenario.load(f"hidden/{name}")
+    sc = Scenario.load(f"quiet/{name}")
     df, meta = sc.simulate(sc.reduced_scale)
     hidden = sc.hidden["effects"][0]
     base = PhysicsFit(sc.hidden["baseline"]).fit(df, meta)
@@ -49,7 +49,7 @@ def test_hidden_effect_is_ranked_first_and_adding_it_reaches_the_noise_floor(nam
 
 @pytest.mark.slow
 def test_two_hidden_effects_are_found_one_after_the_other():
-    sc = Scenario.load("hidden/thermal-and-loop")
+    sc = Scenario.load("quiet/thermal-and-loop")
     df, meta = sc.simulate(sc.reduced_scale)
     ladder, diagnoses, _ = effect_ladder(df, meta, sc.hidden["baseline"])
     found = [d["missing_effect"] for d in diagnoses if d["missing_effect"]]
@@ -74,7 +74,7 @@ class DraughtOnTheBeams(Effect):
 
 
 def test_effect_outside_the_library_is_not_claimed_and_time_is_named():
-    sc = Scenario.load("hidden/gravity-sag")
+    sc = Scenario.load("quiet/gravity-sag")
     sc.effects.append(DraughtOnTheBeams())
     sc.hidden = None
     df, meta = sc.simulate(sc.reduced_scale)
@@ -90,7 +90,7 @@ def test_effect_outside_the_library_is_not_claimed_and_time_is_named():
 
 @pytest.mark.slow
 def test_identifiability_names_what_the_data_cannot_separate():
-    sc = Scenario.load("hidden/geometric-errors")
+    sc = Scenario.load("quiet/geometric-errors")
     df, meta = sc.simulate(sc.reduced_scale)
     fit = PhysicsFit(["geometric_errors"]).fit(df, meta)
     ident = fit.identifiability_
@@ -107,7 +107,7 @@ def test_identifiability_names_what_the_data_cannot_separate():
 
 
 def test_fitted_model_file_round_trips(tmp_path):
-    sc = Scenario.load("hidden/gravity-sag")
+    sc = Scenario.load("quiet/gravity-sag")
     df, meta = sc.simulate(sc.reduced_scale)
     fit = PhysicsFit(["gravity_sag"]).fit(df, meta)
     path = tmp_path / "fitted.toml"
@@ -123,7 +123,7 @@ def test_fitted_model_file_round_trips(tmp_path):
 
 
 def test_bad_input_is_named(tmp_path):
-    sc = Scenario.load("hidden/gravity-sag")
+    sc = Scenario.load("quiet/gravity-sag")
     df, meta = sc.simulate(0.05)
     with pytest.raises(ValueError, match="unknown effect 'gravity_sagg'.*did you mean 'gravity_sag'"):
         PhysicsFit(["gravity_sagg"])
@@ -140,14 +140,14 @@ def test_bad_input_is_named(tmp_path):
         (tmp_path / "x.toml").write_text("[scenario]\nname = 'x'\n")
         load_fitted(tmp_path / "x.toml")
     bad_scenario = tmp_path / "h.toml"
-    bad_scenario.write_text((SCENARIO_DIR / "hidden" / "gravity-sag.toml").read_text()
+    bad_scenario.write_text((SCENARIO_DIR / "quiet" / "gravity-sag.toml").read_text()
                             .replace('effects = ["gravity_sag"]', 'effects = ["beam_misalignment"]'))
     with pytest.raises(ScenarioError, match=r"\[hidden\].*not in \[effects\] on"):
         Scenario.load(bad_scenario)
 
 
 def test_cli_fit_and_diagnose_and_nothing_partial_on_error(tmp_path):
-    sc = Scenario.load("hidden/gravity-sag")
+    sc = Scenario.load("quiet/gravity-sag")
     from deltatwin.twin.dataset import write_dataset
     df, meta = sc.simulate(sc.reduced_scale)
     data = tmp_path / "data.parquet"

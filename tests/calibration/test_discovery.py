@@ -19,7 +19,7 @@ BASELINE = ["geometric_errors", "thermal_expansion", "sensor_contact"]
 
 @pytest.fixture(scope="module")
 def loop_drift():
-    return Scenario.load("hidden/loop-drift").simulate(0.05)
+    return Scenario.load("quiet/loop-drift").simulate(0.05)
 
 
 @pytest.fixture(scope="module")

@@ -136,7 +136,7 @@ def _user_file(tmp_path, tag):
 
 def test_users_effect_from_a_file_in_a_scenario_fit_and_model_file(tmp_path):
     path = _user_file(tmp_path, "a")
-    text = (SCENARIO_DIR / "hidden" / "gravity-sag.toml").read_text()
+    text = (SCENARIO_DIR / "quiet" / "gravity-sag.toml").read_text()
     text = text.replace('on = ["gravity_sag"]', f'on = ["gravity_sag", "./{path.name}:Ripple"]')
     text += "\n[effects.ripple_a]\namplitude_m = 30e-9\n"
     (tmp_path / "lab.toml").write_text(text)
@@ -158,7 +158,7 @@ def test_users_effect_from_a_file_in_a_scenario_fit_and_model_file(tmp_path):
 
 def test_errors_in_a_users_effect_name_its_file_and_line(tmp_path):
     path = _user_file(tmp_path, "b")
-    sc = Scenario.load("hidden/gravity-sag")
+    sc = Scenario.load("quiet/gravity-sag")
     sc.effects.append(make_effect(f"{path}:Broken"))
     with pytest.raises(EffectError, match=rf"{path.name}:22: effect 'broken_b', stage 'optics': "
                                           "ZeroDivisionError"):
@@ -185,7 +185,7 @@ def test_errors_in_a_users_effect_name_its_file_and_line(tmp_path):
         effect_class(f"{tmp_path / 'clash.py'}:G")
     with pytest.raises(FitError, match="unknown effect 'ripple_zz'"):
         PhysicsFit(["ripple_zz"])
-    text = (SCENARIO_DIR / "hidden" / "gravity-sag.toml").read_text().replace(
+    text = (SCENARIO_DIR / "quiet" / "gravity-sag.toml").read_text().replace(
         'on = ["gravity_sag"]', 'on = ["gravity_sag", "./nowhere.py:Ripple"]')
     (tmp_path / "s.toml").write_text(text)
     with pytest.raises(ScenarioError, match=r"s.toml \[effects\] on: .*no such file"):
@@ -208,7 +208,7 @@ def test_users_effect_from_an_entry_point(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_cli_effect_new_from_a_diagnosis_and_fit_with_it(tmp_path):
-    sc = Scenario.load("hidden/gravity-sag")
+    sc = Scenario.load("quiet/gravity-sag")
     sc.effects.append(make_effect(CASES["mirror-step"][2], CASES["mirror-step"][3]))
     sc.hidden = None
     df, meta = sc.simulate(SCALE)
@@ -249,7 +249,7 @@ def test_plain_skeleton_is_a_working_effect(tmp_path):
     (tmp_path / "my_offset.py").write_text(skeleton("my_offset"))
     cls = effect_class(f"{tmp_path / 'my_offset.py'}:MyOffset")
     assert cls.name == "my_offset" and [p.name for p in cls.free_parameters()] == ["offset_m"]
-    sc = Scenario.load("hidden/gravity-sag")
+    sc = Scenario.load("quiet/gravity-sag")
     sc.effects.append(make_effect(cls, {"offset_m": 50e-9}))
     df, _ = sc.simulate(0.05)
     sc.effects.pop()

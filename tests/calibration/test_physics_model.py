@@ -138,9 +138,9 @@ PATH_ROUND_OFF_M = 3e-16   # five ulps of a 0.3 m optical path: no difference re
 
 
 @pytest.mark.parametrize("scenario, effects", [
-    ("hidden/loop-drift", ["geometric_errors", "thermal_expansion", "sensor_contact",
+    ("quiet/loop-drift", ["geometric_errors", "thermal_expansion", "sensor_contact",
                            "loop_drift", "gravity_sag", "air_refraction", "beam_misalignment"]),
-    ("hidden/magnetic-force", ["geometric_errors", "magnetic_force"])])
+    ("quiet/magnetic-force", ["geometric_errors", "magnetic_force"])])
 def test_jacobian_matches_central_differences_at_the_corrected_geometry(scenario, effects):
     """The Jacobian (implicit-function kinematics under each point's part temperatures, the
     home where the instruments were aligned, central differences elsewhere) agrees with central

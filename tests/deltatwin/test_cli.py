@@ -56,7 +56,7 @@ def test_bad_input_is_one_line_on_stderr_with_exit_2(tmp_path, capsys):
     rc = main(["simulate", str(tmp_path / "nope.toml"), "-o", str(tmp_path / "x.parquet")])
     out, err = capsys.readouterr()
     assert rc == EXIT_BAD_INPUT and out == ""
-    assert "nope.toml: no such scenario file" in err and "hidden/gravity-sag" in err
+    assert "nope.toml: no such scenario file" in err and "quiet/gravity-sag" in err
     assert not (tmp_path / "x.parquet").exists()
 
 

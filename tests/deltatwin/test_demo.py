@@ -34,6 +34,6 @@ def test_demo_bad_input_is_named_and_writes_nothing(tmp_path):
     assert r.returncode == 2 and "no [hidden] table" in r.stderr
     r = _demo(tmp_path, "--out", "run", "--scale", "2")
     assert r.returncode == 2 and "--scale" in r.stderr
-    r = _demo(tmp_path, "--out", "run", "--scenario", "hidden/no-such")
+    r = _demo(tmp_path, "--out", "run", "--scenario", "quiet/no-such")
     assert r.returncode == 2 and "no such scenario" in r.stderr
     assert not (tmp_path / "run").exists()

@@ -542,9 +542,9 @@ def test_cli_writes_a_recording_without_a_viewer(campaign, tmp_path, capsys, mon
 
 @pytest.fixture(scope="module")
 def fitted_model(tmp_path_factory):
-    """A physics model fitted to hidden/magnetic-force (reduced) and written as fitted.toml:
+    """A physics model fitted to quiet/magnetic-force (reduced) and written as fitted.toml:
     the geometric baseline, which leaves the hidden coil force in its residual."""
-    df, meta = Scenario.load("hidden/magnetic-force").simulate(0.15)
+    df, meta = Scenario.load("quiet/magnetic-force").simulate(0.15)
     fit = PhysicsFit(["geometric_errors"]).fit(df, meta)
     d = tmp_path_factory.mktemp("fitted")
     write_dataset(df, meta, d / "magnetic.parquet")

@@ -17,7 +17,7 @@ def test_mixture_p90_of_equal_and_mixed_uncertainties():
 
 
 def test_budget_lines_follow_their_inputs():
-    sc = Scenario.load("hidden/gravity-sag")
+    sc = Scenario.load("quiet/gravity-sag")
     df, meta = sc.simulate(0.02)
     fit = PhysicsFit(["gravity_sag"], noise_nm=5.0).fit(df, meta)
     a = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 1e-7, 100.0).set_index("source")

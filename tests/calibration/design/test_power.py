@@ -17,7 +17,7 @@ SPEC = """
 [sweep]
 seed = 3
 [[study]]
-scenario = "hidden/beam-misalignment"
+scenario = "quiet/beam-misalignment"
 effect = "beam_misalignment"
 parameter = "abbe_offset_m"
 magnitudes = [0.0]

@@ -30,7 +30,7 @@ seed = 7
 replicates = 2
 
 [[study]]
-scenario = "hidden/gravity-sag"
+scenario = "quiet/gravity-sag"
 effect = "gravity_sag"
 parameter = "load_factor"
 magnitudes = [0.0, 0.5]
@@ -106,7 +106,7 @@ def test_results_folder_with_records_needs_resume(tmp_path, capsys):
     (("replicates = 2", "replicates = 0"), "[sweep] replicates"),
     (("scale = 0.02", "scale = 2"), "[designs.small] scale"),
     (("seed = 7", "seed = 7\nseeds = 3"), "unknown key(s) ['seeds']"),
-    (("hidden/gravity-sag", "hidden/no-such"), "not a shipped scenario"),
+    (("quiet/gravity-sag", "quiet/no-such"), "not a shipped scenario"),
 ])
 def test_bad_specification_names_file_and_key(tmp_path, change, message):
     with pytest.raises(SweepError, match=None) as exc:
