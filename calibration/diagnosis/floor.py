@@ -219,7 +219,7 @@ def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
     reading_u = float(np.hypot(s.noise_floor_m, s.resolution_m / np.sqrt(12)))
     table = uncertainty_budget(fit, df, meta, reading_u, T_u, servo_u_rad, pressure_u_Pa,
                                per_sensor=True)
-    return table[table["kind"] != "parameters"].reset_index(drop=True)
+    return table[table["kind"].isin(["noise", "thermometer"])].reset_index(drop=True)
 
 
 def record_achievable_floor(df, meta: dict, scenario=None, scale=None) -> dict:
