@@ -167,7 +167,8 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
     """The achievable floor of the twin's dataset ``df`` (``scenario`` at ``scale``) split per
     source (module docstring): ``{axis: {source_nm: nm, ..., "thermal_state_nm": nm,
     "quadrature_sum_nm": nm, "achievable_floor_nm": nm}, "thermometers_by_sensor_nm":
-    {column: {axis: nm}}, "sources": {source_nm: what it is}}``. ``full``: the true model's fit
+    {column: {axis: nm}}, "adds_up": {axis: the quadrature sum within BUDGET_TOLERANCE of the
+    floor}, "sources": {source_nm: what it is}}``. ``full``: the true model's fit
     on ``df`` when already made."""
     full = full or true_fit(df, meta)
     sources = _sources(scenario)
@@ -191,6 +192,12 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
         line["quadrature_sum_nm"] = float(np.sqrt(sum(v ** 2 for v in line.values())))
         line["achievable_floor_nm"] = floor[a]
         budget[a] = line
+    # each source alone is refitted on its own: where validation extrapolates (conditions past
+    # the calibration range) a run with one quiet source can extrapolate worse than the whole,
+    # and the lines no longer add up; said, not hidden
+    budget["adds_up"] = {a: bool(abs(budget[a]["quadrature_sum_nm"] / budget[a][
+        "achievable_floor_nm"] - 1) <= BUDGET_TOLERANCE) for a in floor if budget[a][
+        "achievable_floor_nm"] > 0}
     budget["thermometers_by_sensor_nm"] = _by_sensor(full, df, meta, quiet_df)
     budget["sources"] = {s: SOURCES[s] for s in sources} | {
         REMAINDER: "what perfect instruments leave: the parts' temperatures the sensors do not "
@@ -251,6 +258,11 @@ def budget_lines(budget: dict | None) -> list[str]:
     for k in [*sources, "quadrature_sum_nm", "achievable_floor_nm"]:
         if all(k in budget[a] for a in axes):
             lines.append(f"  {k[:-3]:<{width}}" + "".join(f"{budget[a][k]:8.1f}" for a in axes))
+    off = [a for a, ok in (budget.get("adds_up") or {}).items() if not ok]
+    if off:
+        lines.append(f"  the sources do not add up to the floor on {', '.join(off)} (beyond "
+                     f"{BUDGET_TOLERANCE:.0%}): validation extrapolates past the calibration "
+                     "conditions, where each source refitted alone extrapolates differently")
     by_sensor = budget.get("thermometers_by_sensor_nm") or {}
     top = sorted(by_sensor.items(), key=lambda kv: -max(kv[1].values(), default=0.0))[:4]
     if top:

@@ -45,6 +45,7 @@ def test_the_sources_add_up_in_quadrature_to_the_achievable_floor(thermal, budge
         assert "servo_settling_nm" not in line           # no settling in the thermal campaign
         assert line["quadrature_sum_nm"] == pytest.approx(
             line["achievable_floor_nm"], rel=BUDGET_TOLERANCE), (a, line)
+        assert budget["adds_up"][a]
 
 
 def test_the_thermometers_set_the_floor_through_the_frame_arm(budget):
@@ -59,6 +60,9 @@ def test_the_thermometers_set_the_floor_through_the_frame_arm(budget):
     assert by_sensor["T_arm1_C"]["x"] < 0.1 * by_sensor[biggest]["x"]
     text = "\n".join(budget_lines(budget))
     assert "thermometers" in text and "achievable_floor" in text and biggest in text
+    assert "do not add up" not in text
+    assert "do not add up to the floor on x" in "\n".join(
+        budget_lines({**budget, "adds_up": {**budget["adds_up"], "x": False}}))
 
 
 def test_predicted_budget_of_laboratory_data(thermal):
