@@ -86,7 +86,9 @@ class Case:
                                         "coil_offset_m": [[-0.004, -0.008, 0.0]] * 3}
         for e, m in self.hidden:
             tables[e] = {**tables.get(e, {}), **_scaled(e, m, tables.get(e, {}))}
-        doc = {"scenario": {"name": self.name, "description": self.description(),
+        from deltatwin.twin.scenario import FORMAT_VERSION as SCENARIO_FORMAT_VERSION
+        doc = {"format_version": SCENARIO_FORMAT_VERSION,
+               "scenario": {"name": self.name, "description": self.description(),
                             "seed": self.seed},
                "hidden": {"effects": self.hidden_effects, "baseline": list(self.baseline)},
                "effects": {"on": effects, **{e: v for e, v in tables.items() if e in effects}},
