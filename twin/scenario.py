@@ -192,9 +192,8 @@ class Scenario:
             raise ScenarioError(str(exc)) from exc
         sensors = doc.get("sensors", {})
         parts = {p for p, _, _ in PART_NODES}
-        if not isinstance(sensors, dict) or not sensors:
-            raise ScenarioError(f"{f} [sensors]: expected a table of sensor = \"part\" with at "
-                                "least one sensor (every campaign scans its thermometers)")
+        if not isinstance(sensors, dict):
+            raise ScenarioError(f"{f} [sensors]: expected a table of sensor = \"part\"")
         for sname, part in sensors.items():
             if not SENSOR_NAME.match(sname):
                 raise ScenarioError(f"{f} [sensors] {sname!r}: a sensor name is letters, digits "
@@ -249,6 +248,9 @@ class Scenario:
                  sensors=sensors, settings=settings, cosine=cosine, campaign=camp,
                  reduced_scale=red, hidden=hidden)
         sc._timeline(sc.plan(random_streams(0)["campaign"], scale))   # validate the plan now
+        if not sensors:
+            raise ScenarioError(f"{f} [sensors]: no sensor; every campaign scans its "
+                                "thermometers: name at least one (sensor = \"part\")")
         return sc
 
     # -- the campaign -------------------------------------------------------------------------

@@ -7,8 +7,8 @@ from pathlib import Path
 from deltatwin.calibration.blackbox.dgm import DGM
 from deltatwin.calibration.blackbox.direct_igm import DirectIGM
 from deltatwin.calibration.blackbox.estimator import MODEL_FORMAT, MODEL_FORMAT_VERSION
-from deltatwin.files import CONTENT_SHA256, content_damage
 from deltatwin.calibration.errors import CalibrationInputError, ModelFileError, ModelMismatchError
+from deltatwin.files import CONTENT_SHA256, content_damage
 
 _KINDS = {"DGM": DGM, "DirectIGM": DirectIGM}
 READABLE_VERSIONS = tuple(range(1, MODEL_FORMAT_VERSION + 1))

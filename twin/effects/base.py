@@ -27,7 +27,6 @@ from typing import ClassVar
 
 import numpy as np
 
-
 # no effect parameter of this robot exceeds this in its SI unit (elastic moduli ~1e11 Pa, times
 # ~1e9 s): a bigger value is a typing or unit mistake, and would overflow the models
 MAX_ABS_SI = 1e15
