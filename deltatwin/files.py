@@ -77,6 +77,16 @@ def toml_text(doc: dict, comment: str = "") -> str:
     return head + tomli_w.dumps(_plain(doc))
 
 
+def unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """``object_pairs_hook`` for ``json.loads``: a key repeated in one object is a ValueError
+    (``json.loads`` alone keeps the last one silently)."""
+    keys = [k for k, _ in pairs]
+    repeated = sorted({k for k in keys if keys.count(k) > 1})
+    if repeated:
+        raise ValueError(f"key(s) {repeated} repeated in one object")
+    return dict(pairs)
+
+
 CONTENT_SHA256 = "content_sha256"
 
 

@@ -6,6 +6,7 @@ Parquet keeps the metadata in the schema under the key ``deltatwin``; CSV keeps 
 """
 from __future__ import annotations
 
+import csv
 import hashlib
 import io
 import json
@@ -18,7 +19,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from deltatwin.files import atomic_write
+from deltatwin.files import atomic_write, unique_keys
 
 FORMAT_VERSION = 1
 METADATA_KEY = b"deltatwin"
@@ -34,9 +35,10 @@ PLAUSIBLE_ABS = {"nm": 1e9, "C": 1000.0, "A": 100.0, "N": 1e4, "arcsec": 1e6, "r
                  "Pa": 1e7, "s": 1e10}                  # |value| above: not a measurement
 
 
-_FLAGS = {"true": True, "false": False, "1": True, "0": False, "1.0": True, "0.0": False}
-# sidecar / schema metadata keys the readers use -> check of the value (the others are kept as
-# provenance, unread)
+# how a flag column (cosine_corrected) may be written, case-insensitive
+FLAG_TEXTS = ("true", "false", "1", "0", "1.0", "0.0")
+
+
 def _text_map(v) -> str | None:
     if not isinstance(v, dict):
         return "not a JSON object"
@@ -118,9 +120,8 @@ def validate(df: pd.DataFrame, where: str = "dataset") -> None:
         if bad.size:
             raise DatasetError(f"{where}: column 'session' is empty at row(s) {bad[:10].tolist()}")
     if "cosine_corrected" in df.columns:
-        flags = df["cosine_corrected"].map(lambda v: v if isinstance(v, (bool, np.bool_)) else
-                                           _FLAGS.get(str(v).strip().lower()))
-        bad = np.flatnonzero(flags.isna().to_numpy())
+        flags = df["cosine_corrected"].astype(str).str.strip().str.lower()
+        bad = np.flatnonzero(~flags.isin(FLAG_TEXTS).to_numpy())
         if bad.size:
             raise DatasetError(f"{where}: column 'cosine_corrected' holds "
                                f"{df['cosine_corrected'].iloc[bad[0]]!r} at row(s) "
@@ -228,19 +229,8 @@ def read_dataset(path: str | os.PathLike) -> tuple[pd.DataFrame, dict]:
     return df, meta
 
 
-def _unique_keys(side: Path):
-    def pairs_hook(pairs):
-        keys = [k for k, _ in pairs]
-        repeated = sorted({k for k in keys if keys.count(k) > 1})
-        if repeated:        # json.loads would keep the last one
-            raise DatasetError(f"{side}: key(s) {repeated} repeated in one object")
-        return dict(pairs)
-    return pairs_hook
-
-
 def _unique_header(path: Path, data: bytes) -> None:
     """A column named twice (pandas would rename the second ``x_nm.1`` and drop it silently)."""
-    import csv
     header = next(csv.reader([data.split(b"\n", 1)[0].decode("utf-8", "replace")]), [])
     repeated = sorted({c for c in header if header.count(c) > 1})
     if repeated:
@@ -255,9 +245,7 @@ def _sidecar(path: Path, data: bytes) -> dict | None:
     if side.is_dir():
         raise DatasetError(f"{side}: is a folder, not the dataset's metadata")
     try:
-        meta = json.loads(side.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys(side))
-    except DatasetError:
-        raise
+        meta = json.loads(side.read_text(encoding="utf-8"), object_pairs_hook=unique_keys)
     except (ValueError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{side}: not valid JSON ({exc})") from exc
     if not isinstance(meta, dict):

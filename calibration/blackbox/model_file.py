@@ -8,19 +8,10 @@ from deltatwin.calibration.blackbox.dgm import DGM
 from deltatwin.calibration.blackbox.direct_igm import DirectIGM
 from deltatwin.calibration.blackbox.estimator import MODEL_FORMAT, MODEL_FORMAT_VERSION
 from deltatwin.calibration.errors import CalibrationInputError, ModelFileError, ModelMismatchError
-from deltatwin.files import CONTENT_SHA256, content_damage
+from deltatwin.files import CONTENT_SHA256, content_damage, unique_keys
 
 _KINDS = {"DGM": DGM, "DirectIGM": DirectIGM}
 READABLE_VERSIONS = tuple(range(1, MODEL_FORMAT_VERSION + 1))
-
-
-def _unique_keys(pairs):
-    """A JSON object whose keys are unique (json.loads would keep the last of a repeated key)."""
-    keys = [k for k, _ in pairs]
-    repeated = sorted({k for k in keys if keys.count(k) > 1})
-    if repeated:
-        raise ValueError(f"key(s) {repeated} repeated in one object")
-    return dict(pairs)
 
 
 def load_model(path, expect_kind: str | None = None, expect_features: str | None = None):
@@ -32,7 +23,7 @@ def load_model(path, expect_kind: str | None = None, expect_features: str | None
     if path.is_dir():
         raise ModelFileError(f"{path}: is a folder, not a model file")
     try:
-        d = json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys)
+        d = json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=unique_keys)
     except (OSError, ValueError) as exc:
         raise ModelFileError(f"{path}: not a JSON model file ({exc})") from exc
     if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
