@@ -43,6 +43,12 @@ class UserError(Exception):
     """An error caused by the user's input: printed as one clear line, exit code 2."""
 
 
+# what ends a command with exit 2 and one line naming what and where: ValueError, the library's
+# input errors (scenario, dataset, model file, ports file, ...); OSError, a file that cannot be
+# read or written (missing, a folder, no space)
+BAD_INPUT_ERRORS = (UserError, ValueError, OSError)
+
+
 def _verbosity_options() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     g = common.add_mutually_exclusive_group()
@@ -127,9 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         if _is_instrument_fault(exc):
             print(f"deltatwin {args.command}: instrument fault: {exc}", file=sys.stderr)
             return EXIT_INSTRUMENT_FAULT
-        if isinstance(exc, (UserError, ValueError, OSError)):
-            # ValueError: the library's input errors (scenario, dataset, model file, ...);
-            # OSError: a file that cannot be read or written (missing, a folder, no space)
+        if isinstance(exc, BAD_INPUT_ERRORS):
             print(f"deltatwin {args.command}: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
         raise

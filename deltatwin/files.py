@@ -75,3 +75,41 @@ def toml_text(doc: dict, comment: str = "") -> str:
 
     head = "".join(f"# {line}\n" for line in comment.splitlines())
     return head + tomli_w.dumps(_plain(doc))
+
+
+def unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """``object_pairs_hook`` for ``json.loads``: a key repeated in one object is a ValueError
+    (``json.loads`` alone keeps the last one silently)."""
+    keys = [k for k, _ in pairs]
+    repeated = sorted({k for k in keys if keys.count(k) > 1})
+    if repeated:
+        raise ValueError(f"key(s) {repeated} repeated in one object")
+    return dict(pairs)
+
+
+CONTENT_SHA256 = "content_sha256"
+
+
+def content_sha256(doc: dict) -> str:
+    """The SHA-256 of a document's content (every key but ``content_sha256``, keys sorted,
+    numbers as their shortest exact text): the same for the document written as JSON or TOML and
+    read back, different after any change of a key or a value. Files deltatwin writes for
+    itself carry it, so that a file cut short, damaged or edited is refused, not half used."""
+    import hashlib
+    import json
+
+    body = {k: v for k, v in _plain(doc).items() if k != CONTENT_SHA256}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def content_damage(doc: dict) -> str | None:
+    """Why ``doc`` does not match the ``content_sha256`` it carries (None: it matches, or it
+    carries none)."""
+    expected = doc.get(CONTENT_SHA256)
+    if expected is None:
+        return None
+    if not isinstance(expected, str) or expected != content_sha256(doc):
+        return (f"its content does not match its {CONTENT_SHA256} (the file was cut short, "
+                "damaged or edited)")
+    return None

@@ -99,6 +99,21 @@ def _fail(path, where: str, reason: str):
     raise PortsFileError(f"{path}: [{where}] {reason}")
 
 
+# [retry] key -> (integer, lowest, highest): bounded, so that a campaign's wait stays finite
+RETRY_RANGES = {"attempts": (True, 1, 1000), "first_delay_s": (False, 0.0, MAX_TIMEOUT_S),
+                "factor": (False, 1.0, 100.0), "max_delay_s": (False, 0.0, MAX_TIMEOUT_S)}
+MAX_BAUD = 10_000_000       # above any serial line's rate
+MAX_COILS = 64
+
+
+def _check_number(path, where: str, key: str, value, low, high, integer: bool = False):
+    kind = "an integer" if integer else "a number"
+    if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)) \
+            or not math.isfinite(value) or not low <= value <= high:
+        _fail(path, where, f"{key}: must be {kind} in [{low:g}, {high:g}], got {value!r}")
+    return value
+
+
 def _port(path, where: str, kind: str, table) -> Port:
     if not isinstance(table, dict):
         _fail(path, where, f"must be a table, got {type(table).__name__}")
@@ -111,13 +126,11 @@ def _port(path, where: str, kind: str, table) -> Port:
     if not isinstance(url, str) or not url:
         _fail(path, where, "url: missing (a device path such as /dev/ttyUSB0, or "
                            "socket://host:port)")
-    baud = table.get("baud", baud)
-    if not isinstance(baud, int) or isinstance(baud, bool) or baud <= 0:
-        _fail(path, where, f"baud: must be a positive integer, got {baud!r}")
+    baud = _check_number(path, where, "baud", table.get("baud", baud), 1, MAX_BAUD, integer=True)
     if kind == "thermometers" and baud not in KEITHLEY_BAUDS:
         _fail(path, where, f"baud: the Keithley 2700 runs at {list(KEITHLEY_BAUDS)}, got {baud}")
     terminator = table.get("terminator", terminator)
-    if terminator not in TERMINATORS:
+    if not isinstance(terminator, str) or terminator not in TERMINATORS:
         _fail(path, where, f"terminator: must be one of {sorted(TERMINATORS)}, got "
                            f"{terminator!r}")
     timeout_s = table.get("timeout_s", timeout_s)
@@ -191,10 +204,10 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
         bad = sorted(set(r) - {"attempts", "first_delay_s", "factor", "max_delay_s"})
         if bad:
             _fail(path, "retry", f"unknown key(s) {bad}")
-        try:
-            retry = RetryPolicy(**r)
-        except (TypeError, ValueError) as exc:
-            _fail(path, "retry", str(exc))
+        for key, (integer, low, high) in RETRY_RANGES.items():
+            if key in r:
+                _check_number(path, "retry", key, r[key], low, high, integer)
+        retry = RetryPolicy(**r)
 
     ifm = doc["interferometers"]
     axes = ifm.get("axes") if isinstance(ifm, dict) else None
@@ -227,9 +240,8 @@ def load_ports(path: str | os.PathLike) -> LabPorts:
     coils, n_coils = None, 3
     if "coils" in doc:
         coils = _port(path, "coils", "coils", doc["coils"])
-        n_coils = doc["coils"].get("n_coils", 3)
-        if not isinstance(n_coils, int) or isinstance(n_coils, bool) or n_coils < 1:
-            _fail(path, "coils", f"n_coils: must be a positive integer, got {n_coils!r}")
+        n_coils = _check_number(path, "coils", "n_coils", doc["coils"].get("n_coils", 3), 1,
+                                MAX_COILS, integer=True)
     return LabPorts(
         lab=lab,
         robot=_port(path, "robot", "robot", doc["robot"]),

@@ -361,6 +361,8 @@ class SerialLine:
                 del self._buffer[:end + len(self.terminator)]
                 return raw.decode("latin-1")
             remaining = deadline - time.monotonic()
+            if remaining <= 0 and self._take_waiting():
+                continue    # the reply came in time: this process was not scheduled to see it
             if remaining <= 0:
                 partial = bytes(self._buffer)
                 self._buffer.clear()
@@ -372,11 +374,26 @@ class SerialLine:
                 chunk = self._port.read(max(1, self._port.in_waiting))
             except _LINK_ERRORS as exc:
                 raise self._lost(exc) from exc
-            if chunk:
-                if XOFF in chunk or XON in chunk:
-                    log.debug("%s: dropped XON/XOFF byte(s) in %r", self.instrument, chunk)
-                    chunk = chunk.replace(XOFF, b"").replace(XON, b"")
-                self._buffer += chunk
+            self._append(chunk)
+
+    def _append(self, chunk: bytes) -> None:
+        if chunk:
+            if XOFF in chunk or XON in chunk:
+                log.debug("%s: dropped XON/XOFF byte(s) in %r", self.instrument, chunk)
+                chunk = chunk.replace(XOFF, b"").replace(XON, b"")
+            self._buffer += chunk
+
+    def _take_waiting(self) -> bool:
+        """Append what already waits in the port (no wait); True if that completes a line. A
+        reply that arrived before the deadline but was not read (this process was descheduled
+        or paused past the deadline under load) is a reply, not a timeout."""
+        try:
+            waiting = self._port.in_waiting
+            if waiting:
+                self._append(self._port.read(waiting))
+        except _LINK_ERRORS as exc:
+            raise self._lost(exc) from exc
+        return self.terminator in self._buffer
 
     def discard_input(self, quiet_s: float = 0.02) -> bytes:
         """Read and drop whatever arrives until the line has been quiet for ``quiet_s`` (stale

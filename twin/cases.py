@@ -94,7 +94,9 @@ class Case:
         hidden = {"effects": self.hidden_effects, "baseline": list(self.baseline)}
         if self.known:
             hidden["known"] = self.known
-        doc = {"scenario": {"name": self.name, "description": self.description(),
+        from deltatwin.twin.scenario import FORMAT_VERSION as SCENARIO_FORMAT_VERSION
+        doc = {"format_version": SCENARIO_FORMAT_VERSION,
+               "scenario": {"name": self.name, "description": self.description(),
                             "seed": self.seed},
                "hidden": hidden,
                "effects": {"on": effects, **{e: v for e, v in tables.items() if e in effects}},

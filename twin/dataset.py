@@ -6,6 +6,7 @@ Parquet keeps the metadata in the schema under the key ``deltatwin``; CSV keeps 
 """
 from __future__ import annotations
 
+import csv
 import hashlib
 import io
 import json
@@ -18,7 +19,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from deltatwin.files import atomic_write
+from deltatwin.files import atomic_write, unique_keys
 
 FORMAT_VERSION = 1
 METADATA_KEY = b"deltatwin"
@@ -28,13 +29,50 @@ SPLITS = ("cal", "val")
 _UNIT_SUFFIX = re.compile(r"_(s|rad|nm|arcsec|C|A|N|m|K|Pa|pct)$")
 # numeric columns of the format (docs/data-format.md): checked for numbers, plausible sizes
 _NUMERIC = re.compile(r"^([xyz]_nm|T_\w+_C|coil\d+_A|F_N|ac\d+_r[xyz]_arcsec|p_Pa|RH_pct|"
-                      r"std_[xyz]_nm|t_s|q[123]_rad)$")
+                      r"std_[xyz]_nm|[xyz]_(repeat_)?std_nm|t_s|q[123]_rad)$")
 _AXIS_LIKE = re.compile(r"^[xyz]_(?!nm$)[A-Za-z]+$")     # x_um, y_mm: a reading in another unit
 PLAUSIBLE_ABS = {"nm": 1e9, "C": 1000.0, "A": 100.0, "N": 1e4, "arcsec": 1e6, "rad": 10.0,
                  "Pa": 1e7, "s": 1e10, "pct": 100.0}    # |value| above: not a measurement
 # the laboratory air's records: a barometric pressure (absolute, Pa) and a relative humidity (%)
 AIR_RANGES = {"p_Pa": (50e3, 120e3, "an absolute barometric pressure in pascal (hPa x 100)"),
               "RH_pct": (0.0, 100.0, "a relative humidity in percent")}
+
+
+# how a flag column (cosine_corrected) may be written, case-insensitive
+FLAG_TEXTS = ("true", "false", "1", "0", "1.0", "0.0")
+
+
+def _text_map(v) -> str | None:
+    if not isinstance(v, dict):
+        return "not a JSON object"
+    return next((f"{k} = {u!r} is not text" for k, u in v.items() if not isinstance(u, str)), None)
+
+
+def _lengths_m(v) -> str | None:
+    if not isinstance(v, dict):
+        return "not a JSON object"
+    return next((f"{k} = {u!r} is not a length in m (|value| < 10)" for k, u in v.items()
+                 if isinstance(u, bool) or not isinstance(u, (int, float))
+                 or not np.isfinite(u) or abs(u) >= 10.0), None)
+
+
+def _scalar(ok, what):
+    return lambda v: None if ok(v) else f"{v!r} is not {what}"
+
+
+# sidecar / schema metadata keys the readers use -> what is wrong with the value (None: fine);
+# the other keys are provenance, kept unread
+_META_CHECKS = {
+    "units": _text_map,
+    "sensors": _text_map,
+    "cosine_dead_path_m": _lengths_m,
+    "csv_sha256": _scalar(lambda v: isinstance(v, str) and re.fullmatch(r"[0-9a-f]{64}", v)
+                          is not None, "a SHA-256 in hex"),
+    "seed": _scalar(lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+                    "an integer >= 0"),
+    "scale": _scalar(lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)
+                     and 0 < v <= 1, "a number in (0, 1]"),
+}
 
 
 class DatasetError(ValueError):
@@ -74,6 +112,23 @@ def validate(df: pd.DataFrame, where: str = "dataset") -> None:
     bad_split = sorted(set(df["split"].astype(str)) - set(SPLITS))
     if bad_split:
         raise DatasetError(f"{where}: column 'split' holds {bad_split}; allowed: {list(SPLITS)}")
+    pos = pd.to_numeric(df["pos_id"], errors="coerce").to_numpy(dtype=float)
+    bad = np.flatnonzero(~np.isfinite(pos) | (pos != np.round(pos)) | (np.abs(pos) > 2.0**53))
+    if bad.size:
+        raise DatasetError(f"{where}: column 'pos_id' is not an integer at row(s) "
+                           f"{bad[:10].tolist()} (e.g. {df['pos_id'].iloc[bad[0]]!r})")
+    if "session" in df.columns:
+        bad = np.flatnonzero(df["session"].isna().to_numpy()
+                             | (df["session"].astype(str).str.strip() == "").to_numpy())
+        if bad.size:
+            raise DatasetError(f"{where}: column 'session' is empty at row(s) {bad[:10].tolist()}")
+    if "cosine_corrected" in df.columns:
+        flags = df["cosine_corrected"].astype(str).str.strip().str.lower()
+        bad = np.flatnonzero(~flags.isin(FLAG_TEXTS).to_numpy())
+        if bad.size:
+            raise DatasetError(f"{where}: column 'cosine_corrected' holds "
+                               f"{df['cosine_corrected'].iloc[bad[0]]!r} at row(s) "
+                               f"{bad[:10].tolist()}; expected True or False")
     for c in ("t_s", "q1_rad", "q2_rad", "q3_rad"):
         col = pd.to_numeric(df[c], errors="coerce")
         bad = np.flatnonzero(~np.isfinite(col.to_numpy(dtype=float)))
@@ -152,10 +207,14 @@ def read_dataset(path: str | os.PathLike) -> tuple[pd.DataFrame, dict]:
             if data and not data.endswith(b"\n"):
                 raise DatasetError(f"{path}: the last line is incomplete (the file was cut "
                                    "short?); refusing a partial row")
-            df = pd.read_csv(io.BytesIO(data))
             meta = _sidecar(path, data)
+            meta_where = path.with_suffix(".meta.json") if meta is not None else path
+            _unique_header(path, data)
+            df = pd.read_csv(io.BytesIO(data))
+            meta = meta if meta is not None else {"source": "lab"}
         else:
             table = pq.read_table(path)
+            meta_where = path
             raw = (table.schema.metadata or {}).get(METADATA_KEY)
             meta = json.loads(raw) if raw else {"source": "lab"}
             df = table.to_pandas()
@@ -164,27 +223,46 @@ def read_dataset(path: str | os.PathLike) -> tuple[pd.DataFrame, dict]:
             raise
         raise DatasetError(f"{path}: cannot be read as a dataset ({exc})") from exc
     if not isinstance(meta, dict):
-        raise DatasetError(f"{path}: its metadata is a {type(meta).__name__}, not a JSON object")
+        raise DatasetError(f"{meta_where}: its metadata is a {type(meta).__name__}, not a JSON "
+                           "object")
     version = meta.get("format_version", FORMAT_VERSION)
-    if not isinstance(version, int) or version > FORMAT_VERSION:
-        raise DatasetError(f"{path}: format_version {version!r}; this deltatwin reads up to "
-                           f"{FORMAT_VERSION}")
+    if not isinstance(version, int) or isinstance(version, bool) \
+            or not 1 <= version <= FORMAT_VERSION:
+        raise DatasetError(f"{meta_where}: format_version {version!r}; this deltatwin reads "
+                           f"1 to {FORMAT_VERSION}")
+    for key, check in _META_CHECKS.items():
+        wrong = check(meta[key]) if key in meta else None
+        if wrong:
+            raise DatasetError(f"{meta_where}: metadata {key}: {wrong[:200]} "
+                               "(docs/data-format.md)")
     validate(df, str(path))
     return df, meta
 
 
-def _sidecar(path: Path, data: bytes) -> dict:
-    """The CSV's metadata from ``<name>.meta.json`` (a laboratory's CSV may have none)."""
+def _unique_header(path: Path, data: bytes) -> None:
+    """A column named twice (pandas would rename the second ``x_nm.1`` and drop it silently)."""
+    header = next(csv.reader([data.split(b"\n", 1)[0].decode("utf-8", "replace")]), [])
+    repeated = sorted({c for c in header if header.count(c) > 1})
+    if repeated:
+        raise DatasetError(f"{path}: column(s) {repeated} appear more than once in the header")
+
+
+def _sidecar(path: Path, data: bytes) -> dict | None:
+    """The CSV's metadata from ``<name>.meta.json`` (None: a laboratory's CSV may have none)."""
     side = path.with_suffix(".meta.json")
     if not side.exists():
-        return {"source": "lab"}
+        return None
+    if side.is_dir():
+        raise DatasetError(f"{side}: is a folder, not the dataset's metadata")
     try:
-        meta = json.loads(side.read_text(encoding="utf-8"))
+        meta = json.loads(side.read_text(encoding="utf-8"), object_pairs_hook=unique_keys)
     except (ValueError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{side}: not valid JSON ({exc})") from exc
     if not isinstance(meta, dict):
         raise DatasetError(f"{side}: holds a JSON {type(meta).__name__}, not an object")
     expected = meta.get("csv_sha256")
+    if expected is not None and _META_CHECKS["csv_sha256"](expected):
+        raise DatasetError(f"{side}: csv_sha256 = {str(expected)[:80]!r} is not a SHA-256 in hex")
     if expected is not None and expected != hashlib.sha256(data).hexdigest():
         raise DatasetError(f"{side}: written for another version of {path.name} (checksum "
                            "differs): the pair was not written together; rewrite both")

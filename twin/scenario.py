@@ -41,6 +41,9 @@ def shipped_scenarios() -> list[str]:
     laboratory, ...)."""
     return sorted(p.relative_to(SCENARIO_DIR).with_suffix("").as_posix()
                   for p in SCENARIO_DIR.rglob("*.toml"))
+# of the scenario files deltatwin writes (twin/cases.py, calibration/design/sweep.py); a
+# hand-written scenario may omit the top-level format_version
+FORMAT_VERSION = 1
 TABLES = {"scenario": {"name", "description", "seed"}, "robot": {"file"},
           "effects": None, "sensors": None, "instruments": None, "campaign": None,
           "reduced": {"scale"}, "hidden": {"effects", "baseline", "known"}}
@@ -137,11 +140,21 @@ class Scenario:
         except tomllib.TOMLDecodeError as exc:
             raise ScenarioError(f"{path}: not valid TOML ({exc})") from exc
         f = str(path)
+        version = doc.pop("format_version", FORMAT_VERSION)
+        if not isinstance(version, int) or isinstance(version, bool) \
+                or not 1 <= version <= FORMAT_VERSION:
+            raise ScenarioError(f"{f} format_version = {version!r}: this deltatwin reads scenario "
+                                f"files of version 1 to {FORMAT_VERSION}")
         _check_keys(f, doc, TABLES)
         for t, keys in TABLES.items():
+            if t in doc and not isinstance(doc[t], dict):
+                raise ScenarioError(f"{f} {t} = {doc[t]!r}: expected a table [{t}]")
             if keys is not None and t in doc:
                 _check_keys(f"{f} [{t}]", doc[t], keys)
         sc = doc.get("scenario", {})
+        for key in ("name", "description"):
+            if not isinstance(sc.get(key, ""), str):
+                raise ScenarioError(f"{f} [scenario] {key} = {sc[key]!r}: expected a string")
         name = sc.get("name", path.stem)
         seed = seed if seed is not None else _number(f"{f} [scenario] seed", sc.get("seed", 0), 0,
                                                      True, 2**63 - 1)
@@ -165,6 +178,10 @@ class Scenario:
         except EffectError as exc:
             raise ScenarioError(str(exc)) from exc
         names = [c.name for c in classes]
+        for key, table in eff_doc.items():
+            if not isinstance(table, dict):
+                raise ScenarioError(f"{f} [effects] {key} = {table!r}: expected a table "
+                                    f"[effects.{key}] of parameter values")
         for extra in eff_doc:
             if extra not in names:
                 raise ScenarioError(f"{f} [effects.{extra}]: parameters for an effect that is not "
@@ -209,7 +226,7 @@ class Scenario:
             for k, v in inst.items()})
         camp = doc.get("campaign", {})
         kind = camp.get("kind")
-        if kind not in CAMPAIGN_KEYS:
+        if not isinstance(kind, str) or kind not in CAMPAIGN_KEYS:
             raise ScenarioError(f"{f} [campaign] kind = {kind!r}: expected one of "
                                 f"{sorted(CAMPAIGN_KEYS)}")
         _check_keys(f"{f} [campaign]", camp, CAMPAIGN_KEYS[kind])
@@ -248,6 +265,9 @@ class Scenario:
                  sensors=sensors, settings=settings, cosine=cosine, campaign=camp,
                  reduced_scale=red, hidden=hidden)
         sc._timeline(sc.plan(random_streams(0)["campaign"], scale))   # validate the plan now
+        if not sensors:
+            raise ScenarioError(f"{f} [sensors]: no sensor; every campaign scans its "
+                                "thermometers: name at least one (sensor = \"part\")")
         return sc
 
     # -- the campaign -------------------------------------------------------------------------

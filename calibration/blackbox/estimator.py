@@ -31,10 +31,11 @@ from deltatwin.calibration.errors import (
     TooFewPointsError,
 )
 from deltatwin.calibration.streams import DEFAULT_WINDOW_S
-from deltatwin.files import atomic_write_text
+from deltatwin.files import CONTENT_SHA256, atomic_write_text, content_sha256
 
 MODEL_FORMAT = "deltatwin-calibration-model"
-MODEL_FORMAT_VERSION = 1
+# 2: the file carries content_sha256 (deltatwin.files), checked on reading; 1 is still read
+MODEL_FORMAT_VERSION = 2
 NM = 1e-9
 AXIS_COLUMNS = {"x": "x_nm", "y": "y_nm", "z": "z_nm"}
 MOTOR_COLUMNS = {"q1": "q1_rad", "q2": "q2_rad", "q3": "q3_rad"}
@@ -556,8 +557,11 @@ class _StepwiseModel:
     def save(self, path) -> Path:
         """Write the model as JSON, atomically (temporary file, then rename)."""
         path = Path(path)
+        d = self.to_dict()
+        head = {"format": d.pop("format"), "format_version": d.pop("format_version")}
+        d = {**head, CONTENT_SHA256: content_sha256({**head, **d}), **d}
         try:
-            text = json.dumps(self.to_dict(), indent=1, allow_nan=False)   # strict JSON
+            text = json.dumps(d, indent=1, allow_nan=False)   # strict JSON
         except ValueError as exc:
             raise CalibrationInputError(f"{self.kind}: the model holds a non-finite number "
                                         f"and cannot be exported ({exc})") from exc

@@ -21,7 +21,8 @@ import json
 import math
 
 FORMAT = "deltatwin-calibration-model"
-FORMAT_VERSION = 1
+# version 2 adds content_sha256 (checked by deltatwin's own reader; the layout is unchanged)
+FORMAT_VERSIONS = (1, 2)
 AXES = ("x", "y", "z")
 MOTORS = ("q1", "q2", "q3")
 
@@ -30,8 +31,8 @@ def load(path) -> dict:
     """The model file's contents, with its format checked."""
     with open(path, encoding="utf-8") as f:
         model = json.load(f)
-    if model.get("format") != FORMAT or model.get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"{path}: not a {FORMAT} file of version {FORMAT_VERSION}")
+    if model.get("format") != FORMAT or model.get("format_version") not in FORMAT_VERSIONS:
+        raise ValueError(f"{path}: not a {FORMAT} file of version {FORMAT_VERSIONS}")
     return model
 
 

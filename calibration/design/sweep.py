@@ -50,6 +50,7 @@ import pyarrow.parquet as pq
 
 from deltatwin.files import atomic_write, toml_text
 from deltatwin.twin.effects import LIBRARY
+from deltatwin.twin.scenario import FORMAT_VERSION as SCENARIO_FORMAT_VERSION
 from deltatwin.twin.scenario import SCENARIO_DIR, shipped_scenarios
 
 log = logging.getLogger(__name__)
@@ -214,6 +215,8 @@ def case_scenario_text(case: Case) -> str:
     the design's [campaign] replacements, a robot file made absolute."""
     src = Path(case.scenario)
     doc = tomllib.loads(src.read_text(encoding="utf-8"))
+    doc = {"format_version": SCENARIO_FORMAT_VERSION,
+           **{k: v for k, v in doc.items() if k != "format_version"}}
     effects = doc.setdefault("effects", {})
     on = effects.setdefault("on", [])
     if case.magnitude == 0:

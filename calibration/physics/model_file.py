@@ -1,17 +1,20 @@
 """The fitted physics model on disk (fitted.toml): writing and reading it back."""
 from __future__ import annotations
 
+import math
 import tomllib
 from pathlib import Path
 
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, _or_nan
 from deltatwin.calibration.physics.model import PhysicsModel
-from deltatwin.files import toml_text
+from deltatwin.files import CONTENT_SHA256, content_damage, content_sha256, toml_text
 from deltatwin.twin.effects import EffectError, effect_class
 
 FORMAT = "deltatwin-physics-model"
-FORMAT_VERSION = 1
+# 2: a fitted file carries content_sha256 (deltatwin.files), checked on reading; 1 is still read.
+# A file without it (hand-written, or edited and the line removed) gets the checks below only.
+FORMAT_VERSION = 2
 
 
 def fitted_toml(fit: PhysicsFit, data: str) -> str:
@@ -31,6 +34,8 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
         # the laboratory's known constants of effects outside the model (--set): a diagnosis
         # gives them to the candidates it adds
         doc["known"] = fit.known_
+    doc = {"format": FORMAT, "format_version": FORMAT_VERSION, CONTENT_SHA256: content_sha256(doc),
+           **doc}
     return toml_text(doc, "deltatwin physics model; load with "
                           "`deltatwin compare DATA --model THIS`")
 
@@ -38,20 +43,28 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
 def load_fitted(path) -> tuple[PhysicsModel, dict]:
     """(model, file contents) from a fitted-model TOML file."""
     path = Path(path)
+    if path.is_dir():
+        raise FitError(f"{path}: is a folder, not a fitted-model TOML file")
     try:
-        doc = tomllib.loads(path.read_text())
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise FitError(f"{path}: not a fitted-model TOML file ({exc})") from exc
-    if "model" not in doc or "effects" not in doc.get("model", {}):
+    model = doc.get("model")
+    if not isinstance(model, dict) or "effects" not in model:
         raise FitError(f"{path}: no [model] effects = [...]: not a fitted physics model "
                        "(write one with `deltatwin fit DATA --effects ... -o FILE`)")
     version = doc.get("format_version", 0)      # files written before the version key: 0
     if doc.get("format", FORMAT) != FORMAT or not isinstance(version, int) \
-            or version > FORMAT_VERSION:
-        raise FitError(f"{path}: format {doc.get('format')!r} version {version!r}: this deltatwin "
-                       f"reads {FORMAT!r} up to version {FORMAT_VERSION}")
+            or isinstance(version, bool) or not 0 <= version <= FORMAT_VERSION:
+        raise FitError(f"{path}: format {doc.get('format')!r} format_version {version!r}: this "
+                       f"deltatwin reads {FORMAT!r} up to version {FORMAT_VERSION}")
+    damage = content_damage(doc)
+    if damage:
+        raise FitError(f"{path}: {damage}; refit or restore it (or remove the "
+                       f"{CONTENT_SHA256} line to use an edited file)")
+    _check_layout(path, doc)
     # a fitted file cut short must not fall back on default values: every effect with free
     # parameters needs its table (a hand-written model without [fit] starts at the defaults)
     tables = doc.get("effects", {})
@@ -73,3 +86,41 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
     except EffectError as exc:
         raise FitError(str(exc)) from exc
     return model, doc
+
+
+def _check_layout(path: Path, doc: dict) -> None:
+    """The types of what a fitted file holds (a hand-written or edited one has no checksum)."""
+    def fail(key, what):
+        raise FitError(f"{path}: {key} must be {what}")
+
+    effects = doc["model"]["effects"]
+    if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
+        fail("[model] effects", "a list of effect names")
+    for key in ("effects", "fit", "known"):
+        if key in doc and not isinstance(doc[key], dict):
+            fail(f"[{key}]", "a table")
+    for name, table in doc.get("effects", {}).items():
+        if not isinstance(table, dict):
+            fail(f"[effects.{name}]", "a table of parameter values")
+    sensors = doc["model"].get("sensors", {})
+    if not isinstance(sensors, dict):
+        fail("[model.sensors]", "a table sensor = \"part\"")
+    for name, part in sensors.items():
+        if not isinstance(part, str):
+            fail(f"[model.sensors] {name}", f"a part name, got {part!r}")
+    for key, value in doc.get("fit", {}).items():      # the fit's figures (a report)
+        if key == "not_identifiable":
+            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                fail(f"[fit] {key}", f"a list of parameter names, got {value!r}")
+        elif key.startswith("n_"):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                fail(f"[fit] {key}", f"an integer >= 0, got {value!r}")
+        elif isinstance(value, bool) or not isinstance(value, (int, float)):
+            fail(f"[fit] {key}", f"a number (nan: not evaluated), got {value!r}")
+    if not isinstance(doc["model"].get("data", ""), str):
+        fail("[model] data", f"the path of the fitted data, got {doc['model']['data']!r}")
+    for key in ("noise_nm", "identifiable_ratio"):
+        value = doc["model"].get(key, 1.0)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value) or value < 0:
+            fail(f"[model] {key}", f"a finite number >= 0, got {value!r}")

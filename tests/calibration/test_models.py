@@ -23,6 +23,7 @@ from deltatwin.calibration.errors import (
     ValidationOverlapError,
 )
 from deltatwin.calibration.metrics import error_figures
+from deltatwin.files import content_sha256
 
 
 def test_error_figures_label_both_90_percent_figures():
@@ -263,6 +264,11 @@ def test_model_file_from_another_feature_set_or_edited(tmp_path, thermal_data, t
     p2 = thermal_dgm.save(tmp_path / "th.json")
     d = json.loads(p2.read_text())
     d["outputs"][0]["terms"][0]["factors"] = [["q1", 5]]
+    (tmp_path / "edited.json").write_text(json.dumps(d))
+    with pytest.raises(ModelFileError, match="does not match its content_sha256"):
+        load_model(tmp_path / "edited.json")
+    # an edit that also recomputes the checksum is still checked for consistency
+    d["content_sha256"] = content_sha256(d)
     (tmp_path / "edited.json").write_text(json.dumps(d))
     with pytest.raises(ModelFileError, match="term name"):
         load_model(tmp_path / "edited.json")

@@ -74,7 +74,7 @@ def test_emulated_lab_ports_round_trip(emulated, tmp_path):
 @pytest.mark.parametrize("edit,message", [
     (lambda t: t.replace('url = "/dev/ttyUSB0"\n', ""), r"\[robot\] url: missing"),
     (lambda t: t.replace("baud = 115200", "baud = -3"),
-     r"\[robot\] baud: must be a positive integer, got -3"),
+     r"\[robot\] baud: must be an integer in \[1, 1e\+07\], got -3"),
     (lambda t: t.replace("baud = 9600", "baud = 38400"),
      r"\[thermometers\] baud: the Keithley 2700 runs at \[300, .*19200\], got 38400"),
     (lambda t: t.replace('terminator = "CR"', 'terminator = "NUL"'),
@@ -107,7 +107,7 @@ def test_emulated_lab_ports_round_trip(emulated, tmp_path):
      r"\[thermometers\] unknown key\(s\) \['xonxof'\]"),
     (lambda t: t.replace("[robot]", "[robots]"), r"unknown key\(s\) \['robots'\]"),
     (lambda t: t.replace("attempts = 6", "attempts = 0"),
-     r"\[retry\] retry attempts must be >= 1, got 0"),
+     r"\[retry\] attempts: must be an integer in \[1, 1000\], got 0"),
     (lambda t: t.replace("[thermometers]", "[thermometers"), r"not valid TOML"),
     (lambda t: t.split("[thermometers]")[0], r"\[thermometers\] missing"),
 ])

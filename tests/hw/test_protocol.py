@@ -123,6 +123,23 @@ def test_serial_line_over_a_pty_xoff_partial_line_and_lost_port(pty_pair, tmp_pa
     os.close(slave2)
 
 
+def test_a_reply_waiting_at_the_deadline_is_read_not_a_timeout(pty_pair):
+    """The reply arrived in time but the reading process was not scheduled until after the
+    deadline (a loaded CI machine; the probable cause of the flaky
+    test_faults[autocollimator1-error_code]): it is a reply, not a timeout. Modelled by a zero
+    timeout with the reply already in the port."""
+    master, slave, path = pty_pair
+    line = SerialLine(path, instrument="dev", terminator=b"\r", timeout_s=0.2)
+    line.open()
+    os.write(master, b"1TP12.34\rTE@\r")
+    time.sleep(0.05)                              # in the port, not yet read by the driver
+    assert line.read_line(timeout_s=0.0) == "1TP12.34"
+    assert line.read_line(timeout_s=0.0) == "TE@"
+    with pytest.raises(InstrumentTimeout):        # nothing waiting: still a timeout
+        line.read_line(timeout_s=0.0)
+    line.close()
+
+
 def test_serial_line_over_socket_url():
     server = socket.socket()
     server.bind(("127.0.0.1", 0))

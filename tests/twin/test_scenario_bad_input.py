@@ -126,3 +126,21 @@ def test_every_instrument_setting_has_a_range():
     for k, (lo, hi, lo_ok) in InstrumentSettings.RANGES.items():
         v = getattr(defaults, k)
         assert (v >= lo if lo_ok else v > lo) and v <= hi, k
+
+
+def test_generated_scenarios_carry_a_format_version_that_is_checked(tmp_path):
+    """Scenario files deltatwin writes (generated cases, design sweeps) name their format
+    version; a newer one is refused naming the file; a hand-written scenario may omit it."""
+    import numpy as np
+
+    from deltatwin.twin.cases import generate_cases
+    from deltatwin.twin.scenario import FORMAT_VERSION
+
+    text = generate_cases(np.random.default_rng(1), 1)[0].toml()
+    assert f"\nformat_version = {FORMAT_VERSION}\n" in text
+    path = tmp_path / "case.toml"
+    path.write_text(text)
+    Scenario.load(path)
+    path.write_text(text.replace(f"format_version = {FORMAT_VERSION}", "format_version = 99"))
+    with pytest.raises(ScenarioError, match=r"case.toml format_version = 99"):
+        Scenario.load(path)

@@ -27,6 +27,19 @@ from typing import ClassVar
 
 import numpy as np
 
+# no effect parameter of this robot exceeds this in its SI unit (elastic moduli ~1e11 Pa, times
+# ~1e9 s): a bigger value is a typing or unit mistake, and would overflow the models
+MAX_ABS_SI = 1e15
+
+
+def _numbers_only(raw) -> bool:
+    """Whether ``raw`` is a number or (nested) sequence of numbers; text and booleans are not."""
+    if isinstance(raw, (list, tuple)):
+        return all(_numbers_only(x) for x in raw)
+    if isinstance(raw, np.ndarray):
+        return raw.dtype.kind in "iuf"
+    return isinstance(raw, (int, float, np.integer, np.floating)) and not isinstance(raw, bool)
+
 
 class EffectError(ValueError):
     """An unknown effect or a bad effect parameter."""
@@ -79,6 +92,8 @@ class Effect:
         for p in self.parameters:
             raw = values.get(p.name, p.default)
             try:
+                if not _numbers_only(raw):      # np.asarray would read "2e-5" or true as numbers
+                    raise TypeError
                 v = np.asarray(raw, dtype=np.float64)
             except (TypeError, ValueError):
                 raise EffectError(f"{where}.{p.name}: expected a number ({p.unit}), got {raw!r}") from None
@@ -87,6 +102,9 @@ class Effect:
                                   f"got {v.shape}")
             if not np.all(np.isfinite(v)):
                 raise EffectError(f"{where}.{p.name}: not a finite number: {raw!r}")
+            if np.any(np.abs(v) > MAX_ABS_SI):
+                raise EffectError(f"{where}.{p.name} = {raw!r} {p.unit}: |value| above {MAX_ABS_SI:g}"
+                                  " is no physical value of this robot in SI units")
             if check_minimum and p.minimum is not None and np.any(v < p.minimum):
                 raise EffectError(f"{where}.{p.name} = {raw!r} {p.unit}: must be >= {p.minimum}")
             self.values[p.name] = float(v) if v.ndim == 0 else v
