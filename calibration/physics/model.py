@@ -34,30 +34,47 @@ from deltatwin.twin.world import (
 POSE_STEP = 1e-6   # m and rad: the central-difference step of the optical paths in the pose
 GEOMETRY_STEP = 0.1   # of a fit scale: central differences of the joint arrays (quadratic)
 DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving stops
+# a reading's round-off over the evaluations a difference combines (the 0.3 m paths carry
+# ~5e-17 m each): a column's change over its step below this is noise, 1e-6 nm
+READING_ROUNDOFF_M = 1e-15
 
 
-def richardson_derivative(evaluate, step: float, max_halvings: int = 8) -> tuple:
+def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
+                          roundoff: float = 0.0) -> tuple:
     """The derivative at 0 of ``evaluate(offset)`` (a tuple of arrays, the last one judged):
     fourth-order central differences (f(-2h) - 8 f(-h) + 8 f(h) - f(2h)) / 12h from h = ``step``
     (a parameter's fit scale: large steps keep the predictions' round-off, ~5e-17 m of a 0.3 m
     path, small against a column that moves the readings by nanometres), the step halved while
     the estimate still changes by more than DERIVATIVE_TOL of itself (a parameter whose effect
     is strongly nonlinear over its fit scale, such as a coil's offset) and the change still
-    shrinks; once it grows, round-off has taken over and the estimate before it is kept."""
+    shrinks; once it grows, round-off has taken over and the estimate before it is kept.
+    Most parameters move the readings nearly linearly over their fit scale: when the two
+    central differences the first stencil combines, over h and 2h, already agree to
+    DERIVATIVE_TOL, or differ over the step by less than the evaluations' ``roundoff`` (the
+    last array's unit: below it a halving only measures round-off), the third derivative's
+    share of the estimate is below that (the stencil removes it and leaves a fifth-derivative
+    one, smaller still) and the stencil is kept without a halving (four evaluations instead of
+    six or more)."""
     f = {o * step: evaluate(o * step) for o in (1.0, -1.0, 2.0, -2.0)}
 
     def stencil(h):
         return tuple((8 * (a - b) - (c - d)) / (12 * h) for a, b, c, d in
                      zip(f[h], f[-h], f[2 * h], f[-2 * h]))
 
+    def relative_change(new, old):
+        size = np.nanmax(np.abs(new))
+        return np.nanmax(np.abs(new - old)) / size if size > 0 else 0.0
+
     estimates, changes, h = [stencil(step)], [], step
+    central = [(f[o * step][-1] - f[-o * step][-1]) / (2 * o * step) for o in (1.0, 2.0)]
+    if (relative_change(*central) < DERIVATIVE_TOL
+            or np.nanmax(np.abs(central[0] - central[1])) * step < roundoff):
+        return estimates[0]
     for _ in range(max_halvings):
         h = h / 2
         f[h], f[-h] = evaluate(h), evaluate(-h)
         estimates.append(stencil(h))
-        size = np.nanmax(np.abs(estimates[-1][-1]))
-        change = (np.nanmax(np.abs(estimates[-1][-1] - estimates[-2][-1])) / size
-                  if size > 0 else 0.0)
+        change = relative_change(estimates[-1][-1], estimates[-2][-1])
         if change < DERIVATIVE_TOL:
             return estimates[-2]                    # the larger step agrees: less round-off
         if changes and change >= changes[-1]:
@@ -209,16 +226,25 @@ class PhysicsModel:
         geom, kin = kinematic_pose(params, geom0, self.effects, pts)
         return Stage(params, geom, kin, home, home + geom0.cube_offset, pts.node_T)
 
-    def _paths(self, meas: Measurements, stage: Stage) -> tuple[np.ndarray, np.ndarray]:
-        """Optical path n s (m) and the index the instrument divides by, (N + S, 3) each, at the
-        rows and at the session zeros."""
+    @staticmethod
+    def _stage_points(meas: Measurements, stage: Stage):
+        """The measurements' points set to ``stage`` (its parameters, temperatures, home and
+        kinematic pose): what the load and optics hooks read."""
         pts = meas.points
         # the stage's own temperatures: a stage re-used for a load or optics parameter was
         # computed before a later sensor parameter was stepped
         pts.params, pts.node_T, pts.home_p = stage.params, stage.node_T, stage.home
+        pts.pose = stage.kin
+        return pts
+
+    def _paths(self, meas: Measurements, stage: Stage,
+               wrench: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Optical path n s (m) and the index the instrument divides by, (N + S, 3) each, at the
+        rows and at the session zeros (``wrench``: the effects' wrench at the stage when known)."""
+        pts = self._stage_points(meas, stage)
         preload, C = meas.statics(self.params)
         truth = observe(stage.geom, stage.kin, self.effects, pts, preload, C, stage.cube_home,
-                        stage.params.mirror_cube_size_m)
+                        stage.params.mirror_cube_size_m, wrench)
         return (np.stack([truth.optical_path_m[a] for a in AXES], axis=1),
                 np.stack([truth.n_comp[a] for a in AXES], axis=1))
 
@@ -234,8 +260,8 @@ class PhysicsModel:
         counted = d * f.reshape(f.shape + (1,) * (d.ndim - 2))
         return counted if derivative else counted + meas.cos_offset
 
-    def _observe(self, meas: Measurements, stage) -> np.ndarray:
-        return self._counted(meas, *self._paths(meas, stage))
+    def _observe(self, meas: Measurements, stage, wrench: np.ndarray | None = None) -> np.ndarray:
+        return self._counted(meas, *self._paths(meas, stage, wrench))
 
     def predict_path(self, meas: Measurements, theta: np.ndarray | None = None) -> np.ndarray:
         """(N,3) the reading each row would show up to its session's zero (m)."""
@@ -278,13 +304,26 @@ class PhysicsModel:
                 d_home[:, np.isin(moving, np.flatnonzero(robot))] = \
                 self._robot_derivatives(meas, theta, stage, np.flatnonzero(robot),
                                         GEOMETRY_STEP * self.scales)
+        owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
+                 for j in range(f.sl.start, f.sl.stop)}
+        # each effect's wrench at the stage (theta): a load or optics parameter changes its own
+        wrench_of = ({e.name: e.wrench(self._stage_points(meas, stage)) for e in self.effects}
+                     if np.any(wanted & by["load_optics"]) else {})
         for j in np.flatnonzero(wanted & ~by["robot"]):
             def evaluate(offset, j=j):
                 th = theta.copy()
                 th[j] += offset
                 self.set_theta(th)
                 if by["load_optics"][j]:
-                    return 0.0, self._observe(meas, stage)
+                    # only the stepped parameter's effect can change the wrench: the others'
+                    # is re-used (an optics parameter moves none)
+                    at_stage = self._stage_points(meas, stage)
+                    wrench = np.zeros((at_stage.t_s.shape[0], 6))
+                    for e in self.effects:           # in the order observe sums them
+                        w = e.wrench(at_stage) if e is owner[j] else wrench_of[e.name]
+                        if w is not None:
+                            wrench += w
+                    return 0.0, self._observe(meas, stage, wrench)
                 # a part temperature: the geometry at the points and what the optics read
                 pts.node_T = meas.part_temperatures(self.effects)
                 geom_j = point_geometry(stage.params, stage.geom, self.effects, pts)
@@ -292,7 +331,8 @@ class PhysicsModel:
                 return (rod_residuals(geom_j, motor_positions(self.effects, pts), stage.kin),
                         self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
 
-            d_rods, J[:, :, j] = richardson_derivative(evaluate, self.scales[j])
+            d_rods, J[:, :, j] = richardson_derivative(evaluate, self.scales[j],
+                                                       roundoff=READING_ROUNDOFF_M)
             if not by["load_optics"][j]:
                 d_residuals[:, :, np.searchsorted(moving, j)] = d_rods
         self.set_theta(theta)
