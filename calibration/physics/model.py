@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+import scipy.sparse
 from scipy.spatial.transform import Rotation
 
 from deltatwin.calibration.errors import FitError
@@ -345,21 +346,19 @@ class PhysicsModel:
         """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
         (N + S, 6, k) and the home's (3, k). Each point's joint arrays are the robot's at its
         parameters' temperatures times the parts' thermal factors at the point
-        (models.geometry.part_scales), so their derivatives are too: the elbow hinges are
-        differenced on the unique motor coordinates, then scaled per point."""
+        (models.geometry.part_scales), so their derivatives are too: the joint arrays are
+        differenced once per parameter (the elbow hinges on the distinct motor coordinates),
+        then every parameter's rod equations are formed at once from the points' rod vectors."""
         pts, q = meas.points, meas.points.q
-        qu, inv = np.unique(q, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
+        qu, inv = pts.unique_q()
         pts.node_T = stage.node_T
         temps = geometry_temperatures(self.effects, pts)
         s_base, s_arm, s_rod, s_plat = (
-            s / s0 for s, s0 in zip(part_scales(stage.params, temps or None),
-                                    part_scales(stage.params)))
-        rod, platform_hinge = rod_vectors(stage.geom, q, stage.kin)
-        L = stage.geom.L
-        d_residuals = np.zeros((q.shape[0], 6, cols.size))
-        d_home = np.zeros((3, cols.size))
-        for i, j in enumerate(cols):
+            np.asarray(s / s0) for s, s0 in zip(part_scales(stage.params, temps or None),
+                                                part_scales(stage.params)))
+        # the joint arrays' central differences, one per parameter (last axis)
+        diff = []
+        for j in cols:
             sides = []
             for sign in (1.0, -1.0):
                 th = theta.copy()
@@ -368,22 +367,40 @@ class PhysicsModel:
                 _, g, home = self._robot()
                 arm = elbow_points(g, g.theta(qu)) - g.B[None, :, None, :]
                 sides.append((g.B, arm, g.P0, g.L, home))
-            dB, d_arm, dP0, dL, dh = ((a - b) / (2 * steps[j]) for a, b in zip(*sides))
-            dA = (np.asarray(s_base)[..., None, None, None] * dB[:, None, :]
-                  + np.asarray(s_arm)[..., None, None] * d_arm[inv])
-            dP = np.asarray(s_plat)[..., None, None, None] * \
-                (stage.kin.R[:, None, None] @ dP0[..., None])[..., 0]
-            d_residuals[:, :, i] = (2 * np.sum(rod * (dP - dA), axis=-1)
-                                    - 2 * L * s_rod * dL).reshape(-1, 6)
-            d_home[:, i] = dh
+            diff.append([(a - b) / (2 * steps[j]) for a, b in zip(*sides)])
         self.set_theta(theta)
-        return d_residuals, d_home
+        dB, d_arm, dP0, dL, d_home = (np.stack(x, axis=-1) for x in zip(*diff))
+        rod, _ = rod_vectors(stage.geom, q, stage.kin)                  # (N + S, 3, 2, 3)
+        n, k = q.shape[0], cols.size
+        per_point = lambda s_, ndim: s_.reshape(s_.shape + (1,) * (ndim - s_.ndim))
+        # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL, each
+        # hinge its part's factor times the robot's: the elbow hinges first, each point's rod
+        # against its motor coordinates' row of d_arm (a sparse product, three entries per
+        # rod equation, instead of an (N, 6, 3, k) gather)
+        rows = scipy.sparse.csr_matrix(
+            ((-rod * per_point(s_arm, 4)).reshape(-1),
+             (inv[:, None] * 18 + np.arange(18)).reshape(-1),         # (motor coordinates, rod,
+             np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))   # component)
+        d_rods = (rows @ d_arm.reshape(-1, k)).reshape(n, 3, 2, k)
+        # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
+        # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
+        point_terms = np.concatenate(
+            [np.einsum("nisc,ncb->nisb", rod, stage.kin.R) * per_point(s_plat, 4),
+             -rod * per_point(s_base, 4),
+             -np.broadcast_to(stage.geom.L * s_rod, (n, 3, 2))[..., None]], axis=-1)
+        joint_terms = np.concatenate([dP0, np.broadcast_to(dB[:, None], (3, 2, 3, k)),
+                                      dL[:, :, None]], axis=2)         # (3, 2, 7, k)
+        for i in range(3):
+            for side in range(2):
+                d_rods[:, i, side] += point_terms[:, i, side] @ joint_terms[i, side]
+        d_rods *= 2
+        return d_rods.reshape(n, 6, k), d_home
 
     def _pose_sensitivity(self, meas, stage: Stage, n_comp, dpose, d_home) -> np.ndarray:
         """(N,3,k): the readings' change for pose changes ``dpose`` (N + S, 6, k: position,
         rotation vector) and home changes ``d_home`` (3, k), by central differences."""
         kin = stage.kin
-        out = 0.0
+        dpath = []                                  # (N + S, 3) per pose and home coordinate
         for d in range(9):
             sides = []
             for sign in (1.0, -1.0):
@@ -402,9 +419,10 @@ class PhysicsModel:
                     moved = stage._replace(home=stage.home + shift,
                                            cube_home=stage.cube_home + shift)
                 sides.append(self._paths(meas, moved)[0])
-            dpath = (sides[0] - sides[1]) / (2 * POSE_STEP)              # (N + S, 3)
-            weight = dpose[:, d] if d < 6 else np.broadcast_to(d_home[d - 6], dpose[:, 0].shape)
-            out = out + dpath[:, :, None] * weight[:, None, :]
+            dpath.append((sides[0] - sides[1]) / (2 * POSE_STEP))
+        dpath = np.stack(dpath, axis=-1)                                 # (N + S, 3, 9)
+        # the chain rule per point in one pass (no (N + S, 3, k) temporary per coordinate)
+        out = np.einsum("nad,ndk->nak", dpath[:, :, :6], dpose) + dpath[:, :, 6:] @ d_home
         return self._counted(meas, out, n_comp, derivative=True)
 
 
