@@ -314,7 +314,10 @@ def observe(geom, kin: Pose, effects: list[Effect], pts: Points, preload: np.nda
     pts.pose = kin
     if wrench is None:
         wrench = platform_wrench(effects, pts)
-    y = preload + np.einsum("nij,nj->ni", compliance, wrench)
+    # the deflection C w column by column (a batched 6x6 product pays per item)
+    y = preload.copy()
+    for j in range(6):
+        y += compliance[:, :, j] * wrench[:, j, None]
     # the deflection's small rotation on the kinematic one, component-first (models/batched.py)
     R = batched.matmul(batched.rotation_matrices(y[:, 3:6].T), kin.R.transpose(1, 2, 0))
     pose = Pose(kin.p + y[:, :3], np.ascontiguousarray(R.transpose(2, 0, 1)))
