@@ -356,6 +356,7 @@ class PhysicsModel:
         s_base, s_arm, s_rod, s_plat = (
             np.asarray(s / s0) for s, s0 in zip(part_scales(stage.params, temps or None),
                                                 part_scales(stage.params)))
+        # (scales per point: (N+S,), (N+S,3), (N+S,3,2), (N+S,); else (), (3,), (3,2), ())
         # the joint arrays' central differences, one per parameter (last axis)
         diff = []
         for j in cols:
@@ -372,21 +373,20 @@ class PhysicsModel:
         dB, d_arm, dP0, dL, d_home = (np.stack(x, axis=-1) for x in zip(*diff))
         rod, _ = rod_vectors(stage.geom, q, stage.kin)                  # (N + S, 3, 2, 3)
         n, k = q.shape[0], cols.size
-        per_point = lambda s_, ndim: s_.reshape(s_.shape + (1,) * (ndim - s_.ndim))
         # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL, each
         # hinge its part's factor times the robot's: the elbow hinges first, each point's rod
         # against its motor coordinates' row of d_arm (a sparse product, three entries per
         # rod equation, instead of an (N, 6, 3, k) gather)
         rows = scipy.sparse.csr_matrix(
-            ((-rod * per_point(s_arm, 4)).reshape(-1),
+            ((-rod * s_arm[..., None, None]).reshape(-1),
              (inv[:, None] * 18 + np.arange(18)).reshape(-1),         # (motor coordinates, rod,
              np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))   # component)
         d_rods = (rows @ d_arm.reshape(-1, k)).reshape(n, 3, 2, k)
         # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
         # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
         point_terms = np.concatenate(
-            [np.einsum("nisc,ncb->nisb", rod, stage.kin.R) * per_point(s_plat, 4),
-             -rod * per_point(s_base, 4),
+            [np.einsum("nisc,ncb->nisb", rod, stage.kin.R) * s_plat[..., None, None, None],
+             -rod * s_base[..., None, None, None],
              -np.broadcast_to(stage.geom.L * s_rod, (n, 3, 2))[..., None]], axis=-1)
         joint_terms = np.concatenate([dP0, np.broadcast_to(dB[:, None], (3, 2, 3, k)),
                                       dL[:, :, None]], axis=2)         # (3, 2, 7, k)
