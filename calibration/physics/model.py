@@ -2,7 +2,7 @@
 measured conditions; its prediction of the interferometer readings and their Jacobian."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -211,11 +211,15 @@ class PhysicsModel:
         return out
 
     # -- evaluation ---------------------------------------------------------------------------
-    def _robot(self):
+    def _robot_geometry(self):
+        """The robot parameters under the effects' ``robot`` hooks and their geometry."""
         params = self.params
         for e in self.effects:
             params = e.robot(params, None)
-        geom0 = build_geometry(params)
+        return params, build_geometry(params)
+
+    def _robot(self):
+        params, geom0 = self._robot_geometry()
         return params, geom0, forward(geom0, np.zeros((1, 3))).p[0]
 
     def _kinematics(self, meas: Measurements) -> Stage:
@@ -358,18 +362,24 @@ class PhysicsModel:
                                                 part_scales(stage.params)))
         # (scales per point: (N+S,), (N+S,3), (N+S,3,2), (N+S,); else (), (3,), (3,2), ())
         # the joint arrays' central differences, one per parameter (last axis)
-        diff = []
+        geoms = []                                  # parameter + step, parameter - step, ...
         for j in cols:
-            sides = []
             for sign in (1.0, -1.0):
                 th = theta.copy()
                 th[j] += sign * steps[j]
                 self.set_theta(th)
-                _, g, home = self._robot()
-                arm = elbow_points(g, g.theta(qu)) - g.B[None, :, None, :]
-                sides.append((g.B, arm, g.P0, g.L, home))
-            diff.append([(a - b) / (2 * steps[j]) for a, b in zip(*sides)])
+                geoms.append(self._robot_geometry()[1])
         self.set_theta(theta)
+        # every stepped robot's home in one forward kinematics (a batch of robot states)
+        joints = ("B", "axis", "arm_vec", "elbow_vec", "P0", "L", "theta_zero", "cube_offset")
+        homes = forward(replace(geoms[0], **{f: np.stack([getattr(g, f) for g in geoms])
+                                             for f in joints}),
+                        np.zeros((len(geoms), 3)), check=False).p
+        diff = []
+        for i, j in enumerate(cols):
+            sides = [(g.B, elbow_points(g, g.theta(qu)) - g.B[None, :, None, :], g.P0, g.L,
+                      home) for g, home in zip(geoms[2 * i:2 * i + 2], homes[2 * i:2 * i + 2])]
+            diff.append([(a - b) / (2 * steps[j]) for a, b in zip(*sides)])
         dB, d_arm, dP0, dL, d_home = (np.stack(x, axis=-1) for x in zip(*diff))
         rod, _ = rod_vectors(stage.geom, q, stage.kin)                  # (N + S, 3, 2, 3)
         n, k = q.shape[0], cols.size
