@@ -317,19 +317,31 @@ def kinematic_pose(params: RobotParams, geom, effects: list[Effect], pts: Points
     return geom, Pose(ku.p[inv], ku.R[inv])
 
 
-def observe(geom, kin: Pose, effects: list[Effect], pts: Points, preload: np.ndarray,
-            compliance: np.ndarray, cube_home: np.ndarray, cube_size_m: float) -> Truth:
-    """Load and optics stages: the effects' wrench through the compliance (N,6,6) on top of the
-    preload deflection (N,6) moves the platform; the effects' optics give what the
-    instruments look at."""
-    n = pts.t_s.shape[0]
-    pts.pose = kin
-    wrench = np.zeros((n, 6))
+def platform_wrench(effects: list[Effect], pts: Points) -> np.ndarray:
+    """The effects' wrench (N,6) on the platform at the kinematic pose ``pts.pose`` (N, N*m)."""
+    wrench = np.zeros((pts.t_s.shape[0], 6))
     for e in effects:
         w = e.wrench(pts)
         if w is not None:
             wrench += w
-    y = preload + np.einsum("nij,nj->ni", compliance, wrench)
+    return wrench
+
+
+def observe(geom, kin: Pose, effects: list[Effect], pts: Points, preload: np.ndarray,
+            compliance: np.ndarray, cube_home: np.ndarray, cube_size_m: float,
+            wrench: np.ndarray | None = None) -> Truth:
+    """Load and optics stages: the effects' wrench through the compliance (N,6,6) on top of the
+    preload deflection (N,6) moves the platform; the effects' optics give what the
+    instruments look at. ``wrench``: the effects' wrench at ``kin`` when the caller has it
+    already (a model's derivative in an optics parameter re-uses it), else computed here."""
+    n = pts.t_s.shape[0]
+    pts.pose = kin
+    if wrench is None:
+        wrench = platform_wrench(effects, pts)
+    # the deflection C w column by column (a batched 6x6 product pays per item)
+    y = preload.copy()
+    for j in range(6):
+        y += compliance[:, :, j] * wrench[:, j, None]
     # the deflection's small rotation on the kinematic one, component-first (models/batched.py)
     R = batched.matmul(batched.rotation_matrices(y[:, 3:6].T), kin.R.transpose(1, 2, 0))
     pose = Pose(kin.p + y[:, :3], np.ascontiguousarray(R.transpose(2, 0, 1)))

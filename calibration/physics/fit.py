@@ -73,8 +73,13 @@ class PhysicsFit:
         PhysicsModel(self.effects, params, self.start)   # validate names and values once
 
     def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
-            where: str = "data"):
-        """Fit to the calibration rows of ``df`` (``where`` names the data in errors)."""
+            where: str = "data", keep_converged_start: bool = False):
+        """Fit to the calibration rows of ``df`` (``where`` names the data in errors).
+        ``keep_converged_start``: a start that is already converged on these data (a fitted
+        model diagnosed on its own data: the Gauss-Newton step left from it moves the
+        parameters by less than STEP_SIGMA of their uncertainty) is kept as it is, with its
+        Jacobian, instead of being refined by the solver (which would only confirm it, at a
+        few Jacobians' cost)."""
         model = PhysicsModel(self.effects, self.params, self.start)
         meas = meas or measurements(df, meta, model.params, where)
         check_sensors(model.names, meas, where)
@@ -90,7 +95,7 @@ class PhysicsFit:
         theta0 = model.theta()
         S = model.scales
         sigma = self.noise_nm * 1e-9
-        _, J0 = model.jacobian(meas, theta0)
+        A0, J0 = model.jacobian(meas, theta0)
         Js = _projected(meas, cal, J0 * S)
         if p:
             _, s, Vt = np.linalg.svd(Js, full_matrices=False)
@@ -134,7 +139,12 @@ class PhysicsFit:
         dof = max(n_res - k - len(meas.groups), 1)
         z = z_start
         self.solver_message_ = "nothing to fit: no identified direction"
-        if k:
+        keep_start = keep_converged_start and k and _remaining_step_sigma(
+            -_projected(meas, cal, J0 * S) @ V, _projected(meas, cal, meas.y - A0),
+            dof) <= STEP_SIGMA
+        if keep_start:
+            self.solver_message_ = "the start is converged on these data: kept"
+        elif k:
             def residual_nm(z):
                 r = fun(z)
                 if self.progress:
@@ -148,20 +158,17 @@ class PhysicsFit:
                 max_nfev=self.max_evaluations)
             z = sol.x
             self.solver_message_ = sol.message
-        theta = theta_of(z)
-        jac(z)
-        J = last["J"]
-        A = model.predict_path(meas, theta)
+        if keep_start:
+            theta, J, A = theta0, J0, A0
+        else:
+            theta = theta_of(z)
+            jac(z)
+            J = last["J"]
+            A = model.predict_path(meas, theta)
         r = _projected(meas, cal, meas.y - A)
         Jz = -_projected(meas, cal, J * S) @ V
-        # converged: the Gauss-Newton step left from here moves the parameters by less than
-        # STEP_SIGMA of their uncertainty (|Jz step| / sigma_r: its length in standard
-        # deviations of the fitted directions); a misspecified model's best fit is a result,
-        # reported with its status, never an error
-        step = np.linalg.lstsq(Jz, r, rcond=None)[0] if k else np.zeros(0)
-        change = float(np.linalg.norm(Jz @ step)) if k else 0.0
-        sigma_r = float(np.linalg.norm(r)) / np.sqrt(dof)
-        self.remaining_step_sigma_ = change / sigma_r if sigma_r > 0 else 0.0
+        self.remaining_step_sigma_ = _remaining_step_sigma(Jz, r, dof)
+        change = self.remaining_step_sigma_ * float(np.linalg.norm(r)) / np.sqrt(dof)
         self.converged_ = bool(self.remaining_step_sigma_ <= STEP_SIGMA)
         self.last_step_nm_ = change / np.sqrt(max(r.size, 1)) * 1e9
         self.status_ = "converged" if self.converged_ else (
@@ -254,6 +261,18 @@ class PhysicsFit:
                            columns=[f"{a}_nm" for a in AXES])
         out["split"] = meas.df["split"].to_numpy()
         return out
+
+
+def _remaining_step_sigma(Jz: np.ndarray, r: np.ndarray, dof: int) -> float:
+    """The Gauss-Newton step left from where the residual is ``r`` and its Jacobian in the
+    identified directions ``Jz``, in standard deviations of the fitted directions
+    (|Jz step| / sigma_r): converged when below STEP_SIGMA. A misspecified model's best fit is
+    a result, reported with its status, never an error."""
+    if not Jz.shape[1]:
+        return 0.0
+    step = np.linalg.lstsq(Jz, r, rcond=None)[0]
+    sigma_r = float(np.linalg.norm(r)) / np.sqrt(dof)
+    return float(np.linalg.norm(Jz @ step)) / sigma_r if sigma_r > 0 else 0.0
 
 
 def _axis_p90(fig: dict) -> dict:

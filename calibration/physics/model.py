@@ -2,10 +2,11 @@
 measured conditions; its prediction of the interferometer readings and their Jacobian."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
+import scipy.sparse
 from scipy.spatial.transform import Rotation
 
 from deltatwin.calibration.errors import FitError
@@ -34,30 +35,47 @@ from deltatwin.twin.world import (
 POSE_STEP = 1e-6   # m and rad: the central-difference step of the optical paths in the pose
 GEOMETRY_STEP = 0.1   # of a fit scale: central differences of the joint arrays (quadratic)
 DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving stops
+# a reading's round-off over the evaluations a difference combines (the 0.3 m paths carry
+# ~5e-17 m each): a column's change over its step below this is noise, 1e-6 nm
+READING_ROUNDOFF_M = 1e-15
 
 
-def richardson_derivative(evaluate, step: float, max_halvings: int = 8) -> tuple:
+def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
+                          roundoff: float = 0.0) -> tuple:
     """The derivative at 0 of ``evaluate(offset)`` (a tuple of arrays, the last one judged):
     fourth-order central differences (f(-2h) - 8 f(-h) + 8 f(h) - f(2h)) / 12h from h = ``step``
     (a parameter's fit scale: large steps keep the predictions' round-off, ~5e-17 m of a 0.3 m
     path, small against a column that moves the readings by nanometres), the step halved while
     the estimate still changes by more than DERIVATIVE_TOL of itself (a parameter whose effect
     is strongly nonlinear over its fit scale, such as a coil's offset) and the change still
-    shrinks; once it grows, round-off has taken over and the estimate before it is kept."""
+    shrinks; once it grows, round-off has taken over and the estimate before it is kept.
+    Most parameters move the readings nearly linearly over their fit scale: when the two
+    central differences the first stencil combines, over h and 2h, already agree to
+    DERIVATIVE_TOL, or differ over the step by less than the evaluations' ``roundoff`` (the
+    last array's unit: below it a halving only measures round-off), the third derivative's
+    share of the estimate is below that (the stencil removes it and leaves a fifth-derivative
+    one, smaller still) and the stencil is kept without a halving (four evaluations instead of
+    six or more)."""
     f = {o * step: evaluate(o * step) for o in (1.0, -1.0, 2.0, -2.0)}
 
     def stencil(h):
         return tuple((8 * (a - b) - (c - d)) / (12 * h) for a, b, c, d in
                      zip(f[h], f[-h], f[2 * h], f[-2 * h]))
 
+    def relative_change(new, old):
+        size = np.nanmax(np.abs(new))
+        return np.nanmax(np.abs(new - old)) / size if size > 0 else 0.0
+
     estimates, changes, h = [stencil(step)], [], step
+    central = [(f[o * step][-1] - f[-o * step][-1]) / (2 * o * step) for o in (1.0, 2.0)]
+    if (relative_change(*central) < DERIVATIVE_TOL
+            or np.nanmax(np.abs(central[0] - central[1])) * step < roundoff):
+        return estimates[0]
     for _ in range(max_halvings):
         h = h / 2
         f[h], f[-h] = evaluate(h), evaluate(-h)
         estimates.append(stencil(h))
-        size = np.nanmax(np.abs(estimates[-1][-1]))
-        change = (np.nanmax(np.abs(estimates[-1][-1] - estimates[-2][-1])) / size
-                  if size > 0 else 0.0)
+        change = relative_change(estimates[-1][-1], estimates[-2][-1])
         if change < DERIVATIVE_TOL:
             return estimates[-2]                    # the larger step agrees: less round-off
         if changes and change >= changes[-1]:
@@ -193,11 +211,15 @@ class PhysicsModel:
         return out
 
     # -- evaluation ---------------------------------------------------------------------------
-    def _robot(self):
+    def _robot_geometry(self):
+        """The robot parameters under the effects' ``robot`` hooks and their geometry."""
         params = self.params
         for e in self.effects:
             params = e.robot(params, None)
-        geom0 = build_geometry(params)
+        return params, build_geometry(params)
+
+    def _robot(self):
+        params, geom0 = self._robot_geometry()
         return params, geom0, forward(geom0, np.zeros((1, 3))).p[0]
 
     def _kinematics(self, meas: Measurements) -> Stage:
@@ -209,16 +231,25 @@ class PhysicsModel:
         geom, kin = kinematic_pose(params, geom0, self.effects, pts)
         return Stage(params, geom, kin, home, home + geom0.cube_offset, pts.node_T)
 
-    def _paths(self, meas: Measurements, stage: Stage) -> tuple[np.ndarray, np.ndarray]:
-        """Optical path n s (m) and the index the instrument divides by, (N + S, 3) each, at the
-        rows and at the session zeros."""
+    @staticmethod
+    def _stage_points(meas: Measurements, stage: Stage):
+        """The measurements' points set to ``stage`` (its parameters, temperatures, home and
+        kinematic pose): what the load and optics hooks read."""
         pts = meas.points
         # the stage's own temperatures: a stage re-used for a load or optics parameter was
         # computed before a later sensor parameter was stepped
         pts.params, pts.node_T, pts.home_p = stage.params, stage.node_T, stage.home
+        pts.pose = stage.kin
+        return pts
+
+    def _paths(self, meas: Measurements, stage: Stage,
+               wrench: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Optical path n s (m) and the index the instrument divides by, (N + S, 3) each, at the
+        rows and at the session zeros (``wrench``: the effects' wrench at the stage when known)."""
+        pts = self._stage_points(meas, stage)
         preload, C = meas.statics(self.params)
         truth = observe(stage.geom, stage.kin, self.effects, pts, preload, C, stage.cube_home,
-                        stage.params.mirror_cube_size_m)
+                        stage.params.mirror_cube_size_m, wrench)
         return (np.stack([truth.optical_path_m[a] for a in AXES], axis=1),
                 np.stack([truth.n_comp[a] for a in AXES], axis=1))
 
@@ -234,8 +265,8 @@ class PhysicsModel:
         counted = d * f.reshape(f.shape + (1,) * (d.ndim - 2))
         return counted if derivative else counted + meas.cos_offset
 
-    def _observe(self, meas: Measurements, stage) -> np.ndarray:
-        return self._counted(meas, *self._paths(meas, stage))
+    def _observe(self, meas: Measurements, stage, wrench: np.ndarray | None = None) -> np.ndarray:
+        return self._counted(meas, *self._paths(meas, stage, wrench))
 
     def predict_path(self, meas: Measurements, theta: np.ndarray | None = None) -> np.ndarray:
         """(N,3) the reading each row would show up to its session's zero (m)."""
@@ -278,13 +309,26 @@ class PhysicsModel:
                 d_home[:, np.isin(moving, np.flatnonzero(robot))] = \
                 self._robot_derivatives(meas, theta, stage, np.flatnonzero(robot),
                                         GEOMETRY_STEP * self.scales)
+        owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
+                 for j in range(f.sl.start, f.sl.stop)}
+        # each effect's wrench at the stage (theta): a load or optics parameter changes its own
+        wrench_of = ({e.name: e.wrench(self._stage_points(meas, stage)) for e in self.effects}
+                     if np.any(wanted & by["load_optics"]) else {})
         for j in np.flatnonzero(wanted & ~by["robot"]):
             def evaluate(offset, j=j):
                 th = theta.copy()
                 th[j] += offset
                 self.set_theta(th)
                 if by["load_optics"][j]:
-                    return 0.0, self._observe(meas, stage)
+                    # only the stepped parameter's effect can change the wrench: the others'
+                    # is re-used (an optics parameter moves none)
+                    at_stage = self._stage_points(meas, stage)
+                    wrench = np.zeros((at_stage.t_s.shape[0], 6))
+                    for e in self.effects:           # in the order observe sums them
+                        w = e.wrench(at_stage) if e is owner[j] else wrench_of[e.name]
+                        if w is not None:
+                            wrench += w
+                    return 0.0, self._observe(meas, stage, wrench)
                 # a part temperature: the geometry at the points and what the optics read
                 pts.node_T = meas.part_temperatures(self.effects)
                 geom_j = point_geometry(stage.params, stage.geom, self.effects, pts)
@@ -292,7 +336,8 @@ class PhysicsModel:
                 return (rod_residuals(geom_j, motor_positions(self.effects, pts), stage.kin),
                         self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
 
-            d_rods, J[:, :, j] = richardson_derivative(evaluate, self.scales[j])
+            d_rods, J[:, :, j] = richardson_derivative(evaluate, self.scales[j],
+                                                       roundoff=READING_ROUNDOFF_M)
             if not by["load_optics"][j]:
                 d_residuals[:, :, np.searchsorted(moving, j)] = d_rods
         self.set_theta(theta)
@@ -305,45 +350,67 @@ class PhysicsModel:
         """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
         (N + S, 6, k) and the home's (3, k). Each point's joint arrays are the robot's at its
         parameters' temperatures times the parts' thermal factors at the point
-        (models.geometry.part_scales), so their derivatives are too: the elbow hinges are
-        differenced on the unique motor coordinates, then scaled per point."""
+        (models.geometry.part_scales), so their derivatives are too: the joint arrays are
+        differenced once per parameter (the elbow hinges on the distinct motor coordinates),
+        then every parameter's rod equations are formed at once from the points' rod vectors."""
         pts, q = meas.points, meas.points.q
-        qu, inv = np.unique(q, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
+        qu, inv = pts.unique_q()
         pts.node_T = stage.node_T
         temps = geometry_temperatures(self.effects, pts)
         s_base, s_arm, s_rod, s_plat = (
-            s / s0 for s, s0 in zip(part_scales(stage.params, temps or None),
-                                    part_scales(stage.params)))
-        rod, platform_hinge = rod_vectors(stage.geom, q, stage.kin)
-        L = stage.geom.L
-        d_residuals = np.zeros((q.shape[0], 6, cols.size))
-        d_home = np.zeros((3, cols.size))
-        for i, j in enumerate(cols):
-            sides = []
+            np.asarray(s / s0) for s, s0 in zip(part_scales(stage.params, temps or None),
+                                                part_scales(stage.params)))
+        # (scales per point: (N+S,), (N+S,3), (N+S,3,2), (N+S,); else (), (3,), (3,2), ())
+        # the joint arrays' central differences, one per parameter (last axis)
+        geoms = []                                  # parameter + step, parameter - step, ...
+        for j in cols:
             for sign in (1.0, -1.0):
                 th = theta.copy()
                 th[j] += sign * steps[j]
                 self.set_theta(th)
-                _, g, home = self._robot()
-                arm = elbow_points(g, g.theta(qu)) - g.B[None, :, None, :]
-                sides.append((g.B, arm, g.P0, g.L, home))
-            dB, d_arm, dP0, dL, dh = ((a - b) / (2 * steps[j]) for a, b in zip(*sides))
-            dA = (np.asarray(s_base)[..., None, None, None] * dB[:, None, :]
-                  + np.asarray(s_arm)[..., None, None] * d_arm[inv])
-            dP = np.asarray(s_plat)[..., None, None, None] * \
-                (stage.kin.R[:, None, None] @ dP0[..., None])[..., 0]
-            d_residuals[:, :, i] = (2 * np.sum(rod * (dP - dA), axis=-1)
-                                    - 2 * L * s_rod * dL).reshape(-1, 6)
-            d_home[:, i] = dh
+                geoms.append(self._robot_geometry()[1])
         self.set_theta(theta)
-        return d_residuals, d_home
+        # every stepped robot's home in one forward kinematics (a batch of robot states)
+        joints = ("B", "axis", "arm_vec", "elbow_vec", "P0", "L", "theta_zero", "cube_offset")
+        homes = forward(replace(geoms[0], **{f: np.stack([getattr(g, f) for g in geoms])
+                                             for f in joints}),
+                        np.zeros((len(geoms), 3)), check=False).p
+        diff = []
+        for i, j in enumerate(cols):
+            sides = [(g.B, elbow_points(g, g.theta(qu)) - g.B[None, :, None, :], g.P0, g.L,
+                      home) for g, home in zip(geoms[2 * i:2 * i + 2], homes[2 * i:2 * i + 2])]
+            diff.append([(a - b) / (2 * steps[j]) for a, b in zip(*sides)])
+        dB, d_arm, dP0, dL, d_home = (np.stack(x, axis=-1) for x in zip(*diff))
+        rod, _ = rod_vectors(stage.geom, q, stage.kin)                  # (N + S, 3, 2, 3)
+        n, k = q.shape[0], cols.size
+        # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL, each
+        # hinge its part's factor times the robot's: the elbow hinges first, each point's rod
+        # against its motor coordinates' row of d_arm (a sparse product, three entries per
+        # rod equation, instead of an (N, 6, 3, k) gather)
+        rows = scipy.sparse.csr_matrix(
+            ((-rod * s_arm[..., None, None]).reshape(-1),
+             (inv[:, None] * 18 + np.arange(18)).reshape(-1),         # (motor coordinates, rod,
+             np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))   # component)
+        d_rods = (rows @ d_arm.reshape(-1, k)).reshape(n, 3, 2, k)
+        # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
+        # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
+        point_terms = np.concatenate(
+            [np.einsum("nisc,ncb->nisb", rod, stage.kin.R) * s_plat[..., None, None, None],
+             -rod * s_base[..., None, None, None],
+             -np.broadcast_to(stage.geom.L * s_rod, (n, 3, 2))[..., None]], axis=-1)
+        joint_terms = np.concatenate([dP0, np.broadcast_to(dB[:, None], (3, 2, 3, k)),
+                                      dL[:, :, None]], axis=2)         # (3, 2, 7, k)
+        for i in range(3):
+            for side in range(2):
+                d_rods[:, i, side] += point_terms[:, i, side] @ joint_terms[i, side]
+        d_rods *= 2
+        return d_rods.reshape(n, 6, k), d_home
 
     def _pose_sensitivity(self, meas, stage: Stage, n_comp, dpose, d_home) -> np.ndarray:
         """(N,3,k): the readings' change for pose changes ``dpose`` (N + S, 6, k: position,
         rotation vector) and home changes ``d_home`` (3, k), by central differences."""
         kin = stage.kin
-        out = 0.0
+        dpath = []                                  # (N + S, 3) per pose and home coordinate
         for d in range(9):
             sides = []
             for sign in (1.0, -1.0):
@@ -362,9 +429,10 @@ class PhysicsModel:
                     moved = stage._replace(home=stage.home + shift,
                                            cube_home=stage.cube_home + shift)
                 sides.append(self._paths(meas, moved)[0])
-            dpath = (sides[0] - sides[1]) / (2 * POSE_STEP)              # (N + S, 3)
-            weight = dpose[:, d] if d < 6 else np.broadcast_to(d_home[d - 6], dpose[:, 0].shape)
-            out = out + dpath[:, :, None] * weight[:, None, :]
+            dpath.append((sides[0] - sides[1]) / (2 * POSE_STEP))
+        dpath = np.stack(dpath, axis=-1)                                 # (N + S, 3, 9)
+        # the chain rule per point in one pass (no (N + S, 3, k) temporary per coordinate)
+        out = np.einsum("nad,ndk->nak", dpath[:, :, :6], dpose) + dpath[:, :, 6:] @ d_home
         return self._counted(meas, out, n_comp, derivative=True)
 
 

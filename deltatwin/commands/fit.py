@@ -111,10 +111,12 @@ def run_diagnose(args) -> int:
     if str(args.model).lower().endswith(".json"):
         return _diagnose_stepwise(args, df, meta)
     model, doc = load_fitted(args.model)
-    # refine from the file's values on this dataset's calibration rows (its zeros are new)
+    # the file's values on this dataset (its zeros are new): kept when they are converged here
+    # (the model was fitted on these data: one Jacobian), else refined on its calibration rows
     fit = PhysicsFit(model.names, start={**doc.get("known", {}), **model.values()},
                      noise_nm=float(doc["model"].get("noise_nm", 5.0)),
-                     progress=not args.json).fit(df, meta, where=str(args.data))
+                     progress=not args.json).fit(df, meta, where=str(args.data),
+                                                 keep_converged_start=True)
     d = diagnose(fit, str(args.data))
     if args.json:
         print(strict_json(d))

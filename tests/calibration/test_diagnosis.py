@@ -227,3 +227,24 @@ def test_stepwise_residual_is_traced_to_its_feature_family(tmp_path):
     d = json.loads(out.stdout)
     assert d["model"] == "DGM" and d["correlated_family"] is None
     assert all(c["in_model"] and not c["significant"] for c in d["ranking"])
+
+
+def test_a_converged_fitted_model_is_kept_without_the_solver():
+    """``diagnose`` of a model fitted on the same data: the fitted values are kept with one
+    Jacobian (no refit); a start that is not converged is still refined."""
+    sc = Scenario.load("hidden/gravity-sag")
+    df, meta = sc.simulate(sc.reduced_scale)
+    fit = PhysicsFit(["gravity_sag"]).fit(df, meta)
+    assert fit.converged_
+    kept = PhysicsFit(["gravity_sag"], start=fit.model_.values()).fit(
+        df, meta, keep_converged_start=True)
+    np.testing.assert_array_equal(kept.theta_, fit.theta_)
+    assert kept.n_evaluations_ == kept.model_.n_free + 1 and kept.converged_
+    assert "kept" in kept.solver_message_
+    np.testing.assert_allclose(kept.residual_, fit.residual_, rtol=0, atol=1e-15)
+    assert [c["effect"] for c in diagnose(kept)["ranking"]] == \
+        [c["effect"] for c in diagnose(fit)["ranking"]]
+    # from the nominal start (not converged on these data) the solver runs
+    fresh = PhysicsFit(["gravity_sag"]).fit(df, meta, keep_converged_start=True)
+    assert "kept" not in fresh.solver_message_ and fresh.n_evaluations_ > fresh.model_.n_free + 1
+    np.testing.assert_allclose(fresh.theta_, fit.theta_, rtol=1e-12)

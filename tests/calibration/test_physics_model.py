@@ -164,3 +164,30 @@ def test_jacobian_matches_central_differences_at_the_corrected_geometry(scenario
         assert reference_error < max(5e-8 * size, PATH_ROUND_OFF_M), (label, reference_error / size)
         error = np.nanmax(np.abs(J[:, :, j] * scale - coarse))
         assert error < max(1e-7 * size, PATH_ROUND_OFF_M), (label, error / size, size)
+
+
+def test_richardson_keeps_its_first_stencil_only_when_the_differences_agree():
+    """Four evaluations for a function linear over the step (or whose differences are round-off
+    below ``roundoff``); a curved one is still halved until the estimate settles."""
+    calls = []
+
+    def counted(f):
+        def evaluate(offset):
+            calls.append(offset)
+            return (f(offset),)
+        return evaluate
+
+    x = np.linspace(-1.0, 1.0, 7)
+    (d,) = richardson_derivative(counted(lambda h: 3e-9 * (1.0 + x) * h + 0.3), 1.0)
+    assert len(calls) == 4 and np.allclose(d, 3e-9 * (1.0 + x), rtol=1e-6, atol=0)
+    calls.clear()
+    (d,) = richardson_derivative(counted(lambda h: np.sin(2.0 * (h + x))), 1.0)
+    assert len(calls) > 4
+    np.testing.assert_allclose(d, 2.0 * np.cos(2.0 * x), rtol=0, atol=1e-8)
+    # a curvature whose share over the step is below the round-off floor given: four
+    calls.clear()
+    richardson_derivative(counted(lambda h: 1e-9 * h + 1e-17 * h ** 3 + x), 1.0, roundoff=1e-15)
+    assert len(calls) == 4
+    calls.clear()
+    richardson_derivative(counted(lambda h: 1e-9 * h + 1e-17 * h ** 3 + x), 1.0)
+    assert len(calls) > 4

@@ -72,13 +72,20 @@ def double_pass_reading(pose, cube_offset: np.ndarray, cube_size: float, axis: s
     """Geometric reading h cos(alpha) (m, (N,)) of a double-pass plane-mirror interferometer on
     the cube face of ``axis``: h the distance from the cube corner's ``vertex`` (N,3) to the
     face plane, alpha the angle between the unit beam ``direction`` (N,3) and the face normal.
-    The head's own constant path is left out (readings count from a zero)."""
+    The head's own constant path is left out (readings count from a zero). Written entry by
+    entry over the points (models/batched.py: (N,3) arrays reduced over their last axis pay
+    numpy's per-item overhead)."""
     nf = FACE_NORMALS[axis]
-    centre_local = np.broadcast_to(cube_offset + 0.5 * cube_size * nf, pose.p.shape)
-    c = pose.p + np.einsum("nab,nb->na", pose.R, centre_local)
-    nw = pose.R @ nf                                   # outward normal, towards the head
-    h = np.sum(nw * (vertex - c), axis=-1)
-    cos_alpha = -np.sum(nw * direction, axis=-1)
+    k = int(np.flatnonzero(nf)[0])                     # the face's normal is +-e_k of the cube
+    centre = np.asarray(cube_offset + 0.5 * cube_size * nf)   # (3,) or (N,3): platform frame
+    R, p = pose.R, pose.p
+    h = cos_alpha = 0.0
+    for i in range(3):
+        c_i = p[:, i] + R[:, i, 0] * centre[..., 0] + R[:, i, 1] * centre[..., 1] \
+            + R[:, i, 2] * centre[..., 2]                       # face centre, world
+        nw_i = nf[k] * R[:, i, k]                      # outward normal, towards the head
+        h = h + nw_i * (vertex[:, i] - c_i)
+        cos_alpha = cos_alpha - nw_i * direction[:, i]
     return h * cos_alpha
 
 
