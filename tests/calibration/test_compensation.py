@@ -8,6 +8,7 @@ from deltatwin.calibration.compensation import (
     DirectIGMCompensator,
     NominalCompensator,
     StepwiseCompensator,
+    pairwise_differences,
 )
 from deltatwin.calibration.physics.inverse import PhysicsInverse, with_motor_coordinates
 from deltatwin.calibration.physics.measurements import measurements
@@ -128,3 +129,17 @@ def test_nominal_forward_and_inverse_agree():
     for k in range(4):
         cmd = nominal.command(x[k], log.frame(target_m=x[k]))
         assert cmd.status == "converged" and np.abs(cmd.q - q[k]).max() < 1e-9
+
+
+def test_pairwise_differences_cancel_each_sessions_constant():
+    """The prediction of a compensation: error at a target minus error at the zero, within one
+    session; a constant per session cancels, independent errors give sqrt(2) sigma."""
+    rng = np.random.default_rng(3)
+    e = np.concatenate([rng.normal(0.0, 1.0, 3000) + 50.0, rng.normal(0.0, 1.0, 2000) - 80.0])
+    group = np.repeat([0, 1], [3000, 2000])
+    d = pairwise_differences(e, group)
+    assert abs(d.mean()) < 0.05                       # no +50 / -80 constant survives
+    assert abs(d.std() - np.sqrt(2.0)) < 0.03
+    small = pairwise_differences(np.array([1.0, 2.0, 4.0, np.nan]), np.zeros(4, int))
+    assert sorted(small.tolist()) == [-3.0, -2.0, -1.0, 1.0, 2.0, 3.0]   # every ordered pair
+    assert pairwise_differences(np.array([1.0]), np.zeros(1, int)).size == 0
