@@ -27,17 +27,22 @@ import time
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from deltatwin.calibration.blackbox import reference_evaluator
 from deltatwin.calibration.blackbox.dgm import DGM
 from deltatwin.calibration.blackbox.direct_igm import DirectIGM
 from deltatwin.calibration.blackbox.igm import IGM
 from deltatwin.calibration.compensation import ConditionLog, PhysicsCompensator
+from deltatwin.calibration.physics import controller_evaluator
+from deltatwin.calibration.physics.export import evaluator_conditions, write_controller_model
 from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.inverse import with_motor_coordinates
+from deltatwin.calibration.physics.measurements import measurements
 from deltatwin.calibration.physics.model import model_effects
 from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 from deltatwin.cli import main as cli
-from deltatwin.twin.dataset import write_dataset
+from deltatwin.twin.dataset import read_dataset, write_dataset
 from deltatwin.twin.scenario import Scenario
 
 WITHIN = 1.2
@@ -75,6 +80,26 @@ def _compensate(name, model, data, d, targets, scale) -> dict:
     rep = json.loads(out.getvalue().strip().splitlines()[-1])
     rep["wall_s"] = time.perf_counter() - t0
     return rep
+
+
+def _servo_floor(sc, compensated: Path) -> None:
+    """The scatter no model removes when the scenario's motors settle at random after each
+    move (servo_settling): 1.645 x the std of J dq per axis, J the nominal robot's Jacobian at
+    the compensated campaign's commanded q, dq ~ N(0, angle_std^2) per motor."""
+    servo = [e for e in sc.effects if e.name == "servo_settling"]
+    if not servo:
+        return
+    from deltatwin.models.geometry import build_geometry
+    from deltatwin.models.kinematics import forward
+    df = read_dataset(compensated)[0]
+    q = df.loc[df["command"] == "model", ["q1_rad", "q2_rad", "q3_rad"]].to_numpy()
+    geom, h = build_geometry(sc.params), 1e-6
+    J = np.stack([(forward(geom, q + h * e).p - forward(geom, q - h * e).p) / (2 * h)
+                  for e in np.eye(3)], axis=-1)
+    sd = np.sqrt(np.mean(np.einsum("nij,nij->ni", J, J), axis=0)) * servo[0].angle_std_rad
+    print("  servo settling floor (1.645 sigma of J dq over the targets, angle std "
+          f"{servo[0].angle_std_rad:g} rad): " + " / ".join(f"{1.645 * v * 1e9:.1f}" for v in sd)
+          + " nm (x / y / z)")
 
 
 def _median_us(f, repeat: int) -> float:
@@ -119,8 +144,53 @@ def _latency(sc, df, models) -> None:
     log.add(10.0, T)
     frame = log.frame(np.zeros(3), 0.0, target)
     us = _median_us(lambda: comp.command(target, frame), 10)
-    print(f"  physics model inverse (projected Newton, one point): {us / 1e3:9.1f} ms "
-          f"({comp.inverse.n_evaluations} model evaluations over 11 solves)")
+    print(f"  physics model inverse in deltatwin (projected Newton, one point): {us / 1e3:9.1f} "
+          f"ms ({comp.inverse.n_evaluations} model evaluations over 11 solves)")
+    _controller(sc, df, model, doc, models["physics"].parent)
+
+
+def _controller(sc, df, model, doc, d: Path) -> None:
+    """The physics model exported for a controller: its reference evaluator against the
+    fitted model on calibration rows (forward and inverse), and the inverse's CPU time per
+    point (time.process_time, one thread), one point at a time and in a batch."""
+    path = write_controller_model(model, d / "controller.json", doc["model"].get("sensors"),
+                                  d / "physics.toml")
+    exported = controller_evaluator.load(path)
+    meas = measurements(df, {"sensors": doc["model"].get("sensors") or {}}, model.params)
+    meas.cos_scale[:] = 1.0                 # the controller's readings: no cosine correction
+    meas.cos_offset[:] = 0.0
+    rows = np.arange(0, meas.n, max(1, meas.n // 2000))
+    rows = rows[meas.zero_row[rows] == meas.zero_row[rows[0]]]      # the first session
+    pred = model.predict_path(meas)[rows]
+    cond, zero = evaluator_conditions(model, meas, rows)
+    session = controller_evaluator.Session(exported, zero)
+    forward_diff = np.abs(session.forward(meas.points.q[rows], cond) - pred).max()
+    with threadpool_limits(1):
+        t0 = time.process_time()
+        batch = session.inverse(pred, cond)
+        batch_us = (time.process_time() - t0) / rows.size * 1e6
+        one = lambda i, step_m=0.0, **kw: session.inverse(
+            pred[i:i + 1] + step_m, {k: v[i:i + 1] for k, v in cond.items()}, **kw)
+        k = min(50, rows.size)
+        t0 = time.process_time()
+        cold = [one(i) for i in range(k)]
+        cold_us = (time.process_time() - t0) / k * 1e6
+        # warm: the next step of a path (the target 1 um further on each axis), from the
+        # previous decision's solution
+        t0 = time.process_time()
+        warm = [one(i, 1e-6, q0=cold[i]["q"], pose0=cold[i]["pose"]) for i in range(k)]
+        warm_us = (time.process_time() - t0) / k * 1e6
+    back = model.predict_path(with_motor_coordinates(meas, rows, batch["q"]))[rows]
+    print(f"  controller file ({path.stat().st_size / 1e3:.0f} kB, statics degree "
+          f"{exported['statics']['degree']}): reference evaluator - fitted model on "
+          f"{rows.size} rows: forward {forward_diff * 1e9:.1e} nm, inverse (the fitted model "
+          f"at the evaluator's q) {np.abs(back - pred).max() * 1e9:.1e} nm "
+          f"({(batch['status'] == 'converged').sum()} converged)")
+    print(f"  controller inverse, CPU per point (numpy, one thread): batch of {rows.size} "
+          f"{batch_us:7.1f} us ({batch['iterations']} Newton steps); one point from home "
+          f"{cold_us:7.1f} us ({np.mean([c['iterations'] for c in cold]):.1f} steps); the next "
+          f"point of a path (1 um on), warm-started {warm_us:7.1f} us "
+          f"({np.mean([w['iterations'] for w in warm]):.1f} steps)")
 
 
 def main(argv=None) -> int:
@@ -174,6 +244,7 @@ def main(argv=None) -> int:
                 verdicts.append(ok)
                 print(f"  {a:>4} {u:9.1f} -> {b:7.1f} -> {p:7.1f}   physics {b / p:.2f}x better "
                       f"(target >= {LADDER:g}x: {'met' if ok else 'NOT met'})")
+            _servo_floor(sc, d / "physics-compensated.parquet")
             _latency(sc, df, models)
     print(f"targets met: {sum(verdicts)} of {len(verdicts)}; total "
           f"{time.perf_counter() - t_start:.0f} s")
