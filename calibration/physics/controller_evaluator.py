@@ -300,6 +300,21 @@ def _tilt(d, angles):
     return out / np.linalg.norm(out, axis=1, keepdims=True), e1, e2
 
 
+def _loop_drift(step: dict, c: dict, pos: np.ndarray, support_C: np.ndarray) -> np.ndarray:
+    """Displacement (n,3) of an optical element at ``pos`` (n,3) standing on a support at
+    ``support_C``: the table expands in its plane about the robot's axis, the frame lifts the
+    robot's base and (hanging from an arm) moves it sideways, the support lifts the element."""
+    dT_table, dT_frame = c["table"] - step["reference_C"], c["frame"] - step["reference_C"]
+    height = step["frame_height_m"] + pos[:, 2]
+    base_shift = ((step["table_cte_per_K"] * dT_table
+                   - step["frame_cte_per_K"] * dT_frame)[:, None] * step["frame_arm_m"])
+    d = np.zeros_like(pos)
+    d[:, :2] = step["table_cte_per_K"] * dT_table[:, None] * pos[:, :2] - base_shift
+    d[:, 2] = (step["support_cte_per_K"] * (support_C - step["reference_C"]) * height
+               - step["frame_cte_per_K"] * dT_frame * step["frame_height_m"])
+    return d
+
+
 def optics(model: dict, c: dict) -> dict:
     """Heads (n,3), directions (n,3), fold mirror (n,3), air index and the instrument's index
     (n,) per axis at the conditions, after the model's optics steps in order."""
@@ -313,19 +328,9 @@ def optics(model: dict, c: dict) -> dict:
     for step in o["steps"]:
         kind = step["kind"]
         if kind == "loop_drift":
-            def drift(pos, support_C):
-                dT_table, dT_frame = c["table"] - step["reference_C"], c["frame"] - step["reference_C"]
-                height = step["frame_height_m"] + pos[:, 2]
-                base_shift = ((step["table_cte_per_K"] * dT_table
-                               - step["frame_cte_per_K"] * dT_frame)[:, None] * step["frame_arm_m"])
-                d = np.zeros_like(pos)
-                d[:, :2] = step["table_cte_per_K"] * dT_table[:, None] * pos[:, :2] - base_shift
-                d[:, 2] = (step["support_cte_per_K"] * (support_C - step["reference_C"]) * height
-                           - step["frame_cte_per_K"] * dT_frame * step["frame_height_m"])
-                return d
             for a in AXES:      # every support stands on the table (its sensors' level)
-                head[a] = head[a] + drift(head[a], c["support"])
-            fold = fold + drift(fold, c["table"])
+                head[a] = head[a] + _loop_drift(step, c, head[a], c["support"])
+            fold = fold + _loop_drift(step, c, fold, c["table"])
         elif kind == "beam_misalignment":
             for k, a in enumerate(AXES):
                 direction[a], e1, e2 = _tilt(direction[a], step["angle_rad"][k])
@@ -410,7 +415,8 @@ class Session:
         """Motor coordinates (n,3) at which the readings equal ``target_m`` (n,3) m in the
         conditions ``cond``: Newton on (q, p, R) with the rod equations and the readings, from
         ``q0`` (default home) and ``pose0`` (a previous solution's (p, R); default the
-        closed-form start at q0). Returns q, status (converged / out_of_stroke / not_converged),
+        closed-form start at q0). Returns q, status (converged / out_of_stroke / not_converged /
+        not_finite),
         residual_m (max over the axes, the readings re-evaluated in full at q), iterations, and
         the pose (a warm start for the next call)."""
         model = self.model
@@ -424,8 +430,8 @@ class Session:
         A, dA = elbows(g, q)
         p, R = start_pose(g, A) if pose0 is None else (pose0[0].copy(), pose0[1].copy())
         resid = np.full(n, np.inf)
-        it = 0
-        for it in range(1, max_iter + 1):
+        steps = 0
+        for _ in range(max_iter + 1):       # the last pass evaluates the last step only
             A, dA = elbows(g, q)
             f, Jpose, d = _rod_system(g, A, p, R)
             pd, Rd = deflected(model, c, q, p, R)
@@ -433,7 +439,7 @@ class Session:
             resid = np.max(np.abs(r), axis=1)
             # |d|^2 - L^2 = 2 L (|d| - L): the rods closed to 1e-13 m
             kin_ok = np.max(np.abs(f) / (2.0 * g["L"].reshape(-1, 6)), axis=1) < 1e-13
-            if np.all((resid <= tol_m) & kin_ok):
+            if np.all((resid <= tol_m) & kin_ok) or steps == max_iter:
                 break
             # rows: 6 rod equations, 3 readings; columns: q (3), p (3), rotation (3)
             M = np.zeros((n, 9, 9))
@@ -447,9 +453,11 @@ class Session:
             q = q + step[:, :3]
             p = p + step[:, 3:6]
             R = rotation(step[:, 6:]) @ R
-        status = np.where(resid <= tol_m, "converged", "not_converged").astype(object)
+            steps += 1
+        status = np.where((resid <= tol_m) & kin_ok, "converged", "not_converged").astype(object)
         status[np.any((q < lo - 1e-12) | (q > hi + 1e-12), axis=1)] = "out_of_stroke"
-        return {"q": q, "status": status.astype(str), "residual_m": resid, "iterations": it,
+        status[~(np.all(np.isfinite(q), axis=1) & np.isfinite(resid))] = "not_finite"
+        return {"q": q, "status": status.astype(str), "residual_m": resid, "iterations": steps,
                 "pose": (p, R)}
 
 

@@ -42,8 +42,11 @@ from deltatwin.twin.statics import GRAVITY_M_S2, Statics
 
 EXPORTED = {"geometric_errors", "thermal_expansion", "gravity_sag", "magnetic_force",
             "loop_drift", "air_refraction", "beam_misalignment", "sensor_contact"}
-STATICS_TOL_M = 1e-15        # preload deflection (m, rad) between the Chebyshev nodes
-STATICS_TOL_REL = 1e-9       # compliance, relative to its largest entry
+# the statics series between their nodes: the preload deflection to 1e-13 m and rad (a rotation
+# moves a reading by its lever, < 0.2 m: 2e-14 m), the compliance to 1e-9 of its largest entry
+# (of a load deflection < 1 um): three orders below the 1e-11 m (0.01 nm) the export must match
+STATICS_TOL_M = 1e-13
+STATICS_TOL_REL = 1e-9
 STATICS_DEGREES = range(4, 15, 2)
 
 EVALUATION = [

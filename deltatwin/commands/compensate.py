@@ -63,6 +63,10 @@ def register(sub) -> None:
     p.add_argument("--view", type=Path, default=None, metavar="RUN.rrd",
                    help="also write a Rerun recording of the achieved error fields "
                         "(uncompensated, then compensated: target minus reading per target)")
+    p.add_argument("--controller", type=Path, default=None, metavar="FILE.json",
+                   help="also write a physics model as the file a real-time controller loads "
+                        "(documented JSON; calibration/physics/controller_evaluator.py, numpy "
+                        "only, evaluates and inverts it; docs/compensation.md)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON line")
     p.set_defaults(func=run)
 
@@ -181,11 +185,20 @@ def run(args) -> int:
         raise ValueError(f"--after-h must be >= 0 hours, got {args.after_h}")
     if args.view is not None:
         check_writable(args.view)
+    if args.controller is not None:
+        check_writable(args.controller)
     from deltatwin.twin.journal import journal_path as journal_file
 
     t0 = time.perf_counter()
     sc = Scenario.load(args.scenario)
     comp = load_compensator(args.model)
+    if args.controller is not None:
+        if comp.kind != "physics":
+            raise ValueError(f"--controller: {args.model} is a {comp.kind} model; its JSON is "
+                             "already what a controller loads (docs/calibration.md); "
+                             "--controller exports a physics model (TOML)")
+        from deltatwin.calibration.physics.export import write_controller_model
+        write_controller_model(comp.model, args.controller, comp.sensors, args.model)
     nominal = NominalCompensator(sc.params)
     data = args.data or (Path(comp.calibration_data) if comp.calibration_data else None)
     if data is not None and not data.exists():
@@ -303,6 +316,7 @@ def run(args) -> int:
               "force_N": [float(min(r["force_N"] for r in records)),
                           float(max(r["force_N"] for r in records))],
               "output": str(output), "journal": str(journal_path) + " (kept)",
+              "controller_file": str(args.controller) if args.controller else None,
               "resumed_with": before, "seconds": round(time.perf_counter() - t0, 2)}
     meta = sc.metadata(twin, scale) if args.instruments == "sim" else {"source": "lab",
                                                                         "scenario": sc.name}
@@ -333,4 +347,6 @@ def run(args) -> int:
             print("conditions outside the calibration range: "
                   + ", ".join(report["outside_calibration_range"]))
         print(f"dataset: {output}")
+        if args.controller is not None:
+            print(f"controller file: {args.controller}")
     return 0
