@@ -12,7 +12,7 @@ the black box on every axis), and the latency of one inverse evaluation per poin
 controller's loop budget is of the order of 100 us):
 
     python benchmarks/bench_compensation.py                       # full scale, 60 targets
-    python benchmarks/bench_compensation.py --scale 0.25 --targets 30
+    python benchmarks/bench_compensation.py --scale 0.25 --targets 30 --sessions 0
 
 Every figure printed is measured here; nothing is compared with stored numbers.
 """
@@ -66,10 +66,15 @@ def _fit_models(sc, df, meta, d: Path, data: Path) -> dict:
     return {"blackbox": d / "blackbox.json", "physics": d / "physics.toml"}
 
 
-def _compensate(name, model, data, d, targets, scale) -> dict:
+def _compensate(name, model, data, d, targets, scale, after_h: float = 2.0,
+                seed: int | None = None) -> dict:
     out = io.StringIO()
+    tag = "" if seed is None else f"-{after_h:g}h"
     args = ["compensate", name, "--model", str(model), "--data", str(data), "--targets",
-            str(targets), "-o", str(d / f"{model.stem}-compensated.parquet"), "--json", "--quiet"]
+            str(targets), "-o", str(d / f"{model.stem}{tag}-compensated.parquet"), "--json",
+            "--quiet", "--after-h", str(after_h)]
+    if seed is not None:
+        args += ["--seed", str(seed)]
     if scale < 1:
         args += ["--scale", str(scale)]
     t0 = time.perf_counter()
@@ -80,6 +85,22 @@ def _compensate(name, model, data, d, targets, scale) -> dict:
     rep = json.loads(out.getvalue().strip().splitlines()[-1])
     rep["wall_s"] = time.perf_counter() - t0
     return rep
+
+
+def _sessions(name, models, kinds, data, d, scale, n: int, targets: int) -> None:
+    """The ladder over ``n`` more compensated sessions, 2, 5, 8, ... h after the calibration
+    (``targets`` targets each, seeds = the hour): one session's err90 carries its zero's error,
+    one draw; the mean over sessions is the ladder's expectation."""
+    hours = [2.0 + 3.0 * k for k in range(n)]
+    err = {k: np.array([[_compensate(name, m, data, d, targets, scale, h, int(h))["axes"][a]
+                         ["achieved_err90_nm"] for a in "xyz"] for h in hours])
+           for k, m in models.items()}
+    print(f"  over {n} sessions ({targets} targets each, {hours[0]:g} to {hours[-1]:g} h after "
+          f"the calibration): mean achieved err90 (nm), {kinds['blackbox']} -> physics")
+    for i, a in enumerate("xyz"):
+        b, p = err["blackbox"][:, i].mean(), err["physics"][:, i].mean()
+        print(f"  {a:>4} {b:7.1f} -> {p:7.1f}   physics {b / p:.2f}x better (sessions: "
+              + ", ".join(f"{v:.0f}" for v in err["physics"][:, i]) + " nm)")
 
 
 def _servo_floor(sc, compensated: Path) -> None:
@@ -198,6 +219,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--targets", type=int, default=60)
     ap.add_argument("--scenarios", default="paper-thermal,paper-force")
+    ap.add_argument("--sessions", type=int, default=6,
+                    help="further compensated sessions at later times (0: none)")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     verdicts = []
@@ -244,6 +267,8 @@ def main(argv=None) -> int:
                 verdicts.append(ok)
                 print(f"  {a:>4} {u:9.1f} -> {b:7.1f} -> {p:7.1f}   physics {b / p:.2f}x better "
                       f"(target >= {LADDER:g}x: {'met' if ok else 'NOT met'})")
+            if args.sessions:
+                _sessions(name, models, kinds, data, d, args.scale, args.sessions, 20)
             _servo_floor(sc, d / "physics-compensated.parquet")
             _latency(sc, df, models)
     print(f"targets met: {sum(verdicts)} of {len(verdicts)}; total "

@@ -117,6 +117,26 @@ def test_condition_log_keeps_the_zero_and_the_recent_history():
     assert f["t_s"].tolist() == [0.0, 200.0, 250.0]    # zero + the last 100 s
     assert f["coil1_A"].tolist() == [0.0, 0.0, 0.5] and f["F_N"].iloc[-1] == 0.5
     assert f["x_nm"].iloc[-1] == pytest.approx(1e6) and np.isnan(f["x_nm"].iloc[0])
+    # the zero's temperature: the straight line through the zero's scan and the window after
+    assert f["T_a_C"].iloc[0] == pytest.approx(20.0, abs=1e-12)
+
+
+def test_the_zero_temperature_is_fitted_over_the_window_after_it():
+    """One scan carries the thermometer's noise into every reading of a session; the line
+    through the 600 s after the zero (all known at the first decision) carries a quarter."""
+    rng = np.random.default_rng(5)
+    errors = {"raw": [], "fitted": []}
+    for _ in range(200):
+        log = ConditionLog(("a", "b"))
+        log.zero(100.0, 20.0 + 1e-3 * rng.standard_normal(2))
+        assert log.zero_temperatures() == pytest.approx(log._zero_T)   # nothing after it yet
+        for t in np.arange(110.0, 100.0 + 900.0, 10.0):     # drifting 1 mK/min, 1 mK noise
+            log.add(t, 20.0 + (t - 100.0) / 60e3 + 1e-3 * rng.standard_normal(2))
+        errors["raw"] += list(np.asarray(log._zero_T) - 20.0)
+        errors["fitted"] += list(log.zero_temperatures() - 20.0)
+        assert log.frame()["T_b_C"].iloc[0] == log.zero_temperatures()[1]
+    raw, fitted = np.std(errors["raw"]), np.std(errors["fitted"])
+    assert fitted < 0.35 * raw, (raw, fitted)          # 2 / sqrt(61) = 0.26 for a line's end
 
 
 def test_nominal_forward_and_inverse_agree():
