@@ -66,7 +66,12 @@ def _cross(a, b):
 def load(path) -> dict:
     """The model file as arrays (``np.asarray`` of every list), checked for its format."""
     with open(path, encoding="utf-8") as f:
-        doc = json.load(f)
+        try:
+            doc = json.load(f)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ControllerModelError(f"{path}: not a JSON file ({exc})") from exc
+    if not isinstance(doc, dict):
+        doc = {"format": None}
     if doc.get("format") != FORMAT or doc.get("format_version") != FORMAT_VERSION:
         raise ControllerModelError(f"{path}: format {doc.get('format')!r} version "
                                    f"{doc.get('format_version')!r}; this evaluator reads "

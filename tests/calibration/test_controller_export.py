@@ -100,6 +100,9 @@ def test_evaluator_is_standalone_and_refuses_other_formats(tmp_path):
     bad.write_text('{"format": "deltatwin-physics-model", "format_version": 1}')
     with pytest.raises(ce.ControllerModelError, match="format"):
         ce.load(bad)
+    bad.write_text('{"format": "deltatwin-physics-controller", "form')     # cut short
+    with pytest.raises(ce.ControllerModelError, match="not a JSON file"):
+        ce.load(bad)
 
 
 def test_export_refuses_an_effect_it_cannot_evaluate(tmp_path, monkeypatch):
