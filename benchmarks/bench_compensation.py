@@ -92,9 +92,10 @@ def _sessions(name, models, kinds, data, d, scale, n: int, targets: int) -> None
     (``targets`` targets each, seeds = the hour): one session's err90 carries its zero's error,
     one draw; the mean over sessions is the ladder's expectation."""
     hours = [2.0 + 3.0 * k for k in range(n)]
-    err = {k: np.array([[_compensate(name, m, data, d, targets, scale, h, int(h))["axes"][a]
-                         ["achieved_err90_nm"] for a in "xyz"] for h in hours])
-           for k, m in models.items()}
+    err = {}
+    for k, m in models.items():
+        reps = [_compensate(name, m, data, d, targets, scale, h, int(h))["axes"] for h in hours]
+        err[k] = np.array([[r[a]["achieved_err90_nm"] for a in "xyz"] for r in reps])
     print(f"  over {n} sessions ({targets} targets each, {hours[0]:g} to {hours[-1]:g} h after "
           f"the calibration): mean achieved err90 (nm), {kinds['blackbox']} -> physics")
     for i, a in enumerate("xyz"):
