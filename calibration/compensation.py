@@ -40,7 +40,7 @@ from deltatwin.calibration.blackbox.validation import evaluate
 from deltatwin.calibration.errors import CalibrationInputError, ModelFileError
 from deltatwin.calibration.metrics import error_figures
 from deltatwin.calibration.physics.inverse import PhysicsInverse
-from deltatwin.calibration.physics.measurements import measurements
+from deltatwin.calibration.physics.measurements import TEMPERATURE_WINDOW_S, measurements
 from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
 from deltatwin.calibration.physics.model_file import load_fitted
 from deltatwin.models.params import RobotParams, load_params
@@ -62,9 +62,11 @@ class Command:
 class ConditionLog:
     """The session's zero scan and the scans read at each decision, as dataset rows."""
 
-    def __init__(self, sensors, history_s: float = HISTORY_S):
+    def __init__(self, sensors, history_s: float = HISTORY_S,
+                 zero_window_s: float = TEMPERATURE_WINDOW_S):
         self.sensors = tuple(sensors)
         self.history_s = float(history_s)
+        self.zero_window_s = float(zero_window_s)
         self.zero_t_s = None
         self._zero_T = None
         self._scans: dict[float, list] = {}
@@ -76,6 +78,21 @@ class ConditionLog:
     def add(self, t_s: float, T_C) -> None:
         """A scan completed at ``t_s`` (a scan read twice is kept once)."""
         self._scans[float(t_s)] = list(T_C)
+
+    def zero_temperatures(self) -> np.ndarray:
+        """The temperatures at the zero (degC per sensor): a straight line fitted to the zero's
+        scan and those of the ``zero_window_s`` after it, at the zero's time. Every decision
+        comes after that window (the controller's fill), so the whole window is known by then;
+        one scan alone carries the thermometers' noise into every reading of the session (a
+        frame hanging the robot from a 0.6 m aluminium arm reads 14 nm per mK along X)."""
+        T0 = np.asarray(self._zero_T, dtype=np.float64)
+        after = sorted(t for t in self._scans if 0 < t - self.zero_t_s <= self.zero_window_s)
+        if not after or T0.size == 0:
+            return T0
+        dt = np.array([0.0] + [t - self.zero_t_s for t in after])
+        T = np.vstack([T0] + [self._scans[t] for t in after])
+        line = np.linalg.lstsq(np.column_stack([np.ones_like(dt), dt]), T, rcond=None)[0]
+        return line[0]
 
     @property
     def n_scans(self) -> int:
@@ -91,7 +108,8 @@ class ConditionLog:
         if times:
             times = [t for t in times if t >= times[-1] - self.history_s]
         t = np.array([self.zero_t_s] + times)
-        T = np.array([self._zero_T] + [self._scans[x] for x in times], dtype=np.float64)
+        T = np.array([self.zero_temperatures()] + [self._scans[x] for x in times],
+                     dtype=np.float64)
         n = t.size
         df = pd.DataFrame({"t_s": t, "pos_id": np.arange(n), "split": "val", "session": SESSION,
                            "q1_rad": 0.0, "q2_rad": 0.0, "q3_rad": 0.0})
@@ -128,16 +146,25 @@ class Compensator:
         raise NotImplementedError
 
     def predicted(self, df: pd.DataFrame, meta: dict | None) -> dict:
-        """The model's validation figures per axis on its calibration data (nm): as its fit
-        reports them (``err_p90``, ``err_1645sigma``: the readings' constant per session fitted
-        on the calibration rows) and referenced to each session's zero as a compensation is
-        (``zero_err_p90``, ``zero_err_1645sigma``: the model's error at home at the zero, which
-        the fitted constant hid, included)."""
+        """The model's validation figures per axis on its calibration data (nm), three ways:
+
+        * ``err_p90``, ``err_1645sigma``: what a compensation can reach. A compensation counts
+          every target from one zero reading at home, so its error is the model's error at the
+          target minus its error at the zero: two draws of the validation error, the second
+          one shared by the whole session. Predicted as the figures of e_i - e_j over pairs of
+          validation rows of one session (``pairwise_differences``): each session's constant
+          cancels, every row stands once for the zero.
+        * ``fitted_err_p90``, ``fitted_err_1645sigma``: as the model's fit reports them (a
+          constant per session fitted on the calibration rows, which no compensation can).
+        * ``zero_err_p90``, ``zero_err_1645sigma``: referenced to the calibration session's own
+          zero (one draw of the zero's error per session: paper-thermal has one session per
+          axis)."""
         raise NotImplementedError
 
     def _zero_referenced(self, df, errors) -> dict:
         """{axis: figures} of ``errors(session rows, zero frame)`` ((rows, 3) m) over the
-        validation rows of each session."""
+        validation rows of each session, referenced to the session's zero, and of their
+        differences within each session (``pairwise``)."""
         err = np.full((len(df), 3), np.nan)
         session = df["session"].astype(str).to_numpy()
         t = df["t_s"].to_numpy(dtype=np.float64)
@@ -147,12 +174,39 @@ class Compensator:
             self.zero(df.iloc[[first]])
             err[idx] = errors(df.iloc[idx])
         val = (df["split"].astype(str) == "val").to_numpy()
-        return {a: error_figures(err[val, k]) for k, a in enumerate(AXES)}
+        codes = pd.factorize(session)[0]
+        return {a: {"zero": error_figures(err[val, k]),
+                    "pairwise": error_figures(pairwise_differences(err[val, k], codes[val]))}
+                for k, a in enumerate(AXES)}
 
 
-def _figures(fig: dict, zero: dict | None = None) -> dict:
-    out = {"err_p90": fig.get("err_p90"), "err_1645sigma": fig.get("err_1645sigma"),
-           "n": fig.get("n")}
+PAIR_SHIFTS = 64   # partners per row in ``pairwise_differences``
+
+
+def pairwise_differences(err: np.ndarray, group: np.ndarray, shifts: int = PAIR_SHIFTS):
+    """Differences e_i - e_j (m) of errors ``err`` (n,) between rows of the same ``group``
+    (n,) (NaN rows left out): all ordered pairs of a group of up to ``shifts`` + 1 rows, else
+    each row against the rows ``k * n_g // (shifts + 1)`` places on (k = 1..``shifts``, cyclic,
+    in the rows' order): partners spread evenly over the whole session, deterministic."""
+    out = []
+    for g in np.unique(group):
+        e = err[group == g]
+        e = e[np.isfinite(e)]
+        n = e.size
+        if n < 2:
+            continue
+        ks = np.arange(1, n) if n <= shifts + 1 else \
+            np.unique(np.arange(1, shifts + 1) * n // (shifts + 1))
+        out.append((e[:, None] - e[(np.arange(n)[:, None] + ks[None]) % n]).ravel())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def _figures(fitted: dict, zero: dict | None = None, pairwise: dict | None = None) -> dict:
+    """The three predictions (see ``Compensator.predicted``) of one axis, nm."""
+    main = pairwise if pairwise is not None else fitted
+    out = {"err_p90": main.get("err_p90"), "err_1645sigma": main.get("err_1645sigma"),
+           "n": main.get("n"), "fitted_err_p90": fitted.get("err_p90"),
+           "fitted_err_1645sigma": fitted.get("err_1645sigma")}
     if zero is not None:
         out.update(zero_err_p90=zero.get("err_p90"), zero_err_1645sigma=zero.get("err_1645sigma"))
     return out
@@ -190,8 +244,11 @@ class PhysicsCompensator(Compensator):
         meas = measurements(df, meta, self.model.params, where="calibration data")
         pred = self.model.predict_path(meas)
         fig = figures_nm(residuals(meas, pred, group_offsets(meas, pred, meas.cal)), meas.val)
-        zero = figures_nm(residuals(meas, pred, np.zeros(len(meas.groups))), meas.val)
-        return {a: _figures(fig[a], zero[a]) for a in AXES if a in fig}
+        res = residuals(meas, pred, np.zeros(len(meas.groups)))
+        zero = figures_nm(res, meas.val)
+        return {a: _figures(fig[a], zero[a], error_figures(pairwise_differences(
+                    res[meas.val, k], meas.group[meas.val, k])))
+                for k, a in enumerate(AXES) if a in fig}
 
 
 class NominalCompensator(PhysicsCompensator):
@@ -234,7 +291,8 @@ class StepwiseCompensator(Compensator):
             return (self.dgm.predict(rows)[:, self.order] - self.zero_reading_m
                     - reading[rows.index.to_numpy()])
         zero = self._zero_referenced(df.reset_index(drop=True), errors)
-        return {a: _figures(ev[a]["val"], zero[a]) for a in AXES if a in ev}
+        return {a: _figures(ev[a]["val"], zero[a]["zero"], zero[a]["pairwise"])
+                for a in AXES if a in ev}
 
 
 class DirectIGMCompensator(Compensator):
@@ -301,7 +359,8 @@ class DirectIGMCompensator(Compensator):
             dq = self.model.predict_values(v) - q_meas[rows.index.to_numpy()]
             return np.linalg.solve(self.model.jacobian(v), dq[:, :, None])[:, :, 0]
         zero = self._zero_referenced(df.reset_index(drop=True), errors)
-        return {a: _figures(ev[a]["val"], zero[a]) for a in AXES if a in ev}
+        return {a: _figures(ev[a]["val"], zero[a]["zero"], zero[a]["pairwise"])
+                for a in AXES if a in ev}
 
 
 def load_compensator(path) -> Compensator:
@@ -343,13 +402,21 @@ class LoopController:
         self.fill_s, self.scan_period_s = float(fill_s), float(scan_period_s)
         self.latency_s: dict[str, list] = {m: [] for m in compensators}
         self._nominal_q = {}
+        self._transferred = False
 
     def _zero(self, zero: dict) -> None:
         if self.log.zero_t_s != zero["zero_t_s"]:
             self.log.zero(zero["zero_t_s"], zero["zero_T_C"])
+            self._transferred = False
+
+    def _transfer_zero(self) -> None:
+        """Each compensator's zero transfer, once per zero, at its first decision: after the
+        fill, when the zero's temperatures are known from the window after it."""
+        if not self._transferred:
             frame = self.log.frame()
             for c in self.compensators.values():
-                c.zero(frame)
+                c.zero(frame.iloc[[0]])
+            self._transferred = True
 
     def _scan(self, inst) -> tuple[float, list]:
         scan = inst.thermometers.scan()
@@ -365,6 +432,7 @@ class LoopController:
                 inst.clock.sleep(self.scan_period_s)
                 history.append(self._scan(inst))
         scan_t, T = self._scan(inst)
+        self._transfer_zero()
         I = inst.coils.read_currents() if inst.coils is not None else np.zeros(3)
         F = float(np.mean(I)) * self.force_per_A
         frame = self.log.frame(I, F, self.targets[k])

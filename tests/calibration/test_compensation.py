@@ -8,6 +8,7 @@ from deltatwin.calibration.compensation import (
     DirectIGMCompensator,
     NominalCompensator,
     StepwiseCompensator,
+    pairwise_differences,
 )
 from deltatwin.calibration.physics.inverse import PhysicsInverse, with_motor_coordinates
 from deltatwin.calibration.physics.measurements import measurements
@@ -116,6 +117,26 @@ def test_condition_log_keeps_the_zero_and_the_recent_history():
     assert f["t_s"].tolist() == [0.0, 200.0, 250.0]    # zero + the last 100 s
     assert f["coil1_A"].tolist() == [0.0, 0.0, 0.5] and f["F_N"].iloc[-1] == 0.5
     assert f["x_nm"].iloc[-1] == pytest.approx(1e6) and np.isnan(f["x_nm"].iloc[0])
+    # the zero's temperature: the straight line through the zero's scan and the window after
+    assert f["T_a_C"].iloc[0] == pytest.approx(20.0, abs=1e-12)
+
+
+def test_the_zero_temperature_is_fitted_over_the_window_after_it():
+    """One scan carries the thermometer's noise into every reading of a session; the line
+    through the 600 s after the zero (all known at the first decision) carries a quarter."""
+    rng = np.random.default_rng(5)
+    errors = {"raw": [], "fitted": []}
+    for _ in range(200):
+        log = ConditionLog(("a", "b"))
+        log.zero(100.0, 20.0 + 1e-3 * rng.standard_normal(2))
+        assert log.zero_temperatures() == pytest.approx(log._zero_T)   # nothing after it yet
+        for t in np.arange(110.0, 100.0 + 900.0, 10.0):     # drifting 1 mK/min, 1 mK noise
+            log.add(t, 20.0 + (t - 100.0) / 60e3 + 1e-3 * rng.standard_normal(2))
+        errors["raw"] += list(np.asarray(log._zero_T) - 20.0)
+        errors["fitted"] += list(log.zero_temperatures() - 20.0)
+        assert log.frame()["T_b_C"].iloc[0] == log.zero_temperatures()[1]
+    raw, fitted = np.std(errors["raw"]), np.std(errors["fitted"])
+    assert fitted < 0.35 * raw, (raw, fitted)          # 2 / sqrt(61) = 0.26 for a line's end
 
 
 def test_nominal_forward_and_inverse_agree():
@@ -128,3 +149,17 @@ def test_nominal_forward_and_inverse_agree():
     for k in range(4):
         cmd = nominal.command(x[k], log.frame(target_m=x[k]))
         assert cmd.status == "converged" and np.abs(cmd.q - q[k]).max() < 1e-9
+
+
+def test_pairwise_differences_cancel_each_sessions_constant():
+    """The prediction of a compensation: error at a target minus error at the zero, within one
+    session; a constant per session cancels, independent errors give sqrt(2) sigma."""
+    rng = np.random.default_rng(3)
+    e = np.concatenate([rng.normal(0.0, 1.0, 3000) + 50.0, rng.normal(0.0, 1.0, 2000) - 80.0])
+    group = np.repeat([0, 1], [3000, 2000])
+    d = pairwise_differences(e, group)
+    assert abs(d.mean()) < 0.05                       # no +50 / -80 constant survives
+    assert abs(d.std() - np.sqrt(2.0)) < 0.03
+    small = pairwise_differences(np.array([1.0, 2.0, 4.0, np.nan]), np.zeros(4, int))
+    assert sorted(small.tolist()) == [-3.0, -2.0, -1.0, 1.0, 2.0, 3.0]   # every ordered pair
+    assert pairwise_differences(np.array([1.0]), np.zeros(1, int)).size == 0

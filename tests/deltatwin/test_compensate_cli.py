@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from deltatwin.calibration.physics import controller_evaluator
 from deltatwin.cli import main
 from deltatwin.files import toml_text
 from deltatwin.twin.dataset import write_dataset
@@ -45,8 +46,12 @@ def _run(d, capsys, *extra):
 
 
 def test_true_model_compensates_to_the_noise(lab, capsys):
-    rep = _run(lab, capsys, "--view", str(lab / "comp.rrd"))
+    rep = _run(lab, capsys, "--view", str(lab / "comp.rrd"), "--controller",
+               str(lab / "controller.json"))
     assert (lab / "comp.rrd").stat().st_size > 0 and rep["view"].endswith("comp.rrd")
+    exported = controller_evaluator.load(lab / "controller.json")     # the controller's file
+    assert exported["source"]["effects"] == MODEL_EFFECTS
+    assert [s["kind"] for s in exported["optics"]["steps"]] == ["loop_drift", "air_refraction"]
     assert rep["model"]["kind"] == "physics" and rep["n_not_converged"] == 0
     df = pd.read_parquet(lab / "comp.parquet")
     assert len(df) == 2 * TARGETS and list(df["command"][:2]) == ["nominal", "model"]
