@@ -252,13 +252,19 @@ def run_case(case: Case) -> dict:
     with its wall and CPU seconds. BLAS (threadpoolctl) and the batched kinematics and statics'
     chunk pool (models/batched.py THREADS) run on ``case.threads`` threads, so N workers side by
     side use N cores, not N x cores."""
+    from threadpoolctl import threadpool_limits
+
+    # loaded before the limit, so that the BLAS libraries they bring (scipy's) are limited too
+    import deltatwin.calibration.diagnosis.diagnose  # noqa: F401
+    import deltatwin.calibration.physics.fit  # noqa: F401
     from deltatwin.models import batched
 
     t0, cpu0 = time.perf_counter(), time.process_time()
     chunk_threads = batched.THREADS       # restored after the case: the caller's process keeps
     batched.THREADS = case.threads        # its own setting (tests run cases in-process)
     try:
-        rec = _simulate_fit_diagnose(case)
+        with threadpool_limits(limits=case.threads):
+            rec = _simulate_fit_diagnose(case)
     finally:
         batched.THREADS = chunk_threads
     # how long, not what: left out of comparisons. CPU time is the process's: the case's own
@@ -269,43 +275,41 @@ def run_case(case: Case) -> dict:
 
 
 def _simulate_fit_diagnose(case: Case) -> dict:
-    from threadpoolctl import threadpool_limits
-
+    """The case's record without its timings (``run_case`` sets the threads around it)."""
     from deltatwin.calibration.diagnosis.diagnose import diagnose
     from deltatwin.calibration.errors import FitError
     from deltatwin.calibration.physics.fit import PhysicsFit
 
-    with threadpool_limits(limits=case.threads):
-        sc = case_scenario(case)
-        df, meta = sc.simulate(case.scale)
-        noise_nm = sc.settings.noise_floor_m * 1e9
-        rec = {"case_id": case.case_id, "scenario": sc.name, "effect": case.effect,
-               "parameter": case.parameter, "magnitude": case.magnitude,
-               "baseline": ",".join(case.baseline), "design": case.design, "scale": case.scale,
-               "campaign": case.campaign, "replicate": case.replicate, "seed": case.seed,
-               "n_rows": len(df), "noise_nm": noise_nm,
-               "noise_floor_nm": max(meta["truth"]["noise_floor_nm"].values())}
-        try:
-            fit = PhysicsFit(list(case.baseline), noise_nm=noise_nm).fit(df, meta)
-            d = diagnose(fit, "case")
-        except FitError as exc:               # a campaign the baseline cannot fit is a result
-            rec.update(status=f"fit failed: {exc}", **_no_diagnosis())
-        else:
-            ranks = [c["effect"] for c in d["ranking"]]
-            mine = d["ranking"][ranks.index(case.effect)] if case.effect in ranks else None
-            # a fit that stops short returns its best answer with the reason: kept, and left
-            # out of the power rates (they count diagnoses of converged fits)
-            rec.update(status="ok" if fit.converged_ else f"not converged: {fit.status_}",
-                       val_err90_nm=d["val_err90_nm"],
-                       n_identified=fit.identifiability_["n_identified_directions"],
-                       missing_effect=d.get("missing_effect") or "",
-                       named=d.get("missing_effect") == case.effect,
-                       significant=bool(mine and mine["significant"]),
-                       effect_rank=ranks.index(case.effect) + 1 if mine else -1,
-                       effect_p_value=mine["p_value"] if mine else math.nan,
-                       effect_delta_bic=mine["delta_bic"] if mine else math.nan,
-                       effect_explained_fraction=mine["explained_fraction"] if mine else math.nan,
-                       effect_val_err90_after_nm=mine["val_err90_after_nm"] if mine else math.nan)
+    sc = case_scenario(case)
+    df, meta = sc.simulate(case.scale)
+    noise_nm = sc.settings.noise_floor_m * 1e9
+    rec = {"case_id": case.case_id, "scenario": sc.name, "effect": case.effect,
+           "parameter": case.parameter, "magnitude": case.magnitude,
+           "baseline": ",".join(case.baseline), "design": case.design, "scale": case.scale,
+           "campaign": case.campaign, "replicate": case.replicate, "seed": case.seed,
+           "n_rows": len(df), "noise_nm": noise_nm,
+           "noise_floor_nm": max(meta["truth"]["noise_floor_nm"].values())}
+    try:
+        fit = PhysicsFit(list(case.baseline), noise_nm=noise_nm).fit(df, meta)
+        d = diagnose(fit, "case")
+    except FitError as exc:               # a campaign the baseline cannot fit is a result
+        rec.update(status=f"fit failed: {exc}", **_no_diagnosis())
+    else:
+        ranks = [c["effect"] for c in d["ranking"]]
+        mine = d["ranking"][ranks.index(case.effect)] if case.effect in ranks else None
+        # a fit that stops short returns its best answer with the reason: kept, and left
+        # out of the power rates (they count diagnoses of converged fits)
+        rec.update(status="ok" if fit.converged_ else f"not converged: {fit.status_}",
+                   val_err90_nm=d["val_err90_nm"],
+                   n_identified=fit.identifiability_["n_identified_directions"],
+                   missing_effect=d.get("missing_effect") or "",
+                   named=d.get("missing_effect") == case.effect,
+                   significant=bool(mine and mine["significant"]),
+                   effect_rank=ranks.index(case.effect) + 1 if mine else -1,
+                   effect_p_value=mine["p_value"] if mine else math.nan,
+                   effect_delta_bic=mine["delta_bic"] if mine else math.nan,
+                   effect_explained_fraction=mine["explained_fraction"] if mine else math.nan,
+                   effect_val_err90_after_nm=mine["val_err90_after_nm"] if mine else math.nan)
     return rec
 
 

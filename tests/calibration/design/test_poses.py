@@ -87,6 +87,7 @@ def test_fraction_study_ranks_the_optimal_subsets_against_random_ones(force_camp
     assert summary.random_worse_share.between(0, 1).all() and (summary.random_draws == 1).all()
 
 
+@pytest.mark.slow
 def test_load_levels_ranked_by_information(force_campaign):
     df, meta, clean, sigma = force_campaign
     t = load_level_study(df, meta, ["magnetic_force"], 4, sigma, clean=clean)
