@@ -9,18 +9,25 @@ source that matters only in a corner of the workspace counts as much as it cover
 
 * Parameters: the fit's covariance of its identified directions (sigma of the calibration
   residual, as the fit reports it) and, on the directions the data leave undetermined, the
-  prior (one fit scale), J_e C_ee J_e^T per effect; the combined line uses the whole
-  covariance (the effects' correlations included), so the effects' lines need not add up to it.
-* Interferometer: the readings' standard deviation (the validation readings carry it).
-* Thermometers: each sensor's reading uncertainty ``T_u_K`` through its lever (the model's
-  prediction with that column shifted, a first-order difference), independent sensors.
+  prior (one fit scale), J_e C_ee J_e^T per effect; the line "all parameters (correlated)"
+  uses the whole covariance (the effects' correlations included), so the effects' lines need
+  not add up to it (its share is not added to theirs).
+
+Every line is taken up to the session zeros: a reading is known relative to its session's
+zero, and the fit refits the zeros, so what moves all of a session's readings alike is no
+error at the tool point.
+* Interferometer: the standard deviation of a point's reading (the validation readings carry
+  it; a point that averages n readings has the single reading's over sqrt(n)).
+* Thermometers: each sensor's white noise ``T_u_K`` per scan, independent sensors and scans,
+  through the model's temperature levels *and rates* (causal fits over time): propagated by
+  noise draws (GUM Supplement 1), since a constant shift of a column (a first-order lever)
+  reaches the levels only and missed ~95 % of this line on the force campaign.
 * Unrecorded pressure: an air pressure ``pressure_u_Pa`` off the one the interferometers assume
   (the air_refraction effect's assumed_pressure_Pa shifted).
 * Servo settling: each motor's settled angle off by ``servo_u_rad``, independent motors.
 
-The line "all parameters (correlated)" is J C J^T with the whole covariance (its share is not
-added to the others'). ``budget_monte_carlo`` checks every line against the spread of that
-source's error over many simulated campaigns.
+``budget_monte_carlo`` checks every line against the spread of that source's error over many
+simulated campaigns of one robot.
 """
 from __future__ import annotations
 
