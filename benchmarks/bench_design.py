@@ -32,8 +32,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from deltatwin.calibration.design.budget import uncertainty_budget
-from deltatwin.calibration.design.poses import selection_study
+from deltatwin.calibration.design.budget import (
+    budget_monte_carlo,
+    uncertainty_budget,
+    without_random_errors,
+)
+from deltatwin.calibration.design.poses import (
+    fraction_study,
+    fraction_summary,
+    load_level_study,
+    order_study,
+    selection_study,
+)
 from deltatwin.calibration.design.power import (
     monte_carlo_power,
     power_figure,
@@ -104,23 +114,64 @@ def _killed_and_resumed(spec: Path, out: Path, n_cases: int) -> dict:
             "cases_per_s": n_cases / (first + s["wall_s"])}
 
 
-def _dask_cluster(folder: Path):
+def _dask_cluster(folder: Path, n_workers: int = 2):
     sched_file = folder / "scheduler.json"
+    sched_file.unlink(missing_ok=True)
     dask = str(Path(sys.executable).parent / "dask")     # the environment's, activated or not
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
                                "--no-dashboard", "--scheduler-file", str(sched_file)],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     while not sched_file.exists():
         time.sleep(0.1)
-    procs.append(subprocess.Popen([dask, "worker", "--nworkers", "2", "--nthreads", "1",
-                                   "--no-dashboard", "--scheduler-file", str(sched_file)],
+    procs.append(subprocess.Popen([dask, "worker", "--nworkers", str(n_workers), "--nthreads",
+                                   "1", "--no-dashboard", "--scheduler-file", str(sched_file)],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
     address = json.loads(sched_file.read_text())["address"]
     from distributed import Client
 
     with Client(address) as c:
-        c.wait_for_workers(2, timeout=120)
+        c.wait_for_workers(n_workers, timeout=120)
     return address, procs
+
+
+def _timing(r: dict) -> str:
+    return (f"{r['cases_per_s']:.3f} cases/s ({r['wall_s']:.0f} s wall), "
+            f"{r['cpu_s_per_case']:.2f} CPU s per case, load average "
+            f"{r['load_average_start']:.1f} -> {r['load_average_end']:.1f}")
+
+
+def _stop(procs) -> None:
+    for p in reversed(procs):
+        p.terminate()
+        p.wait(timeout=60)
+
+
+def scaling(folder: Path, mags, scale: float, n_cases: int) -> None:
+    """Throughput with 1 and 2 workers, local pool and Dask, on ``n_cases`` of the sweep's
+    cases (fewer replicates of the same magnitudes): cases/s (wall), the CPU seconds a case
+    took in its worker, and the machine's load average beside each (the cores are shared)."""
+    (folder / "scaling").mkdir(parents=True, exist_ok=True)
+    spec = SweepSpec.load(_spec(folder / "scaling", max(n_cases // len(mags), 1), mags, scale))
+    print(f"\nthroughput: {len(spec.cases)} cases per run; {os.cpu_count()} cores; 1 thread "
+          "per case (BLAS and chunk pool)")
+    rows = []
+    for backend, workers in (("pool", 1), ("pool", 2), ("dask", 1), ("dask", 2)):
+        out = folder / "scaling" / f"{backend}{workers}"
+        if backend == "pool":
+            r = run_sweep(spec, out, workers=workers)
+        else:
+            address, procs = _dask_cluster(folder / "scaling", workers)
+            try:
+                r = run_sweep(spec, out, scheduler=address)
+            finally:
+                _stop(procs)
+        rows.append((backend, workers, r))
+        print(f"  {backend} {workers} worker{'s' if workers > 1 else ' '}: {_timing(r)}")
+    for backend in ("pool", "dask"):
+        one, two = (r for b, w, r in rows if b == backend)
+        print(f"  {backend}: 2 workers / 1 worker = {two['cases_per_s'] / one['cases_per_s']:.2f}x "
+              f"cases/s; CPU per case {two['cpu_s_per_case'] / one['cpu_s_per_case']:.2f}x "
+              "(near 1: the workers do not oversubscribe the cores)")
 
 
 def sweeps(folder: Path, n_cases: int, scale: float, rng, reuse: bool):
@@ -142,7 +193,7 @@ def sweeps(folder: Path, n_cases: int, scale: float, rng, reuse: bool):
         one = None
     else:
         one = run_sweep(s, folder / "pool1", workers=1)
-        print(f"  pool, 1 worker: {one['cases_per_s']:.3f} cases/s ({one['wall_s']:.0f} s)")
+        print(f"  pool, 1 worker: {_timing(one)}")
     if complete("pool2"):
         print("  pool, 2 workers killed and resumed: records reused from an earlier run")
         kr = None
@@ -156,11 +207,9 @@ def sweeps(folder: Path, n_cases: int, scale: float, rng, reuse: bool):
     try:
         dk = run_sweep(s, folder / "dask", scheduler=address, resume=reuse)
     finally:
-        for p in reversed(procs):
-            p.terminate()
-            p.wait(timeout=60)
-    print(f"  dask (scheduler + 2 worker processes on 127.0.0.1): {dk['cases_per_s']:.3f} "
-          f"cases/s ({dk['wall_s']:.0f} s, {dk['ran']} cases run)")
+        _stop(procs)
+    print(f"  dask (scheduler + 2 worker processes on 127.0.0.1), {dk['ran']} cases run: "
+          f"{_timing(dk)}")
     recs = {k: read_records(folder / k) for k in ("pool1", "pool2", "dask")}
     cols = deterministic_columns(recs["pool1"])
     same = all(recs["pool1"][cols].equals(recs[k][cols]) for k in ("pool2", "dask"))
@@ -170,9 +219,6 @@ def sweeps(folder: Path, n_cases: int, scale: float, rng, reuse: bool):
     if kr:
         resumed = kr["finished_untouched"] and kr["skipped_on_resume"] == kr["killed_after"]
         print(f"  target: resume without recomputing -> {'MET' if resumed else 'NOT MET'}")
-    if one:
-        print(f"  throughput, 2 Dask workers / 1 pool worker: "
-              f"{dk['cases_per_s'] / one['cases_per_s']:.2f}x")
     return recs["pool1"], s, mags
 
 
@@ -196,17 +242,24 @@ def power(records, spec: SweepSpec, mags, folder: Path, rng, campaigns: int) -> 
     print(f"  table and plot: {folder / 'power.csv'}, {folder / 'power.png'}")
 
 
-def poses(scale: float, rng) -> None:
+FORCE_MODEL = ["geometric_errors", "magnetic_force"]
+BUDGET_MODEL = ["geometric_errors", "magnetic_force", "thermal_expansion", "loop_drift"]
+
+
+def poses(scale: float, rng, n_random: int, folder: Path) -> None:
+    """Pose selection on the force paper's grids: the 1/3 target (D, I, one random third), then
+    1/3, 1/10, 1/20 of the points D-optimal against ``n_random`` random subsets each, then which
+    two of the five load levels."""
     sc = Scenario.load("quiet/magnetic-force")
     df, meta = sc.simulate(scale)
     n_cal = int((df["split"] == "cal").sum())
-    t0 = time.perf_counter()
-    r = selection_study(df, meta, ["geometric_errors", "magnetic_force"], n_cal // 3,
-                        sc.settings.noise_floor_m, rng)
+    sigma = sc.settings.noise_floor_m
+    t0, c0 = time.perf_counter(), time.process_time()
+    r = selection_study(df, meta, FORCE_MODEL, n_cal // 3, sigma, rng)
     print(f"\npose selection (quiet/magnetic-force, scale {scale}: {r['n_candidates']} "
           f"calibration candidates, {r['n_selected']} chosen, {r['n_validation']} validation "
           f"points; noise floor {meta['truth']['noise_floor_nm']} nm; "
-          f"{time.perf_counter() - t0:.0f} s):")
+          f"{time.process_time() - c0:.0f} CPU s, {time.perf_counter() - t0:.0f} s wall):")
     full = r["all"]["val_err90_nm"]
     for k in ("all", "D_optimal", "I_optimal", "random"):
         e = r[k]
@@ -219,53 +272,150 @@ def poses(scale: float, rng) -> None:
         print(f"  target: {k} within 10 % of the full grid with 1/3 of the points -> "
               f"{ratio:.3f}: {'MET' if ratio <= 1.10 else 'NOT MET'}")
 
+    # the same campaign read without the interferometers' noise: the fitted models' error
+    # against it is the estimation error a selection changes (the reading noise is common)
+    clean = without_random_errors(sc).simulate(scale)[0]
+    c0 = time.process_time()
+    study = fraction_study(df, meta, FORCE_MODEL, [1 / 3, 1 / 10, 1 / 20], sigma, rng, n_random,
+                           clean=clean)
+    study.to_csv(folder / "fractions.csv", index=False)
+    truth_full = float(study.truth_err90_nm.iloc[0])
+    print(f"\nfractions of the calibration points, D- and I-optimal vs {n_random} random subsets "
+          f"each ({time.process_time() - c0:.0f} CPU s; every fit in {folder / 'fractions.csv'})")
+    for error, what in (("val_err90_nm", f"validation error (full grid {full:.2f} nm)"),
+                        ("truth_err90_nm", "error against the noise-free validation readings "
+                                           f"(full grid {truth_full:.2f} nm)")):
+        summary = fraction_summary(study, error)
+        print(f"  {what}:")
+        print(summary.drop(columns=["random_draws"]).to_string(index=False,
+                                                               float_format="%.3f"))
+        for _, row in summary.iterrows():
+            print(f"  1/{1 / row.fraction:.0f} {row.selection}: {row.x_full:.3f} x full; random "
+                  f"median {row.random_median_x_full:.3f} x full; better than "
+                  f"{row.random_worse_share:.0%} of the random subsets "
+                  f"({row.random_failed} could not be fitted)")
 
-def budget(scale: float) -> None:
+    c0 = time.process_time()
+    levels = load_level_study(df, meta, FORCE_MODEL, 2, sigma, clean=clean)
+    print(f"\nload levels: every pair of the five forces (all {n_cal // 5} calibration "
+          f"positions at each), ranked by the D criterion; validated on all 5 levels "
+          f"({time.process_time() - c0:.0f} CPU s):")
+    print(levels.drop(columns=["status"]).to_string(index=False, float_format="%.3f"))
+    pairs = levels[levels.levels_N.map(len) == 2]
+    best, worst = pairs.iloc[0], pairs.iloc[-1]
+    print(f"  D-best pair {best.levels_N}: {best.truth_err90_nm:.2f} nm against the truth "
+          f"({best.val_err90_nm:.2f} validation); D-worst pair {worst.levels_N}: "
+          f"{worst.truth_err90_nm:.2f} nm ({worst.val_err90_nm:.2f}); Spearman rank correlation "
+          f"of log det with -error against the truth over the pairs: "
+          f"{pairs.log_det.rank().corr(-pairs.truth_err90_nm.rank()):.2f}")
+
+
+def order(scale: float, seeds) -> None:
+    """Order and interleaving of the force paper's campaign (paper-force: thermal drifts and
+    the loop's expansion in the data), with and without the loop drift in the model."""
+    sc = Scenario.load("paper-force")
+    c0 = time.process_time()
+    t = order_study("paper-force", {"without loop_drift": BUDGET_MODEL[:3],
+                                    "with loop_drift": BUDGET_MODEL},
+                    scale, seeds, sc.settings.noise_floor_m)
+    print(f"\norder: the papers' (calibration grid, then validation grid) vs interleaved, "
+          f"paper-force at scale {scale}, seeds {list(seeds)} ({time.process_time() - c0:.0f} "
+          "CPU s):")
+    print(t.to_string(index=False, float_format="%.3f"))
+    g = t.groupby(["model", "order"]).agg(val_err90_median_nm=("val_err90_nm", "median"),
+                                          truth_err90_median_nm=("truth_err90_nm", "median"),
+                                          prediction_variance=(
+                                              "validation_prediction_variance", "median"))
+    print(g.to_string(float_format="%.3f"))
+    for model, m in t.groupby("model"):
+        for error in ("val_err90_nm", "truth_err90_nm"):
+            p = m[m.order == "papers"].set_index("seed")[error]
+            i = m[m.order == "interleaved"].set_index("seed")[error]
+            print(f"  {model}, {error}: interleaved better on {int((i < p).sum())} of {len(p)} "
+                  f"seeds; median papers / interleaved {np.median(p / i):.2f}")
+
+
+def budget(scale: float, rng) -> None:
     """The force paper's campaign fitted with four effects: its uncertainty budget beside the
     validation error the same fit reaches."""
     sc = Scenario.load("paper-force")
     df, meta = sc.simulate(scale)
-    fit = PhysicsFit(["geometric_errors", "magnetic_force", "thermal_expansion", "loop_drift"],
-                     noise_nm=sc.settings.noise_floor_m * 1e9).fit(df, meta)
+    fit = PhysicsFit(BUDGET_MODEL, noise_nm=sc.settings.noise_floor_m * 1e9).fit(df, meta)
     servo = next(e for e in sc.effects if e.name == "servo_settling").values["angle_std_rad"]
-    b = uncertainty_budget(fit, df, meta, sc.settings.noise_floor_m, sc.settings.T_noise_C,
-                           float(servo), 200.0)
-    print(f"\nuncertainty budget (paper-force, scale {scale}, {len(df)} points; servo "
+    readings = sc.campaign["readings"]
+    b = uncertainty_budget(fit, df, meta, sc.settings.noise_floor_m / np.sqrt(readings),
+                           sc.settings.T_noise_C, float(servo), 200.0, rng)
+    print(f"\nuncertainty budget (paper-force, scale {scale}, {len(df)} points; reading "
+          f"{sc.settings.noise_floor_m * 1e9:g} nm / sqrt({readings}) readings; servo "
           f"{servo:g} rad, pressure 200 Pa, thermometers {sc.settings.T_noise_C * 1e3:g} mK):")
     print(b.to_string(index=False, float_format="%.2f"))
     print(f"  combined {b.all_p90_nm.iloc[-1]:.1f} nm beside the fit's validation error "
           f"{fit.val_['all']['err_p90']:.1f} nm (90 %)")
 
 
+def budget_mc(scale: float, campaigns: int) -> None:
+    """The budget's Monte Carlo check: ``campaigns`` simulated campaigns of one robot."""
+    c0, t0 = time.process_time(), time.perf_counter()
+    t = budget_monte_carlo("paper-force", BUDGET_MODEL, campaigns, scale, 2020, 200.0,
+                           progress=lambda i, n: print(f"  campaign {i}/{n}", file=sys.stderr))
+    print(f"\nbudget vs Monte Carlo (paper-force at scale {scale}, {campaigns} campaigns of one "
+          f"robot; {time.process_time() - c0:.0f} CPU s in this process, "
+          f"{time.perf_counter() - t0:.0f} s wall):")
+    print(t.to_string(index=False, float_format="%.3f"))
+    print(f"  target: every line's budget inside the Monte Carlo 95 % interval -> "
+          f"{int(t.agrees.sum())} of {len(t)} lines"
+          f" ({', '.join(t.source[~t.agrees]) or 'all agree'} outside)")
+
+
+STAGES = ("sweep", "scaling", "poses", "order", "budget", "budget-mc")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--stages", nargs="+", choices=STAGES, default=list(STAGES),
+                    help="what to run (default: all); 'sweep' includes the power table")
     ap.add_argument("--cases", type=int, default=200)
     ap.add_argument("--sweep-scale", type=float, default=0.1)
+    ap.add_argument("--scaling-cases", type=int, default=24,
+                    help="cases per throughput run (4 runs: pool and Dask, 1 and 2 workers)")
     ap.add_argument("--pose-scale", type=float, default=1.0)
+    ap.add_argument("--random-subsets", type=int, default=8,
+                    help="random subsets per fraction the D-optimal one is compared with")
+    ap.add_argument("--order-scale", type=float, default=0.3)
+    ap.add_argument("--order-seeds", type=int, default=4)
     ap.add_argument("--campaigns", type=int, default=5,
                     help="simulated campaigns the power prediction averages over")
     ap.add_argument("--out", default=None, help="folder for the records, table and plot")
     ap.add_argument("--reuse", action="store_true",
                     help="reuse the spec and the complete sweeps in --out (an earlier run)")
-    ap.add_argument("--skip-poses", action="store_true", help="stop after the power table")
-    ap.add_argument("--budget-only", action="store_true",
-                    help="only the uncertainty budget of the force paper's campaign")
     ap.add_argument("--budget-scale", type=float, default=0.3)
+    ap.add_argument("--budget-mc-scale", type=float, default=0.1)
+    ap.add_argument("--budget-campaigns", type=int, default=20)
     args = ap.parse_args()
     rng = np.random.default_rng(20)
     folder = Path(args.out or tempfile.mkdtemp(prefix="bench-design-"))
     folder.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    if args.budget_only:
-        budget(args.budget_scale)
-        return
-    records, spec, mags = sweeps(folder, args.cases, args.sweep_scale, rng, args.reuse)
-    power(records, spec, mags, folder, rng, args.campaigns)
-    if args.skip_poses:
-        return
-    poses(args.pose_scale, rng)
-    budget(args.budget_scale)
-    print(f"\ntotal {time.perf_counter() - t0:.0f} s; results in {folder}")
+    t0, c0 = time.perf_counter(), time.process_time()
+    print(f"load average at start {os.getloadavg()[0]:.1f} ({os.cpu_count()} cores)")
+    if "sweep" in args.stages or "scaling" in args.stages:
+        if "sweep" in args.stages:
+            records, spec, mags = sweeps(folder, args.cases, args.sweep_scale, rng, args.reuse)
+            power(records, spec, mags, folder, rng, args.campaigns)
+        else:
+            mags, _ = _choose_magnitudes(folder, args.sweep_scale, rng)
+        if "scaling" in args.stages:
+            scaling(folder, mags, args.sweep_scale, args.scaling_cases)
+    if "poses" in args.stages:
+        poses(args.pose_scale, rng, args.random_subsets, folder)
+    if "order" in args.stages:
+        order(args.order_scale, range(1, args.order_seeds + 1))
+    if "budget" in args.stages:
+        budget(args.budget_scale, rng)
+    if "budget-mc" in args.stages:
+        budget_mc(args.budget_mc_scale, args.budget_campaigns)
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} CPU s "
+          f"in this process; load average at the end {os.getloadavg()[0]:.1f}; results in "
+          f"{folder}")
 
 
 if __name__ == "__main__":

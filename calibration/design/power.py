@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from deltatwin.calibration.design.budget import zero_centred
 from deltatwin.calibration.design.sweep import case_scenario
 from deltatwin.calibration.diagnosis.diagnose import ALPHA, MIN_EXPLAINED
 from deltatwin.calibration.physics.fit import PhysicsFit
@@ -100,18 +101,6 @@ def linearised_power(fit: PhysicsFit, effect: str, true_values: dict | None, sig
             "signal_rms_nm": math.sqrt(rss0 / n) * 1e9, "sigma_nm": sigma_m * 1e9}
 
 
-def _zeroed(meas, v: np.ndarray) -> np.ndarray:
-    """v (N,3,D) minus each (session, axis) group's mean over its calibration readings; NaN
-    where the axis was not read."""
-    out = np.full_like(v, np.nan)
-    for g in range(len(meas.groups)):
-        m = meas.group == g
-        mc = m & meas.cal[:, None]
-        if mc.any():
-            out[m] = v[m] - v[mc].mean(axis=0)
-    return out
-
-
 def _linear_draws(meas, delta, delta0, Jm, X, full_m, full_x, sigma_m, n_draws, rng) -> dict:
     """The diagnosis's statistics on the linearised campaign: readings = signal ``delta`` +
     noise, the baseline fitted on its identified columns (``Jm`` projected, (n, k_m); ``full_m``
@@ -121,11 +110,11 @@ def _linear_draws(meas, delta, delta0, Jm, X, full_m, full_x, sigma_m, n_draws, 
     y = delta[:, :, None] + sigma_m * rng.standard_normal(delta.shape + (n_draws,))
     coef_m = np.linalg.lstsq(Jm, _projected(meas, cal, y), rcond=None)[0]
     u = y - np.einsum("naj,jd->nad", full_m, coef_m)           # the baseline's residual
-    before = _zeroed(meas, u)
+    before = zero_centred(meas, u)
     r0 = _projected(meas, cal, u)
     r = _projected(meas, cal, u - delta0[:, :, None])
     coef = np.linalg.lstsq(X, r, rcond=None)[0]
-    after = _zeroed(meas, u - delta0[:, :, None] - np.einsum("naj,jd->nad", full_x, coef))
+    after = zero_centred(meas, u - delta0[:, :, None] - np.einsum("naj,jd->nad", full_x, coef))
     rss0 = np.sum(r0 ** 2, axis=0)
     rss1 = np.sum((r - X @ coef) ** 2, axis=0)
     n, k_m, k = r.shape[0], Jm.shape[1], X.shape[1] - Jm.shape[1]

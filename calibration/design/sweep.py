@@ -35,6 +35,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import tempfile
 import time
 import tomllib
@@ -250,49 +251,68 @@ def case_scenario(case: Case):
 
 
 def run_case(case: Case) -> dict:
-    """Simulate the case's campaign, fit its baseline, diagnose: one record (module docstring).
-    BLAS and the statics run on ``case.threads`` threads."""
+    """Simulate the case's campaign, fit its baseline, diagnose: one record (module docstring)
+    with its wall and CPU seconds. BLAS (threadpoolctl) and the batched kinematics and statics'
+    chunk pool (models/batched.py THREADS) run on ``case.threads`` threads, so N workers side by
+    side use N cores, not N x cores."""
     from threadpoolctl import threadpool_limits
 
+    # loaded before the limit, so that the BLAS libraries they bring (scipy's) are limited too
+    import deltatwin.calibration.diagnosis.diagnose  # noqa: F401
+    import deltatwin.calibration.physics.fit  # noqa: F401
+    from deltatwin.models import batched
+
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    chunk_threads = batched.THREADS       # restored after the case: the caller's process keeps
+    batched.THREADS = case.threads        # its own setting (tests run cases in-process)
+    try:
+        with threadpool_limits(limits=case.threads):
+            rec = _simulate_fit_diagnose(case)
+    finally:
+        batched.THREADS = chunk_threads
+    # how long, not what: left out of comparisons. CPU time is the process's: the case's own
+    # when the worker runs one case at a time (a pool process; a Dask worker with --nthreads 1)
+    rec["wall_s"] = time.perf_counter() - t0
+    rec["cpu_s"] = time.process_time() - cpu0
+    return rec
+
+
+def _simulate_fit_diagnose(case: Case) -> dict:
+    """The case's record without its timings (``run_case`` sets the threads around it)."""
     from deltatwin.calibration.diagnosis.diagnose import diagnose
     from deltatwin.calibration.errors import FitError
     from deltatwin.calibration.physics.fit import PhysicsFit
-    from deltatwin.twin import statics
 
-    t0 = time.perf_counter()
-    statics.THREADS = case.threads
-    with threadpool_limits(limits=case.threads):
-        sc = case_scenario(case)
-        df, meta = sc.simulate(case.scale)
-        noise_nm = sc.settings.noise_floor_m * 1e9
-        rec = {"case_id": case.case_id, "scenario": sc.name, "effect": case.effect,
-               "parameter": case.parameter, "magnitude": case.magnitude,
-               "baseline": ",".join(case.baseline), "design": case.design, "scale": case.scale,
-               "campaign": case.campaign, "replicate": case.replicate, "seed": case.seed,
-               "n_rows": len(df), "noise_nm": noise_nm,
-               "noise_floor_nm": max(meta["truth"]["noise_floor_nm"].values())}
-        try:
-            fit = PhysicsFit(list(case.baseline), noise_nm=noise_nm).fit(df, meta)
-            d = diagnose(fit, "case")
-        except FitError as exc:               # a campaign the baseline cannot fit is a result
-            rec.update(status=f"fit failed: {exc}", **_no_diagnosis())
-        else:
-            ranks = [c["effect"] for c in d["ranking"]]
-            mine = d["ranking"][ranks.index(case.effect)] if case.effect in ranks else None
-            # a fit that stops short returns its best answer with the reason: kept, and left
-            # out of the power rates (they count diagnoses of converged fits)
-            rec.update(status="ok" if fit.converged_ else f"not converged: {fit.status_}",
-                       val_err90_nm=d["val_err90_nm"],
-                       n_identified=fit.identifiability_["n_identified_directions"],
-                       missing_effect=d.get("missing_effect") or "",
-                       named=d.get("missing_effect") == case.effect,
-                       significant=bool(mine and mine["significant"]),
-                       effect_rank=ranks.index(case.effect) + 1 if mine else -1,
-                       effect_p_value=mine["p_value"] if mine else math.nan,
-                       effect_delta_bic=mine["delta_bic"] if mine else math.nan,
-                       effect_explained_fraction=mine["explained_fraction"] if mine else math.nan,
-                       effect_val_err90_after_nm=mine["val_err90_after_nm"] if mine else math.nan)
-    rec["wall_s"] = time.perf_counter() - t0      # how long, not what: left out of comparisons
+    sc = case_scenario(case)
+    df, meta = sc.simulate(case.scale)
+    noise_nm = sc.settings.noise_floor_m * 1e9
+    rec = {"case_id": case.case_id, "scenario": sc.name, "effect": case.effect,
+           "parameter": case.parameter, "magnitude": case.magnitude,
+           "baseline": ",".join(case.baseline), "design": case.design, "scale": case.scale,
+           "campaign": case.campaign, "replicate": case.replicate, "seed": case.seed,
+           "n_rows": len(df), "noise_nm": noise_nm,
+           "noise_floor_nm": max(meta["truth"]["noise_floor_nm"].values())}
+    try:
+        fit = PhysicsFit(list(case.baseline), noise_nm=noise_nm).fit(df, meta)
+        d = diagnose(fit, "case")
+    except FitError as exc:               # a campaign the baseline cannot fit is a result
+        rec.update(status=f"fit failed: {exc}", **_no_diagnosis())
+    else:
+        ranks = [c["effect"] for c in d["ranking"]]
+        mine = d["ranking"][ranks.index(case.effect)] if case.effect in ranks else None
+        # a fit that stops short returns its best answer with the reason: kept, and left
+        # out of the power rates (they count diagnoses of converged fits)
+        rec.update(status="ok" if fit.converged_ else f"not converged: {fit.status_}",
+                   val_err90_nm=d["val_err90_nm"],
+                   n_identified=fit.identifiability_["n_identified_directions"],
+                   missing_effect=d.get("missing_effect") or "",
+                   named=d.get("missing_effect") == case.effect,
+                   significant=bool(mine and mine["significant"]),
+                   effect_rank=ranks.index(case.effect) + 1 if mine else -1,
+                   effect_p_value=mine["p_value"] if mine else math.nan,
+                   effect_delta_bic=mine["delta_bic"] if mine else math.nan,
+                   effect_explained_fraction=mine["explained_fraction"] if mine else math.nan,
+                   effect_val_err90_after_nm=mine["val_err90_after_nm"] if mine else math.nan)
     return rec
 
 
@@ -348,15 +368,29 @@ def run_sweep(spec: SweepSpec, out, workers: int = 1, scheduler: str | None = No
     skipped = len(cases) - len(todo)
     log.info("sweep %s: %d cases, %d already finished, %d to run", spec.name, len(cases),
              skipped, len(todo))
+    load_start = _load_average()
     t0 = time.perf_counter()
+    cpu = 0.0
     for i, (case, rec) in enumerate(_execute(todo, workers, scheduler), 1):
         write_record(out, case, rec)
+        cpu += rec["cpu_s"]
         if progress:
             progress(i, len(todo))
     wall = time.perf_counter() - t0
     return {"cases": len(cases), "skipped": skipped, "ran": len(todo), "wall_s": wall,
             "cases_per_s": len(todo) / wall if todo and wall > 0 else math.nan,
+            "cpu_s_per_case": cpu / len(todo) if todo else math.nan,
+            "load_average_start": load_start, "load_average_end": _load_average(),
             "foreign_records": len(done - mine)}
+
+
+def _load_average() -> float:
+    """The machine's 1-minute load average (NaN where the system has none): a throughput
+    figure on shared cores means little without it."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return math.nan
 
 
 def _execute(cases: list, workers: int, scheduler: str | None):
@@ -380,7 +414,10 @@ def _execute(cases: list, workers: int, scheduler: str | None):
             yield futures[fut], fut.result()
 
 
+TIMING_COLUMNS = ("wall_s", "cpu_s")
+
+
 def deterministic_columns(df: pd.DataFrame) -> list[str]:
-    """The record's columns that depend on the case alone (all but the wall time)."""
-    return [c for c in df.columns if c != "wall_s"]
+    """The record's columns that depend on the case alone (all but the timings)."""
+    return [c for c in df.columns if c not in TIMING_COLUMNS]
 

@@ -212,7 +212,8 @@ def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
     unless given) through the fitted model's sensitivities to its measured inputs
     (calibration/design/budget.py): a table of the noise sources, 90 % per axis (nm). The
     thermometers' standard uncertainty is their noise and resolution (sigma^2 + step^2 / 12),
-    taken as an offset through each lever (an upper bound: the model's smoothing averages white
+    propagated as white noise through the model's temperature levels and rates, and per sensor
+    as an offset through each lever (an upper bound: the model's smoothing averages white
     noise); the pressure's is the barometer's where the data record it, else
     ``pressure_u_Pa`` (default 80 Pa, the papers' unrecorded wander)."""
     from deltatwin.calibration.design.budget import uncertainty_budget
@@ -225,7 +226,7 @@ def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
                                         / np.sqrt(12))) if "p_Pa" in df else 80.0)
     reading_u = float(np.hypot(s.noise_floor_m, s.resolution_m / np.sqrt(12)))
     table = uncertainty_budget(fit, df, meta, reading_u, T_u, servo_u_rad, pressure_u_Pa,
-                               per_sensor=True)
+                               np.random.default_rng(0), per_sensor=True)
     return table[table["kind"].isin(["noise", "thermometer"])].reset_index(drop=True)
 
 

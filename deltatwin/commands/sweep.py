@@ -46,6 +46,8 @@ def run_sweep(args) -> int:
         print(strict_json(summary))
     else:
         print(f"sweep {spec.name}: {summary['ran']} cases run, {summary['skipped']} already "
-              f"finished, in {summary['wall_s']:.1f} s ({summary['cases_per_s']:.3g} cases/s); "
+              f"finished, in {summary['wall_s']:.1f} s ({summary['cases_per_s']:.3g} cases/s, "
+              f"{summary['cpu_s_per_case']:.3g} CPU s per case, load average "
+              f"{summary['load_average_start']:.1f} -> {summary['load_average_end']:.1f}); "
               f"records in {args.out}")
     return 0

@@ -1,10 +1,16 @@
-"""The uncertainty budget: the mixture's 90 % figure, and a budget on a small campaign whose
-lines follow their inputs (a reading's 90 % is 1.645 sigma, servo lines scale with the angle)."""
+"""The uncertainty budget: the mixture's 90 % figure, a budget on a small campaign whose lines
+follow their inputs (a reading's 90 % is 1.645 sigma, servo lines scale with the angle), one
+robot across campaigns for the Monte Carlo check, and that check on a well-specified fit."""
 import numpy as np
 import pytest
 from scipy import stats
 
-from deltatwin.calibration.design.budget import mixture_p90, uncertainty_budget
+from deltatwin.calibration.design.budget import (
+    budget_monte_carlo,
+    fixed_robot,
+    mixture_p90,
+    uncertainty_budget,
+)
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.twin.scenario import Scenario
 
@@ -20,12 +26,49 @@ def test_budget_lines_follow_their_inputs():
     sc = Scenario.load("quiet/gravity-sag")
     df, meta = sc.simulate(0.02)
     fit = PhysicsFit(["gravity_sag"], noise_nm=5.0).fit(df, meta)
-    a = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 1e-7, 100.0).set_index("source")
-    b = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 2e-7, 100.0).set_index("source")
+    a = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 1e-7, 100.0,
+                           np.random.default_rng(1)).set_index("source")
+    b = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 2e-7, 100.0,
+                           np.random.default_rng(1)).set_index("source")
     assert a.loc["interferometer reading", "all_p90_nm"] == pytest.approx(5 * 1.6449, rel=1e-3)
     servo_a = a.loc[[s for s in a.index if s.startswith("servo")][0], "all_p90_nm"]
     servo_b = b.loc[[s for s in b.index if s.startswith("servo")][0], "all_p90_nm"]
     assert servo_b == pytest.approx(2 * servo_a, rel=1e-3) and servo_a > 1.0
     par = a[a.kind == "parameters"]
-    assert len(par) == 1 and 0 < par.all_p90_nm.iloc[0] < a[a.kind == "combined"].all_p90_nm.iloc[0]
-    assert a.variance_share.iloc[:-1].sum() == pytest.approx(1.0, abs=1e-9)
+    # one effect: its line and the correlated line of all parameters are the same figure
+    assert len(par) == 2 and par.all_p90_nm.iloc[0] == pytest.approx(par.all_p90_nm.iloc[1])
+    assert 0 < par.all_p90_nm.iloc[0] < a[a.kind == "combined"].all_p90_nm.iloc[0]
+    lines = a.drop(index=["all parameters (correlated)"]).iloc[:-1]
+    assert lines.variance_share.sum() == pytest.approx(1.0, abs=1e-9)
+
+
+def test_fixed_robot_keeps_the_robot_and_redraws_the_noise():
+    a = fixed_robot(Scenario.load("quiet/magnetic-force", seed=1), 99)
+    b = fixed_robot(Scenario.load("quiet/magnetic-force", seed=2), 99)
+    (twin_a, _), (twin_b, _) = a.build(0.05), b.build(0.05)
+    assert np.array_equal(twin_a.params.d_rod_length_m, twin_b.params.d_rod_length_m)
+    assert np.any(twin_a.params.d_rod_length_m != 0)
+    own = Scenario.load("quiet/magnetic-force", seed=2).build(0.05)[0]
+    assert not np.array_equal(own.params.d_rod_length_m, twin_b.params.d_rod_length_m)
+    da, db = a.simulate(0.05)[0], b.simulate(0.05)[0]
+    assert not np.allclose(da.x_nm, db.x_nm)       # the readings' noise differs
+
+
+@pytest.mark.slow
+def test_monte_carlo_check_of_a_well_specified_budget():
+    """The force grids fitted with the effects the data hold: the parameters' sampling spread
+    and the reading noise the budget predicts are what three campaigns of one robot show (the
+    reading line pools hundreds of readings: a tight check of its 1.645 sigma / 2; the
+    parameters' spread, three draws, a loose one)."""
+    t = budget_monte_carlo("quiet/magnetic-force", ["geometric_errors", "magnetic_force"], 3,
+                           0.05, 5, 200.0, n_boot=200).set_index("source")
+    reading = t.loc["interferometer reading"]
+    assert reading.budget_p90_nm == pytest.approx(5.0 / 2 * stats.norm.ppf(0.95), rel=1e-3)
+    assert reading.agrees and abs(reading.ratio - 1) < 0.1
+    params = t.loc["all parameters (correlated)"]
+    assert params.kind == "parameters" and params.mc_p90_nm > 0
+    # three campaigns: the chi-square interval of a spread on 2 degrees of freedom
+    assert params.mc_high_nm / params.mc_low_nm == pytest.approx(
+        np.sqrt(stats.chi2.ppf(0.975, 2) / stats.chi2.ppf(0.025, 2)), rel=1e-9)
+    assert params.agrees and params.budget_p90_nm <= params.with_prior_p90_nm
+    assert t.mc_low_nm.le(t.mc_p90_nm).all() and t.mc_p90_nm.le(t.mc_high_nm).all()

@@ -72,6 +72,7 @@ def test_killed_sweep_resumes_and_matches_a_dask_cluster(tmp_path):
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["skipped"] == len(before) and summary["ran"] == 4 - len(before)
+    assert summary["cpu_s_per_case"] > 0 and summary["load_average_start"] >= 0
     after = _case_files(out)
     assert len(after) == 4
     assert all(after[name] == mtime for name, mtime in before.items())   # not rewritten
@@ -122,3 +123,31 @@ def test_case_seeds_come_from_the_spec_not_the_order(tmp_path):
     for key, value in seeds_a.items():
         assert seeds_b[key] == value
     assert len({c.seed for c in a.cases}) == 2          # one per replicate, shared by magnitudes
+
+
+def test_a_case_runs_on_its_threads_and_restores_the_callers(tmp_path, monkeypatch):
+    """Inside a case the chunk pool and BLAS use ``threads`` (so workers side by side do not
+    oversubscribe the cores); the caller's setting comes back; the record carries its CPU and
+    wall seconds, which the comparisons of records leave out."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from deltatwin.calibration.design import sweep
+    from deltatwin.models import batched
+
+    seen = {}
+
+    def probe(case):
+        seen["chunk"] = batched.THREADS
+        seen["blas"] = {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+        sum(np.ones(200_000))                   # some CPU time to account for
+        return {"case_id": case.case_id}
+
+    monkeypatch.setattr(sweep, "_simulate_fit_diagnose", probe)
+    monkeypatch.setattr(batched, "THREADS", 3)
+    case = SweepSpec.load(_spec(tmp_path)).cases[0]
+    with threadpool_limits(limits=2):            # the caller's own BLAS threads
+        rec = sweep.run_case(case)
+        after = {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+    assert seen == {"chunk": 1, "blas": {1}} and batched.THREADS == 3 and after == {2}
+    assert rec["cpu_s"] > 0 and rec["wall_s"] > 0
+    assert deterministic_columns(pd.DataFrame([rec])) == ["case_id"]
