@@ -119,6 +119,8 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     if generic is not None:
         verdict.update(_beyond_generic(r, X[:, k_m:], Jm, generic, k_c, n, len(meas.groups),
                                        verdict["explained_fraction"]))
+        # only a candidate that would be claimed can be a correlate of the missing term
+        verdict["matched_by_generic"] &= verdict["significant"]
         verdict["significant"] &= not verdict["matched_by_generic"]
     fig = figures_nm(after, meas.val)
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],

@@ -214,6 +214,9 @@ def simulate_case(case: tuple, scale: float | None = None):
     return df, meta, baseline, known, values
 
 
+VISIBLE = 0.1   # a term is visible when fitting it lowers the baseline's val err90 by 10 %
+
+
 def run_case(case: tuple, workdir, scale: float | None = None, max_claims: int = 2) -> dict:
     """The researcher's loop on one case: fit the baseline and diagnose; while a library effect
     is claimed (at most ``max_claims``) add it and diagnose again; then write the effect the
@@ -227,7 +230,10 @@ def run_case(case: tuple, workdir, scale: float | None = None, max_claims: int =
     term as far as these data allow; the model's parameters re-adjust in every fit, so a part
     of the term the baseline had absorbed counts). Unlike the share of the residual
     (``form_explained``), it does not fall when the residual also holds what the baseline
-    misses beside the term (paper-thermal's climbing room at reduced scale)."""
+    misses beside the term (paper-thermal's climbing room at reduced scale). Defined only where
+    the term is *visible* (``term_visible``: the injected effect fitted lowers the baseline's
+    val err90 by at least VISIBLE, 10 %; else NaN): a term the baseline's parameters absorb
+    leaves no power of its own to explain."""
     from pathlib import Path
 
     from deltatwin.calibration.diagnosis.diagnose import diagnose
@@ -264,9 +270,10 @@ def run_case(case: tuple, workdir, scale: float | None = None, max_claims: int =
         path.write_text(skeleton(name, d))
         proposed = PhysicsFit(model + [f"{path}:{camel(name)}"], start=start).fit(df, meta)
         out["proposed_err90_nm"] = proposed.val_["all"]["err_p90"]
+    out["term_visible"] = bool(out["own_err90_nm"] <= (1 - VISIBLE) * fit.val_["all"]["err_p90"])
+    out["term_share"] = 0.0 if out["term_visible"] else float("nan")
+    if form and out["term_visible"]:
         val = fit.measurements_.val
         gap = lambda res: float(np.nansum((res[val] - own.residual_[val]) ** 2))
         out["term_share"] = 1.0 - gap(proposed.residual_) / gap(fit.residual_)
-    else:
-        out["term_share"] = 0.0
     return out
