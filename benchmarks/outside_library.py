@@ -19,8 +19,9 @@ targets:
 * the variable the term depends on named first (the diagnosis that claims none): >= 80 %;
 * the proposed form explains >= 80 % of the term's power (for the terms with a closed form in
   the candidate library: all of them): the effect ``deltatwin effect new --from`` writes from
-  the form, fitted, explains that share of the validation residual the injected term leaves
-  (``term_share`` in tests/calibration/outside_effects.py); the share of the largest axis'
+  the form, fitted, carries that share of the correction the injected effect itself makes
+  when fitted (its projection on it, validation readings; ``term_share`` in
+  tests/calibration/outside_effects.py); the share of the largest axis'
   validation residual the form explains is printed beside it. Scored where the term is
   visible (fitting the injected effect lowers the baseline's val err90 by 10 % or more; a term
   the baseline's parameters absorb has no power of its own left: its share is printed as nan);
@@ -153,8 +154,8 @@ def main(argv=None) -> int:
           "(the achievable floor), with the effect written from the proposed form; noise: the "
           "twin's noise floor, max over axes; ratio: proposed / own; form: share of the largest "
           "axis' validation residual the form explains; term: share of the term's power the "
-          "effect written from it explains, 1 - |r_proposed - r_own|^2 / |r_base - r_own|^2 on "
-          "the validation readings)")
+          "effect written from it explains, d_proposed . d_own / |d_own|^2 with d = r_base - r "
+          "on the validation readings; nan where the term is not visible)")
     for label, rows in results.items():
         _scores(f"{label} cases" if label == "fixed" else
                 f"cases generated from seed {args.seed}", rows)

@@ -47,7 +47,7 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolation_message,
 )
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
-from deltatwin.calibration.diagnosis.model_form import joint_form
+from deltatwin.calibration.diagnosis.model_form import joint_attribution, joint_form
 from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
 from deltatwin.calibration.physics.fit import PhysicsFit
@@ -263,15 +263,19 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
 
 
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
-                        form: bool = True) -> dict:
+                        form: bool | list = True, attribution: dict | None = None) -> dict:
     """What the residual (N,3) m still depends on: the laboratory variables ranked by the
     validation power each explains beyond the others (attribution.py) and, with ``form``, the
-    proposed form of the missing term (term_form.py); with the message that says both."""
+    proposed form of the missing term (term_form.py); with the message that says both.
+    ``attribution`` and a ``form`` list: computed already (on a physics model, jointly with its
+    directions: model_form.py)."""
     target = Residual.of(df, res, cal, val)
-    att = attribute(df, target)
+    att = attribution if attribution is not None else attribute(df, target)
     out = {"depends_on": att["variables"], "explained_fraction": att["explained_fraction"],
            "val_rms_nm": att["val_rms_nm"]}
-    if form:
+    if isinstance(form, list):
+        out["form"] = form
+    elif form:
         out["form"] = missing_term_form(df, target)
     names = [f"{d['variable']} ({d['explained_nm']:.1f} nm)" for d in att["variables"]]
     out["message"] = (f"it depends on {', '.join(names)}, strongest first (rms of the "
@@ -341,11 +345,9 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     out["extrapolation"] = {"variables": extrapolated,
                             "message": extrapolation_message(extrapolated)}
     best = next((c for c in ranking if c["significant"]), None)
-    dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val, form=False)
-    if best is None:
-        dependence["form"] = form
-        if form:
-            dependence["message"] += f"; proposed form: {form_message(form)}"
+    dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
+                                     form=form if best is None else False,
+                                     attribution=joint_attribution(fit, Jm, JS, r0))
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]

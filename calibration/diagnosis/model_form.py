@@ -24,7 +24,18 @@ from __future__ import annotations
 import numpy as np
 from scipy import special
 
-from deltatwin.calibration.diagnosis.attribution import Residual, laboratory_variables
+from deltatwin.calibration.diagnosis.attribution import (
+    ALPHA as ATTRIBUTION_ALPHA,
+)
+from deltatwin.calibration.diagnosis.attribution import (
+    MAX_FAMILIES,
+    Residual,
+    family_columns,
+    laboratory_variables,
+)
+from deltatwin.calibration.diagnosis.attribution import (
+    MIN_SHARE as ATTRIBUTION_SHARE,
+)
 from deltatwin.calibration.diagnosis.term_form import (
     ALPHA,
     MAX_TERMS,
@@ -89,6 +100,106 @@ def _orthonormal(X: np.ndarray) -> np.ndarray:
     return u[:, s > max(s.max(initial=0.0), 1e-300) * 1e-10]
 
 
+class _Joint:
+    """Least squares on the residual a fitted physics model leaves, with the model's identified
+    directions always re-adjusted (Frisch-Waugh: columns and residual taken orthogonal to them
+    on the calibration readings, session means out), and the validation residual that results
+    (zeros re-estimated on the calibration rows), both linear in the added columns."""
+
+    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
+        meas = self.meas = fit.measurements_
+        self.Qm = _orthonormal(Jm)
+        self.r = r0 - self.Qm @ (self.Qm.T @ r0)
+        self.JS = JS
+        self.pinv = np.linalg.pinv(Jm) if Jm.shape[1] else np.zeros((0, r0.size))
+        # the model one linear step further: the reference every column is judged against
+        change = JS @ (self.pinv @ r0) if Jm.shape[1] else 0.0
+        pred = fit.prediction_ + change
+        self.before = residuals(meas, pred, group_offsets(meas, pred, meas.cal))
+        self.val_groups = [((meas.group == g) & meas.val[:, None] & np.isfinite(self.before),
+                            (meas.group == g) & meas.cal[:, None]) for g in range(len(meas.groups))]
+        self.b = self._val(self.before[:, :, None])[:, 0]
+        self.axis_of = np.concatenate([np.nonzero(v)[1] for v, _ in self.val_groups])
+        self.n_groups = len(meas.groups)
+
+    def _val(self, X: np.ndarray) -> np.ndarray:
+        """Values X (N,3,c) on the validation readings, each group's calibration mean out."""
+        return np.concatenate([X[v] - (X[c].mean(axis=0) if c.any() else 0.0)
+                               for v, c in self.val_groups])
+
+    def columns(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Columns C (N,3,c): (on the calibration readings orthogonal to the model's directions,
+        the change of the validation residual per unit coefficient)."""
+        P = _projected(self.meas, self.meas.cal, C)
+        D = C - self.JS @ (self.pinv @ P) if self.pinv.shape[0] else C
+        if self.Qm.shape[1]:
+            P = P - self.Qm @ (self.Qm.T @ P)
+        return P, self._val(D)
+
+    def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray]:
+        """(coefficients of the columns on the residual, per-axis validation power after)."""
+        if not Ps:
+            return np.zeros(0), self.axis_power(self.b)
+        X = np.hstack(Ps)
+        norm = np.linalg.norm(X, axis=0)
+        norm[norm == 0] = 1.0
+        coef = np.linalg.lstsq(X / norm, self.r, rcond=None)[0] / norm
+        return coef, self.axis_power(self.b - np.hstack(Ds) @ coef)
+
+    def axis_power(self, e: np.ndarray) -> np.ndarray:
+        return np.bincount(self.axis_of, e ** 2, minlength=3)
+
+
+def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float, limit_of,
+             by_validation: bool) -> list[int]:
+    """Forward selection over ``blocks`` [(P, D, scanned, key)]: the block that lowers the
+    calibration residual most (``by_validation``: the validation power most, among the
+    significant ones) joins while it is significant (partial F test, the scanned parameters
+    counted, Bonferroni over the blocks) and lowers the validation power by ``min_share`` of
+    it; ``limit_of(chosen, i)``: False when block i may not join any more."""
+    r, n = joint.r, joint.r.size
+    p0 = float(joint.axis_power(joint.b).sum())
+    limit = alpha / max(len(blocks), 1)
+    chosen, basis = [], np.zeros((n, 0))
+    rss, val_power = float(r @ r), p0
+    while True:
+        best = None
+        for i, (P, _, scanned, _) in enumerate(blocks):
+            if i in chosen or not limit_of(chosen, i):
+                continue
+            Pn = _orthonormal(P - basis @ (basis.T @ P))
+            if not Pn.shape[1]:
+                continue
+            gain = float(np.sum((Pn.T @ r) ** 2))
+            kk = Pn.shape[1] + scanned
+            df2 = n - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1] - joint.n_groups
+            if df2 <= 0 or gain >= rss:
+                continue
+            if by_validation:
+                p = special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2))
+                if p >= limit:
+                    continue
+                trial = chosen + [i]
+                vp = float(joint.fit([blocks[j][0] for j in trial],
+                                     [blocks[j][1] for j in trial])[1].sum())
+                score = val_power - vp
+            else:
+                score = gain
+            if best is None or score > best[1]:
+                best = (i, score, Pn, gain, kk, df2)
+        if best is None:
+            break
+        i, _, Pn, gain, kk, df2 = best
+        trial = chosen + [i]
+        vp = float(joint.fit([blocks[j][0] for j in trial], [blocks[j][1] for j in trial])[1]
+                   .sum())
+        if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) >= limit
+                or val_power - vp < min_share * p0):
+            break
+        chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
+    return chosen
+
+
 def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float = ALPHA,
                min_share: float = MIN_SHARE, max_terms: int = MAX_TERMS):
     """The missing term's form on a fitted physics model (module docstring). ``Jm`` (n, k_m):
@@ -101,98 +212,45 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     directions leave), the selected columns G (N,3,p) and the fraction of the validation
     residual power they explain together."""
     meas = fit.measurements_
-    cal, val = meas.cal, meas.val
-    Qm = _orthonormal(Jm)
-
-    def after(columns: list, coefs: np.ndarray) -> np.ndarray:
-        """Residual (N,3) with the columns at coefficients ``coefs`` and the model's
-        directions re-adjusted to what they leave."""
-        change = np.zeros(meas.y.shape)
-        for C, c in zip(columns, np.split(coefs, np.cumsum([C.shape[2] for C in columns])[:-1])
-                        if columns else []):
-            change += C @ c
-        if Jm.shape[1]:
-            rest = r0 - _projected(meas, cal, change)
-            change = change + JS @ np.linalg.lstsq(Jm, rest, rcond=None)[0]
-        pred = fit.prediction_ + change
-        return residuals(meas, pred, group_offsets(meas, pred, cal))
-
-    before = after([], np.zeros(0))
-    rows = val[:, None] & np.isfinite(before)
-    power = lambda res: np.array([float(np.sum(res[rows[:, k], k] ** 2)) for k in range(3)])
-    p0_axes = power(before)
+    joint = _Joint(fit, Jm, JS, r0)
+    p0_axes = joint.axis_power(joint.b)
     p0 = float(p0_axes.sum())
-    target = Residual.of(meas.df, before, cal, val)
-    n_groups = len(meas.groups)
+    target = Residual.of(meas.df, joint.before, meas.cal, meas.val)
+    empty = [], np.zeros(meas.y.shape + (0,)), 0.0
     if p0 <= 0 or not target.axes:
-        return [], np.zeros(meas.y.shape + (0,)), 0.0
+        return empty
     candidates = candidate_library(laboratory_variables(meas.df), target) + load_candidates(fit)
     axes = [k for k, _, _ in target.axes]
-    pairs = []                        # (candidate, axis, C (N,3,c), P (n,c) orthogonal to Qm)
+    pairs = []                        # (candidate, axis, C (N,3,c), P, D)
     for cand in candidates:
         for k in ([cand.axis] if cand.axis is not None else axes):
             if k not in axes:
                 continue
             C = np.zeros(meas.y.shape + (cand.columns.shape[1],))
             C[:, k] = np.nan_to_num(cand.columns)
-            P = _projected(meas, cal, C)
-            if Qm.shape[1]:
-                P = P - Qm @ (Qm.T @ P)
+            P, D = joint.columns(C)
             if np.linalg.norm(P) > 0:
-                pairs.append((cand, k, C, P))
-    r = r0 - Qm @ (Qm.T @ r0) if Qm.shape[1] else r0.copy()
-    n = r.size
-    limit = alpha / max(len(pairs), 1)
-    chosen: list[int] = []
-    basis = np.zeros((n, 0))
-    rss = float(r @ r)
-    current = before
-    val_power = p0
-    while True:
-        counts = np.bincount([pairs[i][1] for i in chosen], minlength=3)
-        best = None
-        for i, (_, k, _, P) in enumerate(pairs):
-            if i in chosen or counts[k] >= max_terms:
-                continue
-            Pn = _orthonormal(P - basis @ (basis.T @ P))
-            gain = float(np.sum((Pn.T @ r) ** 2))
-            if best is None or gain > best[1]:
-                best = (i, gain, Pn)
-        if best is None:
-            break
-        i, gain, Pn = best
-        kk = Pn.shape[1] + pairs[i][0].scanned
-        rss1 = rss - gain
-        df2 = n - Qm.shape[1] - basis.shape[1] - Pn.shape[1] - n_groups
-        if not Pn.shape[1] or df2 <= 0 or rss1 <= 0:
-            break
-        F = (gain / kk) / (rss1 / df2)
-        trial = chosen + [i]
-        coefs = _coefficients(pairs, trial, r)
-        res = after([pairs[j][2] for j in trial], coefs)
-        vp = float(power(res).sum())
-        if special.fdtrc(kk, df2, F) >= limit or val_power - vp < min_share * p0:
-            break
-        chosen, basis, rss, current, val_power = (
-            trial, np.hstack([basis, Pn]), rss1, res, vp)
+                pairs.append((cand, k, C, P, D))
+    per_axis = lambda chosen, i: sum(pairs[j][1] == pairs[i][1] for j in chosen) < max_terms
+    chosen = _forward(joint, [(P, D, c.scanned, k) for c, k, _, P, D in pairs], alpha,
+                      min_share, per_axis, by_validation=False)
     if not chosen:
-        return [], np.zeros(meas.y.shape + (0,)), 0.0
-    coefs = _coefficients(pairs, chosen, r)
+        return empty
+    fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])
+    coefs, p_full = fit_of(chosen)
     per_term = np.split(coefs, np.cumsum([pairs[j][2].shape[2] for j in chosen])[:-1])
-    p_full = power(current)
     form = []
     for k in sorted({pairs[j][1] for j in chosen}):
         terms = []
         for j, c in zip(chosen, per_term):
             if pairs[j][1] != k:
                 continue
-            others = [m for m in chosen if m != j]
-            without = after([pairs[m][2] for m in others], _coefficients(pairs, others, r))
+            _, without = fit_of([m for m in chosen if m != j])
             term = pairs[j][0].describe(c)
-            term["explained_fraction"] = max(power(without)[k] - p_full[k], 0.0) / p0_axes[k]
+            term["explained_fraction"] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
             terms.append(term)
         terms.sort(key=lambda t: -t["explained_fraction"])
-        n_val = max(int(rows[:, k].sum()), 1)
+        n_val = max(int(np.sum(joint.axis_of == k)), 1)
         form.append({"axis": AXES[k], "terms": terms,
                      "explained_fraction": 1.0 - p_full[k] / p0_axes[k],
                      "val_rms_nm": float(np.sqrt(p0_axes[k] / n_val) * 1e9),
@@ -201,13 +259,53 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     return form, G, 1.0 - float(p_full.sum()) / p0
 
 
-def _coefficients(pairs: list, idx: list[int], r: np.ndarray) -> np.ndarray:
-    """Least-squares coefficients of the pairs ``idx`` (their columns orthogonal to the model's
-    directions) on the residual ``r`` the model leaves: by Frisch-Waugh those of the joint fit
-    with the model's directions. Columns scaled to unit norm for the solve."""
-    if not idx:
-        return np.zeros(0)
-    X = np.hstack([pairs[j][3] for j in idx])
-    norm = np.linalg.norm(X, axis=0)
-    norm[norm == 0] = 1.0
-    return np.linalg.lstsq(X / norm, r, rcond=None)[0] / norm
+def joint_attribution(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray) -> dict:
+    """attribution.attribute on a fitted physics model, with the model's directions re-adjusted
+    in every fit: each variable's family (attribution.family_columns, its own coefficients on
+    every reading axis) joins by the validation power it removes, with attribution's guards,
+    and is credited with what returns when it alone is dropped. A term the model's parameters
+    partly absorbed (a motor's hysteresis taken by the geometry and the temperatures) is then
+    credited to its variable, not to the variables the absorbed part made the residual
+    correlate with. Same return as attribution.attribute."""
+    meas = fit.measurements_
+    joint = _Joint(fit, Jm, JS, r0)
+    target = Residual.of(meas.df, joint.before, meas.cal, meas.val)
+    variables = laboratory_variables(meas.df)
+    p0 = float(joint.axis_power(joint.b).sum())
+    n_val = max(joint.b.size, 1)
+    out = {"val_rms_nm": float(np.sqrt(p0 / n_val) * 1e9), "variables": [],
+           "explained_fraction": 0.0, "tried": [v.name for v in variables]}
+    if p0 <= 0 or not target.axes:
+        return out
+    axes = [k for k, _, _ in target.axes]
+    families = []                      # (variable, P, D, scanned, info)
+    for var in variables:
+        X, scanned, info = family_columns(var, target)
+        X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+        C = np.zeros(meas.y.shape + (X.shape[1] * len(axes),))
+        for i, k in enumerate(axes):
+            C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
+        P, D = joint.columns(C)
+        families.append((var.name, P, D, scanned * len(axes), info))
+    chosen = _forward(joint, [(P, D, sc, name) for name, P, D, sc, _ in families],
+                      ATTRIBUTION_ALPHA, ATTRIBUTION_SHARE,
+                      lambda chosen, i: len(chosen) < MAX_FAMILIES, by_validation=True)
+    if not chosen:
+        return out
+    fit_of = lambda idx: joint.fit([families[j][1] for j in idx], [families[j][2] for j in idx])
+    _, p_full = fit_of(chosen)
+    ranked = []
+    for j in chosen:
+        _, without = fit_of([m for m in chosen if m != j])
+        unique = max(float(without.sum() - p_full.sum()), 0.0)
+        n_axis = np.bincount(joint.axis_of, minlength=3)
+        by_axis = {AXES[k]: float(np.sqrt(max(without[k] - p_full[k], 0.0) / max(n_axis[k], 1))
+                                  * 1e9) for k in axes}
+        ranked.append({"variable": families[j][0],
+                       "explained_nm": float(np.sqrt(unique / n_val) * 1e9),
+                       "explained_fraction": unique / p0, "by_axis_nm": by_axis,
+                       "columns": {k: float(v) for k, v in families[j][4].items()}})
+    ranked.sort(key=lambda r: -r["explained_nm"])
+    out["variables"] = ranked
+    out["explained_fraction"] = 1.0 - float(p_full.sum()) / p0
+    return out

@@ -225,12 +225,14 @@ def run_case(case: tuple, workdir, scale: float | None = None, max_claims: int =
     noise floor (the twin's truth) is what no model can beat.
 
     ``term_share``: the share of the term's power the effect written from the proposed form
-    explains, on the validation readings: 1 - |r_proposed - r_own|^2 / |r_baseline - r_own|^2
-    (r: the validation residuals; the injected effect itself fitted, ``own``, takes out the
-    term as far as these data allow; the model's parameters re-adjust in every fit, so a part
-    of the term the baseline had absorbed counts). Unlike the share of the residual
-    (``form_explained``), it does not fall when the residual also holds what the baseline
-    misses beside the term (paper-thermal's climbing room at reduced scale). Defined only where
+    explains, on the validation readings: with d_own = r_baseline - r_own the correction the
+    injected effect itself makes when fitted (it takes out the term as far as these data
+    allow; the model's parameters re-adjust in every fit, so a part of the term the baseline
+    had absorbed counts) and d_proposed = r_baseline - r_proposed the proposed effect's, the
+    projection d_proposed . d_own / d_own . d_own (r: validation residuals, m). Unlike the
+    share of the residual (``form_explained``), it neither falls when the residual also holds
+    what the baseline misses beside the term (paper-thermal's climbing room at reduced scale)
+    nor when the proposed form also fits that (its terms in a temperature). Defined only where
     the term is *visible* (``term_visible``: the injected effect fitted lowers the baseline's
     val err90 by at least VISIBLE, 10 %; else NaN): a term the baseline's parameters absorb
     leaves no power of its own to explain."""
@@ -274,6 +276,7 @@ def run_case(case: tuple, workdir, scale: float | None = None, max_claims: int =
     out["term_share"] = 0.0 if out["term_visible"] else float("nan")
     if form and out["term_visible"]:
         val = fit.measurements_.val
-        gap = lambda res: float(np.nansum((res[val] - own.residual_[val]) ** 2))
-        out["term_share"] = 1.0 - gap(proposed.residual_) / gap(fit.residual_)
+        d_own = fit.residual_[val] - own.residual_[val]
+        d_proposed = fit.residual_[val] - proposed.residual_[val]
+        out["term_share"] = float(np.nansum(d_proposed * d_own) / np.nansum(d_own ** 2))
     return out
