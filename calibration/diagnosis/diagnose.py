@@ -47,7 +47,7 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolation_message,
 )
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
-from deltatwin.calibration.diagnosis.model_form import joint_attribution, joint_form
+from deltatwin.calibration.diagnosis.model_form import joint_form
 from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
 from deltatwin.calibration.physics.fit import PhysicsFit
@@ -263,14 +263,14 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
 
 
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
-                        form: bool | list = True, attribution: dict | None = None) -> dict:
+                        form: bool | list = True) -> dict:
     """What the residual (N,3) m still depends on: the laboratory variables ranked by the
     validation power each explains beyond the others (attribution.py) and, with ``form``, the
-    proposed form of the missing term (term_form.py); with the message that says both.
-    ``attribution`` and a ``form`` list: computed already (on a physics model, jointly with its
-    directions: model_form.py)."""
+    proposed form of the missing term (term_form.py; a list: the form computed already, on a
+    physics model jointly with its directions, model_form.py); with the message that says
+    both."""
     target = Residual.of(df, res, cal, val)
-    att = attribution if attribution is not None else attribute(df, target)
+    att = attribute(df, target)
     out = {"depends_on": att["variables"], "explained_fraction": att["explained_fraction"],
            "val_rms_nm": att["val_rms_nm"]}
     if isinstance(form, list):
@@ -346,8 +346,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
                             "message": extrapolation_message(extrapolated)}
     best = next((c for c in ranking if c["significant"]), None)
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
-                                     form=form if best is None else False,
-                                     attribution=joint_attribution(fit, Jm, JS, r0))
+                                     form=form if best is None else False)
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]

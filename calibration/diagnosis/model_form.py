@@ -24,18 +24,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import special
 
-from deltatwin.calibration.diagnosis.attribution import (
-    ALPHA as ATTRIBUTION_ALPHA,
-)
-from deltatwin.calibration.diagnosis.attribution import (
-    MAX_FAMILIES,
-    Residual,
-    family_columns,
-    laboratory_variables,
-)
-from deltatwin.calibration.diagnosis.attribution import (
-    MIN_SHARE as ATTRIBUTION_SHARE,
-)
+from deltatwin.calibration.diagnosis.attribution import Residual, laboratory_variables
 from deltatwin.calibration.diagnosis.term_form import (
     ALPHA,
     MAX_TERMS,
@@ -150,13 +139,12 @@ class _Joint:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
 
 
-def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float, limit_of,
-             by_validation: bool) -> list[int]:
-    """Forward selection over ``blocks`` [(P, D, scanned, key)]: the block that lowers the
-    calibration residual most (``by_validation``: the validation power most, among the
-    significant ones) joins while it is significant (partial F test, the scanned parameters
-    counted, Bonferroni over the blocks) and lowers the validation power by ``min_share`` of
-    it; ``limit_of(chosen, i)``: False when block i may not join any more."""
+def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
+             limit_of) -> list[int]:
+    """Forward selection over ``blocks`` [(P, D, scanned)]: the block that lowers the
+    calibration residual most joins while it is significant (partial F test, the scanned
+    parameters counted, Bonferroni over the blocks) and lowers the validation power by
+    ``min_share`` of it; ``limit_of(chosen, i)``: False when block i may not join any more."""
     r, n = joint.r, joint.r.size
     p0 = float(joint.axis_power(joint.b).sum())
     limit = alpha / max(len(blocks), 1)
@@ -164,7 +152,7 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float, limit_
     rss, val_power = float(r @ r), p0
     while True:
         best = None
-        for i, (P, _, scanned, _) in enumerate(blocks):
+        for i, (P, _, scanned) in enumerate(blocks):
             if i in chosen or not limit_of(chosen, i):
                 continue
             Pn = _orthonormal(P - basis @ (basis.T @ P))
@@ -173,23 +161,11 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float, limit_
             gain = float(np.sum((Pn.T @ r) ** 2))
             kk = Pn.shape[1] + scanned
             df2 = n - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1] - joint.n_groups
-            if df2 <= 0 or gain >= rss:
-                continue
-            if by_validation:
-                p = special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2))
-                if p >= limit:
-                    continue
-                trial = chosen + [i]
-                vp = float(joint.fit([blocks[j][0] for j in trial],
-                                     [blocks[j][1] for j in trial])[1].sum())
-                score = val_power - vp
-            else:
-                score = gain
-            if best is None or score > best[1]:
-                best = (i, score, Pn, gain, kk, df2)
+            if df2 > 0 and gain < rss and (best is None or gain > best[1]):
+                best = (i, gain, Pn, kk, df2)
         if best is None:
             break
-        i, _, Pn, gain, kk, df2 = best
+        i, gain, Pn, kk, df2 = best
         trial = chosen + [i]
         vp = float(joint.fit([blocks[j][0] for j in trial], [blocks[j][1] for j in trial])[1]
                    .sum())
@@ -232,8 +208,8 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
             if np.linalg.norm(P) > 0:
                 pairs.append((cand, k, C, P, D))
     per_axis = lambda chosen, i: sum(pairs[j][1] == pairs[i][1] for j in chosen) < max_terms
-    chosen = _forward(joint, [(P, D, c.scanned, k) for c, k, _, P, D in pairs], alpha,
-                      min_share, per_axis, by_validation=False)
+    chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
+                      per_axis)
     if not chosen:
         return empty
     fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])
@@ -257,55 +233,3 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
                      "val_rms_after_nm": float(np.sqrt(p_full[k] / n_val) * 1e9)})
     G = np.concatenate([pairs[j][2] for j in chosen], axis=2)
     return form, G, 1.0 - float(p_full.sum()) / p0
-
-
-def joint_attribution(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray) -> dict:
-    """attribution.attribute on a fitted physics model, with the model's directions re-adjusted
-    in every fit: each variable's family (attribution.family_columns, its own coefficients on
-    every reading axis) joins by the validation power it removes, with attribution's guards,
-    and is credited with what returns when it alone is dropped. A term the model's parameters
-    partly absorbed (a motor's hysteresis taken by the geometry and the temperatures) is then
-    credited to its variable, not to the variables the absorbed part made the residual
-    correlate with. Same return as attribution.attribute."""
-    meas = fit.measurements_
-    joint = _Joint(fit, Jm, JS, r0)
-    target = Residual.of(meas.df, joint.before, meas.cal, meas.val)
-    variables = laboratory_variables(meas.df)
-    p0 = float(joint.axis_power(joint.b).sum())
-    n_val = max(joint.b.size, 1)
-    out = {"val_rms_nm": float(np.sqrt(p0 / n_val) * 1e9), "variables": [],
-           "explained_fraction": 0.0, "tried": [v.name for v in variables]}
-    if p0 <= 0 or not target.axes:
-        return out
-    axes = [k for k, _, _ in target.axes]
-    families = []                      # (variable, P, D, scanned, info)
-    for var in variables:
-        X, scanned, info = family_columns(var, target)
-        X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
-        C = np.zeros(meas.y.shape + (X.shape[1] * len(axes),))
-        for i, k in enumerate(axes):
-            C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
-        P, D = joint.columns(C)
-        families.append((var.name, P, D, scanned * len(axes), info))
-    chosen = _forward(joint, [(P, D, sc, name) for name, P, D, sc, _ in families],
-                      ATTRIBUTION_ALPHA, ATTRIBUTION_SHARE,
-                      lambda chosen, i: len(chosen) < MAX_FAMILIES, by_validation=True)
-    if not chosen:
-        return out
-    fit_of = lambda idx: joint.fit([families[j][1] for j in idx], [families[j][2] for j in idx])
-    _, p_full = fit_of(chosen)
-    ranked = []
-    for j in chosen:
-        _, without = fit_of([m for m in chosen if m != j])
-        unique = max(float(without.sum() - p_full.sum()), 0.0)
-        n_axis = np.bincount(joint.axis_of, minlength=3)
-        by_axis = {AXES[k]: float(np.sqrt(max(without[k] - p_full[k], 0.0) / max(n_axis[k], 1))
-                                  * 1e9) for k in axes}
-        ranked.append({"variable": families[j][0],
-                       "explained_nm": float(np.sqrt(unique / n_val) * 1e9),
-                       "explained_fraction": unique / p0, "by_axis_nm": by_axis,
-                       "columns": {k: float(v) for k, v in families[j][4].items()}})
-    ranked.sort(key=lambda r: -r["explained_nm"])
-    out["variables"] = ranked
-    out["explained_fraction"] = 1.0 - float(p_full.sum()) / p0
-    return out
