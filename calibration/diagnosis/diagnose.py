@@ -47,6 +47,7 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolation_message,
 )
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
+from deltatwin.calibration.diagnosis.model_form import joint_form
 from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
 from deltatwin.calibration.physics.fit import PhysicsFit
@@ -66,6 +67,9 @@ ALPHA = 1e-3
 MIN_EXPLAINED = 0.1
 ABSORBED = 0.9   # a candidate whose signature lies this much in the model's span is absorbed
 GAP_CLOSED = 0.5   # or a candidate closes half the gap between the model and the floor
+# a candidate explaining less than this share of what generic functions of the laboratory
+# variables explain, and nothing beyond them, is a correlate of the missing term, not it
+GENERIC_SHARE = 0.5
 
 
 def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
@@ -76,7 +80,8 @@ def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
 
 
 def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0: float,
-               n: int, k_m: int, before: np.ndarray, floor_all_nm: float | None = None):
+               n: int, k_m: int, before: np.ndarray, floor_all_nm: float | None = None,
+               generic: tuple[np.ndarray, float] | None = None):
     meas = fit.measurements_
     model = PhysicsModel(fit.effects + [name], fit.model_.params,
                          {**fit.model_.values(), name: fit.known_.get(name, {})})
@@ -111,13 +116,65 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     after = _val_after(meas, fit, change)
     verdict = _verdict(rss0, rss1, k_c, n, max(n - k_m - k_c - len(meas.groups), 1),
                        before, after, meas.val, floor_all_nm)
+    if generic is not None:
+        verdict.update(_beyond_generic(r, X[:, k_m:], Jm, generic, k_c, n, len(meas.groups),
+                                       verdict["explained_fraction"]))
+        # only a candidate that would be claimed can be a correlate of the missing term
+        verdict["matched_by_generic"] &= verdict["significant"]
+        verdict["significant"] &= not verdict["matched_by_generic"]
     fig = figures_nm(after, meas.val)
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],
             "val_err90_after_nm": fig["all"]["err_p90"],
             "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
             "new_directions": k_c, "p_value": verdict["p_value"],
             "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
-            "significant": verdict["significant"], **absorbed}
+            "significant": verdict["significant"],
+            **{k: verdict[k] for k in ("generic_explained_fraction", "p_beyond_generic",
+                                       "matched_by_generic") if k in verdict},
+            **absorbed}
+
+
+def _rss(X: np.ndarray, r: np.ndarray) -> float:
+    """Residual sum of squares of ``r`` after least squares on the columns X (each scaled to
+    unit norm first: the columns mix units and sizes)."""
+    if not X.shape[1]:
+        return float(r @ r)
+    norm = np.linalg.norm(X, axis=0)
+    X = X[:, norm > 0] / norm[norm > 0]
+    return float(np.sum((r - X @ np.linalg.lstsq(X, r, rcond=None)[0]) ** 2))
+
+
+def _beyond_generic(r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic: tuple, k_c: int,
+                    n: int, n_groups: int, explained: float) -> dict:
+    """Whether a candidate's improvement is matched by generic functions of the laboratory
+    variables (the missing term's sparse form, term_form.py): ``generic`` = (G, its explained
+    fraction of the validation residual, r0), G the form's columns and r0 the model's residual
+    (calibration readings, session means out); ``r`` the residual with the candidate on at its
+    starting values and ``Xc`` its own new directions. The candidate adds something beyond the
+    generic terms when its directions (or its fixed change) still lower the calibration
+    residual significantly (F test, p < ALPHA) with the model's directions and the generic
+    terms already fitted. It is *matched* when it does not and it explains less than
+    GENERIC_SHARE of what the generic terms explain of the validation residual: the residual's
+    structure is then not this effect's signature; its directions merely correlate with a term
+    the library does not hold (a force outside the library tilts the platform, and the Abbe
+    offsets of beam_misalignment read the tilt: 11 % against the form's 92 %). A missing library
+    effect either carries most of the structure (a sensor's contact lag is, to first order, a
+    temperature rate: the generic terms match it, 90 % against 94 %) or adds its exact
+    signature beyond the generic terms (two effects missing at once)."""
+    G, generic_explained, r0 = generic
+    out = {"generic_explained_fraction": generic_explained, "p_beyond_generic": 0.0,
+           "matched_by_generic": False}
+    if not G.shape[1]:
+        return out
+    base = np.hstack([Jm, G])
+    rss_g, rss_gc = _rss(base, r0), _rss(np.hstack([base, Xc]), r)
+    df1, df2 = max(k_c, 1), max(n - base.shape[1] - k_c - n_groups, 1)
+    out["p_beyond_generic"] = (float(special.fdtrc(df1, df2, ((rss_g - rss_gc) / df1)
+                                                   / (rss_gc / df2)))
+                               if 0 < rss_gc < rss_g else 1.0)
+    out["matched_by_generic"] = bool(out["p_beyond_generic"] >= ALPHA
+                                     and explained < GENERIC_SHARE * generic_explained)
+    return out
 
 
 def _absorbed(fit: PhysicsFit, Qm: np.ndarray, Pc: np.ndarray, change0: np.ndarray) -> dict:
@@ -156,6 +213,11 @@ def _in_words(c: dict, effects: list) -> str:
     if c["signature_nm"] == 0:
         return (f"{c['effect']}: no signature on this campaign (what it depends on did not "
                 "vary)")
+    if c.get("matched_by_generic"):
+        return (f"{c['effect']}: explains {100 * c['explained_fraction']:.0f} % of the "
+                "validation residual, but generic functions of the laboratory variables explain "
+                f"{100 * c['generic_explained_fraction']:.0f} % and it adds nothing significant "
+                "beyond them: the residual is not its signature (not claimed)")
     if c["significant"]:
         return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
                 "the validation residual")
@@ -201,15 +263,19 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
 
 
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
-                        form: bool = True) -> dict:
+                        form: bool | list = True) -> dict:
     """What the residual (N,3) m still depends on: the laboratory variables ranked by the
     validation power each explains beyond the others (attribution.py) and, with ``form``, the
-    proposed form of the missing term (term_form.py); with the message that says both."""
+    proposed form of the missing term (term_form.py; a list: the form computed already, on a
+    physics model jointly with its directions, model_form.py); with the message that says
+    both."""
     target = Residual.of(df, res, cal, val)
     att = attribute(df, target)
     out = {"depends_on": att["variables"], "explained_fraction": att["explained_fraction"],
            "val_rms_nm": att["val_rms_nm"]}
-    if form:
+    if isinstance(form, list):
+        out["form"] = form
+    elif form:
         out["form"] = missing_term_form(df, target)
     names = [f"{d['variable']} ({d['explained_nm']:.1f} nm)" for d in att["variables"]]
     out["message"] = (f"it depends on {', '.join(names)}, strongest first (rms of the "
@@ -240,12 +306,18 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     candidates = [e for e in model_effects() if e not in fit.effects]
     floor, floor_kind = floor_of(fit.meta_)
     floor_all = (floor.get("all") or max(floor[a] for a in AXES if a in floor)) if floor else None
+    # the missing term's form fitted jointly with the model's directions: what a library
+    # candidate must beat to be claimed, and the form proposed when none is
+    JS = fit.jacobian_ * fit.model_.scales @ fit.identified_directions_
+    form, G, generic_explained = joint_form(fit, Jm, JS, r0)
+    generic = (_projected(meas, cal, G), generic_explained, r0)
     ranking = []
     for name in candidates:
         if progress:
             progress(name)
         try:
-            ranking.append(_candidate(fit, name, Jm, Qm, rss0, n, k_m, before, floor_all))
+            ranking.append(_candidate(fit, name, Jm, Qm, rss0, n, k_m, before, floor_all,
+                                      generic))
         except (CalibrationInputError, EffectError, KinematicsError,
                 np.linalg.LinAlgError) as exc:
             # a candidate the model cannot take on (a pose out of reach, an impossible value)
@@ -273,7 +345,8 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     out["extrapolation"] = {"variables": extrapolated,
                             "message": extrapolation_message(extrapolated)}
     best = next((c for c in ranking if c["significant"]), None)
-    dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val, form=best is None)
+    dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
+                                     form=form if best is None else False)
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]

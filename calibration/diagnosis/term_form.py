@@ -80,7 +80,9 @@ def _about(v: str, centre: float, unit: str) -> str:
 @dataclass
 class Candidate:
     """One function of the library: ``columns`` (N,k) SI, the ``kind`` (poly, sine, step,
-    ramp, sign, linear) with what defines it (variable, power, period, moment, centre)."""
+    ramp, sign, product, load) with what defines it (variable, power, period, moment, centre;
+    ``axis``: the only reading axis it applies to, e.g. a load's response on that axis,
+    model_form.py)."""
     kind: str
     variable: str
     columns: np.ndarray
@@ -90,6 +92,7 @@ class Candidate:
     moment_s: float | None = None
     centre: float = 0.0
     extra: dict = field(default_factory=dict)
+    axis: int | None = None
 
     def describe(self, coef_m: np.ndarray) -> dict:
         """The term with coefficients ``coef_m`` (m per column): a printable formula (nm) and
@@ -118,6 +121,13 @@ class Candidate:
                        formula=f"{per:.3g} nm * (F/N)" + (f"^{self.power}" if self.power > 1
                                                           else "")
                                + f" * {_about(_short(by), centre * 1e3, 'mm')}/mm")
+        elif self.kind == "load":
+            # the column is the reading's response in m per N of the force (model_form.py)
+            force, direction = float(coef_m[0]), self.extra["direction"]
+            out.update(force_N=force, power=self.power, direction=direction,
+                       formula=f"{force:.3g} N * (I/A)" + (f"^{self.power}" if self.power > 1
+                                                           else "")
+                               + f" along {direction} (through the compliance)")
         elif self.kind == "sign":
             out.update(coefficient_nm=float(c_nm[0]),
                        formula=f"{c_nm[0]:.1f} nm * sign(last move of {v[4:]})")

@@ -45,13 +45,26 @@ class {cls}(Effect):
     parameters = (
 {parameters}
     )
+{methods}'''
 
+
+OPTICS = '''
     def optics(self, points, optics):
         """Stage 'optics': change what the interferometers read. ``points`` holds the
         conditions of N readings (t_s (N,) s, q (N,3) rad, currents_A (N,3), move_direction
         (N,3) sign of each motor's last move, pose.p (N,3) m the platform's position);
         ``shift_reading(optics, axis, d_m)`` adds d_m (N,) m to the reading of an axis."""
 {body}
+'''
+
+WRENCH = '''
+    def wrench(self, points):
+        """Stage 'wrench': the load on the platform, (N,6): force (N) and moment (N*m) about
+        the platform origin, world frame; the model's statics turn it into a deflection."""
+        current = np.mean(points.currents_A, axis=1)     # A, the coils' mean current
+        w = np.zeros((current.shape[0], 6))
+{body}
+        return w
 '''
 
 
@@ -117,15 +130,38 @@ def _term_code(axis: str, term: dict, k: int) -> tuple[list[str], str, str | Non
     return params, expr, None
 
 
+def _load_code(terms: list[dict]) -> tuple[list[str], list[str]]:
+    """(parameter lines, wrench body lines) of the proposed load terms (model_form.py): one
+    force parameter per direction and power of the current, whichever axes it was seen on (the
+    first, strongest, gives its starting value)."""
+    params, body, seen = [], [], set()
+    for t in terms:
+        key = (t["direction"], t["power"])
+        if key in seen:
+            continue
+        seen.add(key)
+        tag = f"f{t['direction']}{t['power']}_N"
+        size = max(abs(t["force_N"]), 1e-3)
+        params.append(f'Parameter("{tag}", "N", {_num(t["force_N"])}, "force along '
+                      f'{t["direction"]} per (I / 1 A)^{t["power"]}", fit_scale={_num(size)}),')
+        body += textwrap.wrap(f"proposed: {t['formula']}", 92, initial_indent="        # ",
+                              subsequent_indent="        # ")
+        body.append(f"        w[:, {'xyz'.index(t['direction'])}] += self.{tag} * current"
+                    + (f" ** {t['power']}" if t["power"] > 1 else ""))
+    return params, body
+
+
 def skeleton(name: str, diagnosis: dict | None = None, source: str = "") -> str:
     """The Python source of the effect ``name``: from the proposed form of ``diagnosis`` (its
-    ``unexplained.form``), or a minimal working example (a constant X offset)."""
+    ``unexplained.form``: reading terms at the optics stage, loads at the wrench stage), or a
+    minimal working example (a constant X offset)."""
     form = ((diagnosis or {}).get("unexplained") or {}).get("form") or []
     cls = camel(name)
     params, body, uses_force = [], [], False
+    loads = [t for f in form for t in f["terms"] if t["kind"] == "load"]
     for f in form:
         exprs = []
-        for k, term in enumerate(f["terms"]):
+        for k, term in enumerate(t for t in f["terms"] if t["kind"] != "load"):
             p, expr, note = _term_code(f["axis"], term, k)
             if note:
                 body.append(note)
@@ -134,8 +170,8 @@ def skeleton(name: str, diagnosis: dict | None = None, source: str = "") -> str:
             exprs.append(expr)
             uses_force |= "FORCE_PER_A" in expr
         if exprs:
-            said = (f"proposed: {'; '.join(t['formula'] for t in f['terms'])} (explains "
-                    f"{100 * f['explained_fraction']:.0f} % of the validation residual)")
+            said = (f"proposed: {'; '.join(t['formula'] for t in f['terms'] if t['kind'] != 'load')}"
+                    f" (explains {100 * f['explained_fraction']:.0f} % of the validation residual)")
             body += textwrap.wrap(said, 92, initial_indent="        # ",
                                   subsequent_indent="        # ")
             summands = [x for e in exprs for x in e.split(" + ")]
@@ -153,11 +189,14 @@ def skeleton(name: str, diagnosis: dict | None = None, source: str = "") -> str:
         summary = "the missing term the diagnosis proposed"
         origin = f"\nSeeded from the form the diagnosis proposed ({source}).\n"
     baseline = "".join(f"{e}," for e in (diagnosis or {}).get("effects", []))
+    load_params, load_body = _load_code(loads)
+    methods = (OPTICS.format(body="\n".join(body)) if body else "") + (
+        WRENCH.format(body="\n".join(load_body)) if load_body else "")
     return HEADER.format(
         name=name, cls=cls, file=f"{name}.py", summary=summary, origin=origin,
         baseline=baseline,
         constants="\nFORCE_PER_A = 1.0   # N/A: the campaign's force_per_A\n" if uses_force else "",
-        parameters="\n".join(f"        {p}" for p in params), body="\n".join(body))
+        parameters="\n".join(f"        {p}" for p in params + load_params), methods=methods)
 
 
 def run_new(args) -> int:

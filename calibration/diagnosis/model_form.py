@@ -1,0 +1,235 @@
+"""The form of a missing term fitted jointly with a physics model: the candidate functions of
+term_form.py plus the response to a load outside the library, selected on the residual the
+model's own identified directions leave (so a term whose part the model's parameters absorb is
+judged by what remains of it, and its coefficients are those of a joint fit).
+
+A load's effect on the readings is not a function of the force alone: the same force deflects
+the platform more where the structure is softer, and tilts it too, so no polynomial of the
+force (or the force times the position) reproduces it. The load candidates are the model's own
+response: the derivative of the readings with respect to a force f (N) along world x, y or z
+applied as ``f * (I / 1 A)^k`` (I the coils' mean current, k = 1, 2, 3) at the fitted
+parameters, through the model's statics (the path of a library effect's wrench). A researcher's
+effect written from one is a ``wrench`` hook (deltatwin effect new --from).
+
+``joint_form`` is term_form's forward selection on the stacked readings: each (candidate,
+reading axis) pair is a column; the model's identified directions are always in the fit
+(Frisch-Waugh: the columns and the residual are taken orthogonal to them); a pair joins while it
+is significant on the calibration rows (partial F test, a scanned period or moment counted as
+a parameter, Bonferroni over the pairs) and lowers the validation residual power (zeros
+re-estimated on the calibration rows, the model's directions re-adjusted) by at least
+``MIN_SHARE`` of it; at most ``MAX_TERMS`` per axis.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import special
+
+from deltatwin.calibration.diagnosis.attribution import Residual, laboratory_variables
+from deltatwin.calibration.diagnosis.term_form import (
+    ALPHA,
+    MAX_TERMS,
+    MIN_SHARE,
+    Candidate,
+    candidate_library,
+)
+from deltatwin.calibration.physics.model import (
+    PhysicsModel,
+    _projected,
+    group_offsets,
+    residuals,
+)
+from deltatwin.twin.effects import Effect, Parameter
+from deltatwin.twin.instruments.optics import AXES
+
+POWERS = (1, 2, 3)
+
+
+class CurrentLoad(Effect):
+    """A force on the platform, world frame, per power of the coils' mean current (the
+    diagnosis' probe for a load outside the library; never simulated)."""
+    name = "diagnosis_current_load"
+    summary = "force f[k] * (I / 1 A)^(k+1) on the platform, world x, y, z"
+    parameters = (Parameter("force_N", "N", ((0.0,) * 3,) * len(POWERS),
+                            "per power of the mean current 1, 2, 3: the force along x, y, z",
+                            fit_scale=0.01),)
+
+    def wrench(self, points):
+        current = np.mean(points.currents_A, axis=1)
+        w = np.zeros((current.shape[0], 6))
+        for k, power in enumerate(POWERS):
+            w[:, :3] += current[:, None] ** power * self.force_N[k]
+        return w
+
+
+def load_candidates(fit) -> list[Candidate]:
+    """The load candidates of a fitted physics model (calibration.physics.fit.PhysicsFit): per
+    power, force direction and reading axis, the reading's response (N,) m per N, tried on that
+    axis only. None when the coil currents do not vary (no load to probe)."""
+    meas = fit.measurements_
+    if not np.ptp(np.mean(meas.points.currents_A[:meas.n], axis=1)) > 0:
+        return []
+    model = PhysicsModel(fit.effects + [CurrentLoad], fit.model_.params,
+                         {**fit.model_.values(), CurrentLoad.name: {}})
+    new = np.zeros(model.n_free, bool)
+    for f in model.free:
+        new[f.sl] = f.effect == CurrentLoad.name
+    _, J = model.jacobian(meas, model.theta(), columns=new)
+    response = J[:, :, new]                                   # (N,3,9) m per N
+    return [Candidate("load", "F_N", response[:, k, 3 * i + j][:, None], power=power, axis=k,
+                      extra={"direction": direction})
+            for i, power in enumerate(POWERS) for j, direction in enumerate(AXES)
+            for k in range(3) if np.any(response[:, k, 3 * i + j])]
+
+
+def _orthonormal(X: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the columns of X (rank by singular values, relative 1e-10)."""
+    if not X.shape[1]:
+        return X
+    u, s, _ = np.linalg.svd(X, full_matrices=False)
+    return u[:, s > max(s.max(initial=0.0), 1e-300) * 1e-10]
+
+
+class _Joint:
+    """Least squares on the residual a fitted physics model leaves, with the model's identified
+    directions always re-adjusted (Frisch-Waugh: columns and residual taken orthogonal to them
+    on the calibration readings, session means out), and the validation residual that results
+    (zeros re-estimated on the calibration rows), both linear in the added columns."""
+
+    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
+        meas = self.meas = fit.measurements_
+        self.Qm = _orthonormal(Jm)
+        self.r = r0 - self.Qm @ (self.Qm.T @ r0)
+        self.JS = JS
+        self.pinv = np.linalg.pinv(Jm) if Jm.shape[1] else np.zeros((0, r0.size))
+        # the model one linear step further: the reference every column is judged against
+        change = JS @ (self.pinv @ r0) if Jm.shape[1] else 0.0
+        pred = fit.prediction_ + change
+        self.before = residuals(meas, pred, group_offsets(meas, pred, meas.cal))
+        self.val_groups = [((meas.group == g) & meas.val[:, None] & np.isfinite(self.before),
+                            (meas.group == g) & meas.cal[:, None]) for g in range(len(meas.groups))]
+        self.b = self._val(self.before[:, :, None])[:, 0]
+        self.axis_of = np.concatenate([np.nonzero(v)[1] for v, _ in self.val_groups])
+        self.n_groups = len(meas.groups)
+
+    def _val(self, X: np.ndarray) -> np.ndarray:
+        """Values X (N,3,c) on the validation readings, each group's calibration mean out."""
+        return np.concatenate([X[v] - (X[c].mean(axis=0) if c.any() else 0.0)
+                               for v, c in self.val_groups])
+
+    def columns(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Columns C (N,3,c): (on the calibration readings orthogonal to the model's directions,
+        the change of the validation residual per unit coefficient)."""
+        P = _projected(self.meas, self.meas.cal, C)
+        D = C - self.JS @ (self.pinv @ P) if self.pinv.shape[0] else C
+        if self.Qm.shape[1]:
+            P = P - self.Qm @ (self.Qm.T @ P)
+        return P, self._val(D)
+
+    def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray]:
+        """(coefficients of the columns on the residual, per-axis validation power after)."""
+        if not Ps:
+            return np.zeros(0), self.axis_power(self.b)
+        X = np.hstack(Ps)
+        norm = np.linalg.norm(X, axis=0)
+        norm[norm == 0] = 1.0
+        coef = np.linalg.lstsq(X / norm, self.r, rcond=None)[0] / norm
+        return coef, self.axis_power(self.b - np.hstack(Ds) @ coef)
+
+    def axis_power(self, e: np.ndarray) -> np.ndarray:
+        return np.bincount(self.axis_of, e ** 2, minlength=3)
+
+
+def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
+             limit_of) -> list[int]:
+    """Forward selection over ``blocks`` [(P, D, scanned)]: the block that lowers the
+    calibration residual most joins while it is significant (partial F test, the scanned
+    parameters counted, Bonferroni over the blocks) and lowers the validation power by
+    ``min_share`` of it; ``limit_of(chosen, i)``: False when block i may not join any more."""
+    r, n = joint.r, joint.r.size
+    p0 = float(joint.axis_power(joint.b).sum())
+    limit = alpha / max(len(blocks), 1)
+    chosen, basis = [], np.zeros((n, 0))
+    rss, val_power = float(r @ r), p0
+    while True:
+        best = None
+        for i, (P, _, scanned) in enumerate(blocks):
+            if i in chosen or not limit_of(chosen, i):
+                continue
+            Pn = _orthonormal(P - basis @ (basis.T @ P))
+            if not Pn.shape[1]:
+                continue
+            gain = float(np.sum((Pn.T @ r) ** 2))
+            kk = Pn.shape[1] + scanned
+            df2 = n - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1] - joint.n_groups
+            if df2 > 0 and gain < rss and (best is None or gain > best[1]):
+                best = (i, gain, Pn, kk, df2)
+        if best is None:
+            break
+        i, gain, Pn, kk, df2 = best
+        trial = chosen + [i]
+        vp = float(joint.fit([blocks[j][0] for j in trial], [blocks[j][1] for j in trial])[1]
+                   .sum())
+        if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) >= limit
+                or val_power - vp < min_share * p0):
+            break
+        chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
+    return chosen
+
+
+def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float = ALPHA,
+               min_share: float = MIN_SHARE, max_terms: int = MAX_TERMS):
+    """The missing term's form on a fitted physics model (module docstring). ``Jm`` (n, k_m):
+    the model's identified directions on the calibration readings (session means out), ``JS``
+    (N,3,k_m) the same directions on every row, ``r0`` (n,) the model's calibration residual
+    (session means out).
+
+    Returns (form, G, explained): the form as term_form.sparse_form's ([{axis, terms,
+    explained_fraction, val_rms_nm, val_rms_after_nm}], relative to the residual the model's
+    directions leave), the selected columns G (N,3,p) and the fraction of the validation
+    residual power they explain together."""
+    meas = fit.measurements_
+    joint = _Joint(fit, Jm, JS, r0)
+    p0_axes = joint.axis_power(joint.b)
+    p0 = float(p0_axes.sum())
+    target = Residual.of(meas.df, joint.before, meas.cal, meas.val)
+    empty = [], np.zeros(meas.y.shape + (0,)), 0.0
+    if p0 <= 0 or not target.axes:
+        return empty
+    candidates = candidate_library(laboratory_variables(meas.df), target) + load_candidates(fit)
+    axes = [k for k, _, _ in target.axes]
+    pairs = []                        # (candidate, axis, C (N,3,c), P, D)
+    for cand in candidates:
+        for k in ([cand.axis] if cand.axis is not None else axes):
+            if k not in axes:
+                continue
+            C = np.zeros(meas.y.shape + (cand.columns.shape[1],))
+            C[:, k] = np.nan_to_num(cand.columns)
+            P, D = joint.columns(C)
+            if np.linalg.norm(P) > 0:
+                pairs.append((cand, k, C, P, D))
+    per_axis = lambda chosen, i: sum(pairs[j][1] == pairs[i][1] for j in chosen) < max_terms
+    chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
+                      per_axis)
+    if not chosen:
+        return empty
+    fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])
+    coefs, p_full = fit_of(chosen)
+    per_term = np.split(coefs, np.cumsum([pairs[j][2].shape[2] for j in chosen])[:-1])
+    form = []
+    for k in sorted({pairs[j][1] for j in chosen}):
+        terms = []
+        for j, c in zip(chosen, per_term):
+            if pairs[j][1] != k:
+                continue
+            _, without = fit_of([m for m in chosen if m != j])
+            term = pairs[j][0].describe(c)
+            term["explained_fraction"] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
+            terms.append(term)
+        terms.sort(key=lambda t: -t["explained_fraction"])
+        n_val = max(int(np.sum(joint.axis_of == k)), 1)
+        form.append({"axis": AXES[k], "terms": terms,
+                     "explained_fraction": 1.0 - p_full[k] / p0_axes[k],
+                     "val_rms_nm": float(np.sqrt(p0_axes[k] / n_val) * 1e9),
+                     "val_rms_after_nm": float(np.sqrt(p_full[k] / n_val) * 1e9)})
+    G = np.concatenate([pairs[j][2] for j in chosen], axis=2)
+    return form, G, 1.0 - float(p_full.sum()) / p0
