@@ -2,7 +2,6 @@
 switching each source alone on and refitting the true model; it adds up in quadrature to the
 floor. For laboratory data, predicted from the instruments' specifications through a fitted
 model's sensitivities."""
-import numpy as np
 import pytest
 
 from deltatwin.calibration.diagnosis.floor import (

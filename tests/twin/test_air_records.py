@@ -9,7 +9,6 @@ import pytest
 
 from deltatwin.calibration.errors import CalibrationInputError
 from deltatwin.calibration.physics.measurements import measurements
-from deltatwin.twin.instruments.optics import saturation_vapour_pressure
 from deltatwin.twin.scenario import SCENARIO_DIR, Scenario, ScenarioError
 
 AIR = """
