@@ -62,6 +62,11 @@ def run_case(case, directory: Path, max_added: int, dump: Path | None = None) ->
         with open(dump / f"{case.name}.pkl", "wb") as fh:
             pickle.dump({"case": case, "floor": floor, "ladder": ladder, "diagnoses": diagnoses},
                         fh)
+    return score(case, floor, ladder, diagnoses, len(df))
+
+
+def score(case, floor: dict, ladder: list, diagnoses: list, rows: int) -> dict:
+    """One case's results and score flags from its achievable floor, ladder and diagnoses."""
     hidden = set(case.hidden_effects)
     rounds, absorbed, wrong, seen = [], [], [], collections.Counter()
     for d in diagnoses:
@@ -70,15 +75,15 @@ def run_case(case, directory: Path, max_added: int, dump: Path | None = None) ->
             wrong.append(d["missing_effect"])
         if not missing:
             continue
-        rows = {c["effect"]: c for c in d["ranking"]}
-        kinds = {e: separability(rows[e], d["at_floor"]) for e in missing}
+        by_effect = {c["effect"]: c for c in d["ranking"]}
+        kinds = {e: separability(by_effect[e], d["at_floor"]) for e in missing}
         seen.update(kinds.values())
-        absorbed += [rows[e]["significant"] or any(v.startswith(f"{e}:") for v in d["absorbed"])
+        absorbed += [by_effect[e]["significant"] or any(v.startswith(f"{e}:") for v in d["absorbed"])
                      for e, k in kinds.items() if k == "absorbed"]
         if "separable" in kinds.values():
             rounds.append(d["missing_effect"] in missing)
     final = ladder[-1]["val_err90_nm"]
-    return {"case": case, "rows": len(df), "floor_nm": floor["achievable_floor_nm"]["all"],
+    return {"case": case, "rows": rows, "floor_nm": floor["achievable_floor_nm"]["all"],
             "baseline_nm": ladder[0]["val_err90_nm"], "final_nm": final,
             "added": [r["added"] for r in ladder[1:]], "named_first": rounds,
             "absorbed_reported": absorbed, "wrong": wrong, "separability": seen,
