@@ -65,9 +65,10 @@ def true_model(meta: dict) -> tuple[list[str], dict]:
             {e["name"]: {p: v["value"] for p, v in e["parameters"].items()} for e in effects})
 
 
-def true_fit(df, meta: dict, noise_nm: float = 5.0) -> PhysicsFit:
+def true_fit(df, meta: dict, noise_nm: float = 5.0, start: str | None = None) -> PhysicsFit:
     """The true model (``true_model``) fitted to the data's calibration rows, from the twin's
-    values and from the library's starting values, the lower calibration cost kept."""
+    values and from the library's starting values, the lower calibration cost kept (only from
+    ``start``, one of those labels, when given: a budget's runs compare one basin)."""
     effects, values = true_model(meta)
     # The true model has more than one basin (fit_from_starts): from the twin's values (what
     # the data cannot determine stays there: the truth is the prior) and from the library's
@@ -78,8 +79,9 @@ def true_fit(df, meta: dict, noise_nm: float = 5.0) -> PhysicsFit:
     fixed = {e: {p: v for p, v in vals.items()
                  if p not in {q.name for q in LIBRARY[e].free_parameters()}}
              for e, vals in values.items()}
-    return fit_from_starts(effects, {"twin's values": {"start": values, "prior": values},
-                                     "library's starting values": {"start": fixed}},
+    starts = {"twin's values": {"start": values, "prior": values},
+              "library's starting values": {"start": fixed}}
+    return fit_from_starts(effects, {k: v for k, v in starts.items() if start in (None, k)},
                            df, meta, noise_nm=noise_nm)
 
 
@@ -195,7 +197,7 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
         if not np.array_equal(d["t_s"].to_numpy(), df["t_s"].to_numpy()):
             raise RuntimeError(f"floor budget: the {name} run's timeline differs from the "
                                "dataset's (a source that is not a pure draw?)")
-        floors[name] = _val_p90(true_fit(d, m))
+        floors[name] = _val_p90(true_fit(d, m, start=getattr(full, "start_label_", None)))
         if name == REMAINDER:
             quiet_df = d
     floor = _val_p90(full)
