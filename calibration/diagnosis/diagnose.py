@@ -50,7 +50,7 @@ from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
 from deltatwin.calibration.diagnosis.model_form import joint_form
 from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
-from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
     _projected,
@@ -378,7 +378,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
 
     Returns (ladder, diagnoses, fits): one ladder row per model ({model, effects, added,
     n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm,
-    achievable_floor_nm, fit_status}), the
+    achievable_floor_nm, fit_status, fit_start: the start its fit was kept from}), the
     diagnosis of every model, and the fits."""
     noise = ((meta or {}).get("truth") or {}).get("noise_floor_nm")
     achievable = ((meta or {}).get("truth") or {}).get("achievable_floor_nm")
@@ -387,9 +387,14 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     for round_ in range(max_added + 1):
         if progress:
             progress(f"fit {'+'.join(effects) or 'nominal robot'}")
-        # each model starts from the effects' priors: a previous fit's values may lie outside
-        # a parameter's physical range where they stood in for the missing effect
-        fit = PhysicsFit(effects, start=known, **fit_options).fit(df, meta)
+        # each model starts from the effects' priors (a previous fit's values may lie outside
+        # a parameter's physical range where they stood in for the missing effect) and, once
+        # there is one, from the previous model's fitted values: the models have more than
+        # one basin (fit_from_starts), and the lower calibration cost is kept
+        starts = {"priors": {"start": known}}
+        if fits:
+            starts["previous fit"] = {"start": {**fits[-1].model_.values(), **(known or {})}}
+        fit = fit_from_starts(effects, starts, df, meta, **fit_options)
         fits.append(fit)
         ladder.append({"model": "baseline" if round_ == 0 else f"+ {effects[-1]}",
                        "effects": list(effects), "added": None if round_ == 0 else effects[-1],
@@ -399,7 +404,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                        "val_err90_by_axis_nm": {a: fit.val_[a]["err_p90"] for a in AXES
                                                 if a in fit.val_},
                        "noise_floor_nm": noise, "achievable_floor_nm": achievable,
-                       "fit_status": fit.status_})
+                       "fit_status": fit.status_, "fit_start": fit.start_label_})
         if progress:
             progress(f"diagnose {'+'.join(effects) or 'nominal robot'}")
         d = diagnose(fit, data)
