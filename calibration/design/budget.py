@@ -219,15 +219,14 @@ def without_random_errors(sc):
     """The scenario read without what no model predicts: the interferometers' reading noise
     and the servos' random settling switched off (every other draw where it was: the same
     campaign, for the truth a fitted model is judged against)."""
-    sc = _switched(sc, "interferometer reading", 0.0)
-    return _switched(sc, "servo settling", 0.0) or sc
+    sc = _switched(sc, "interferometer reading")
+    return _switched(sc, "servo settling") or sc
 
 
-def _switched(sc, source: str, pressure_u_Pa: float):
+def _switched(sc, source: str):
     """The scenario with one noise source changed on the twin: the interferometers' reading
-    noise, the thermometers' noise or the servos' settling switched off, or the pressure the
-    interferometers assume shifted by ``pressure_u_Pa`` (None: the source is not in the
-    scenario). Every random draw stays where it was (the twin multiplies its draws by the
+    noise, the thermometers' noise or the servos' settling switched off (None: the source is
+    not in the scenario). Every random draw stays where it was (the twin multiplies its draws by the
     setting), so the difference of two campaigns of one seed is the source's part alone."""
     from deltatwin.twin.effects import make_effect
 
@@ -245,20 +244,32 @@ def _switched(sc, source: str, pressure_u_Pa: float):
         return dataclasses.replace(sc, settings=dataclasses.replace(sc.settings, T_noise_C=0.0))
     if source == "servo settling":
         return effect_changed("servo_settling", "angle_std_rad", lambda v: 0.0)
-    return effect_changed("air_refraction", "assumed_pressure_Pa",
-                          lambda v: float(v) + pressure_u_Pa)
+    raise ValueError(f"no switch for the noise source {source!r}")
 
 
-def _source_errors(sc, robot_seed, scale, df, meta, fit, pressure_u_Pa) -> dict:
+def _source_errors(sc, robot_seed, scale, df, meta, fit, pressure_u_Pa, rng) -> dict:
     """{source: (N,3) m} the tool-point error each noise source put on this campaign, up to
     the session zeros: the reading with the source as it is minus the reading without it (the
-    same seeds), and for the thermometers the fitted model's prediction from the recorded
-    temperatures minus from noise-free ones. NaN where an axis was not read."""
+    same seeds), for the thermometers the fitted model's prediction from the recorded
+    temperatures minus from noise-free ones, and for the unrecorded pressure the fitted model
+    (with air_refraction) at each reading's pressure off by a draw of ``pressure_u_Pa`` white
+    wander from ``rng`` (the twin's wander is a slow climate, not this line's white one).
+    NaN where an axis was not read."""
     meas = fit.measurements_
     read = [f"{a}_nm" for a in AXES if f"{a}_nm" in df]
     out = {}
     for source in NOISE_SOURCES:
-        other = _switched(sc, source, pressure_u_Pa)
+        if source == "unrecorded pressure":
+            air = PhysicsModel(list(dict.fromkeys(fit.effects + ["air_refraction"])),
+                               fit.model_.params, fit.model_.values())
+            pts = meas.points
+            readings = np.arange(pts.t_s.size) < len(df)     # the zero rows follow the readings
+            wander = pressure_u_Pa * rng.standard_normal(pts.t_s.size) * readings
+            e = air.predict_path(dataclasses.replace(meas, points=dataclasses.replace(
+                pts, pressure_Pa=pts.pressure_Pa + wander))) - air.predict_path(meas)
+            out[source] = zero_centred(meas, e)
+            continue
+        other = _switched(sc, source)
         if other is None:
             continue
         df2, _ = fixed_robot(other, robot_seed).simulate(scale)
@@ -269,8 +280,6 @@ def _source_errors(sc, robot_seed, scale, df, meta, fit, pressure_u_Pa) -> dict:
             model = fit.model_
             e = model.predict_path(meas) - model.predict_path(
                 measurements(clean, meta, model.params))
-        elif source == "unrecorded pressure":    # the shifted assumption is the error
-            e = (df2[read].to_numpy() - df[read].to_numpy()) * 1e-9
         else:
             e = (df[read].to_numpy() - df2[read].to_numpy()) * 1e-9
         out[source] = zero_centred(meas, e)
@@ -343,7 +352,7 @@ def budget_monte_carlo(scenario, effects, campaigns: int, scale: float, seed: in
                     for _, name, u in parameter_lines(fit, parameter_covariance(fit, False))}
         b["sampling_p90_nm"] = b.source.map(sampling).fillna(b.all_p90_nm)
         budgets.append(b)
-        noise.append(_source_errors(sc, seed, scale, df, meta, fit, pressure_u_Pa))
+        noise.append(_source_errors(sc, seed, scale, df, meta, fit, pressure_u_Pa, rng))
         thetas.append(fit.model_.theta())
         fits.append(fit)
         if progress:
