@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import textwrap
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from deltatwin.files import toml_text
+from deltatwin.files import atomic_write_text, toml_text
 from deltatwin.twin.effects import LIBRARY
+from deltatwin.twin.scenario import FORMAT_VERSION as SCENARIO_FORMAT_VERSION
 
 FRAME_ARM_M = (-0.6, 0.0)
 PAPER_SENSORS = {
@@ -94,7 +96,6 @@ class Case:
         hidden = {"effects": self.hidden_effects, "baseline": list(self.baseline)}
         if self.known:
             hidden["known"] = self.known
-        from deltatwin.twin.scenario import FORMAT_VERSION as SCENARIO_FORMAT_VERSION
         doc = {"format_version": SCENARIO_FORMAT_VERSION,
                "scenario": {"name": self.name, "description": self.description(),
                             "seed": self.seed},
@@ -203,10 +204,6 @@ def hidden_case(name: str) -> Case:
 
 def write_hidden_scenarios(folder) -> list:
     """Write every HIDDEN_SCENARIOS case as ``<folder>/<name>.toml`` (atomically); the paths."""
-    from pathlib import Path
-
-    from deltatwin.files import atomic_write_text
-
     paths = []
     for name in HIDDEN_SCENARIOS:
         path = Path(folder) / f"{name}.toml"

@@ -65,11 +65,13 @@ def _cross(a, b):
 
 def load(path) -> dict:
     """The model file as arrays (``np.asarray`` of every list), checked for its format."""
-    with open(path, encoding="utf-8") as f:
-        try:
+    try:
+        with open(path, encoding="utf-8") as f:
             doc = json.load(f)
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ControllerModelError(f"{path}: not a JSON file ({exc})") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ControllerModelError(f"{path}: not a JSON file ({exc})") from exc
+    except OSError as exc:
+        raise ControllerModelError(f"{path}: cannot be read ({exc.strerror})") from exc
     if not isinstance(doc, dict):
         doc = {"format": None}
     if doc.get("format") != FORMAT or doc.get("format_version") != FORMAT_VERSION:
@@ -479,7 +481,11 @@ def main(argv=None) -> int:
     if len(argv) != 1:
         print("usage: python controller_evaluator.py MODEL.json", file=sys.stderr)
         return 2
-    model = load(argv[0])
+    try:
+        model = load(argv[0])
+    except ControllerModelError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(f"{FORMAT} v{FORMAT_VERSION}: effects {model['source']['effects']}; stroke "
           f"{model['geometry']['stroke_rad'].tolist()} rad; optics steps "
           f"{[s['kind'] for s in model['optics']['steps']]}")

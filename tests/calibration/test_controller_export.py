@@ -103,6 +103,18 @@ def test_evaluator_is_standalone_and_refuses_other_formats(tmp_path):
     bad.write_text('{"format": "deltatwin-physics-controller", "form')     # cut short
     with pytest.raises(ce.ControllerModelError, match="not a JSON file"):
         ce.load(bad)
+    for missing in (tmp_path / "absent.json", tmp_path):           # no file; a folder
+        with pytest.raises(ce.ControllerModelError, match="cannot be read"):
+            ce.load(missing)
+
+
+def test_the_standalone_evaluator_refuses_a_bad_file_with_exit_2(tmp_path, capsys):
+    """The evaluator's own command line: a broken file is an error message and exit 2."""
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2")
+    assert ce.main([str(bad)]) == 2
+    assert "bad.json" in capsys.readouterr().err
+    assert ce.main([str(tmp_path / "absent.json")]) == 2
 
 
 def test_export_refuses_an_effect_it_cannot_evaluate(tmp_path, monkeypatch):
