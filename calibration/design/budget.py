@@ -124,6 +124,19 @@ def zero_centred(meas, v: np.ndarray) -> np.ndarray:
     return out
 
 
+def _pressure_change(fit: PhysicsFit, n_readings: int, dp_Pa) -> np.ndarray:
+    """(N,3) m: the fitted model (with air_refraction) at each reading's air pressure changed
+    by ``dp_Pa(n)`` (Pa, n values) minus as recorded; the zero rows (after the readings) keep
+    theirs, so the change is the index's over each beam's dead path and displacement."""
+    meas = fit.measurements_
+    air = PhysicsModel(list(dict.fromkeys(fit.effects + ["air_refraction"])), fit.model_.params,
+                       fit.model_.values())
+    pts = meas.points
+    readings = np.arange(pts.t_s.size) < n_readings
+    moved = dataclasses.replace(pts, pressure_Pa=pts.pressure_Pa + dp_Pa(pts.t_s.size) * readings)
+    return air.predict_path(dataclasses.replace(meas, points=moved)) - air.predict_path(meas)
+
+
 def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_m: float,
                        T_u_K: float, servo_u_rad: float, pressure_u_Pa: float,
                        rng: np.random.Generator, n_probe: int = 32,
@@ -166,15 +179,9 @@ def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_
     servo = np.sqrt(sum((_shifted(fit, df, meta, f"q{i}_rad", 1e-6) * servo_u_rad) ** 2
                         for i in (1, 2, 3)))
     noise.append(("noise", f"servo settling ({servo_u_rad:g} rad per motor)", servo))
-    air = PhysicsModel(list(dict.fromkeys(fit.effects + ["air_refraction"])), fit.model_.params,
-                       fit.model_.values())
-    base = air.predict_path(meas)
-    pts = meas.points
-    readings = np.arange(pts.t_s.size) < len(df)     # the zero rows follow the readings
-    moved = air.predict_path(dataclasses.replace(meas, points=dataclasses.replace(
-        pts, pressure_Pa=pts.pressure_Pa + pressure_u_Pa * readings)))
+    moved = _pressure_change(fit, len(df), lambda n: np.full(n, pressure_u_Pa))
     noise.append(("noise", f"{'barometer' if 'p_Pa' in df else 'unrecorded pressure'} "
-                  f"({pressure_u_Pa:g} Pa)", np.abs(moved - base)))
+                  f"({pressure_u_Pa:g} Pa)", np.abs(moved)))
     combined = np.sqrt(var_all + sum(u ** 2 for _, _, u in noise))
     table = []
     total_var = float(np.nanmean(np.where(read, combined ** 2, np.nan)))
@@ -260,13 +267,7 @@ def _source_errors(sc, robot_seed, scale, df, meta, fit, pressure_u_Pa, rng) -> 
     out = {}
     for source in NOISE_SOURCES:
         if source == "unrecorded pressure":
-            air = PhysicsModel(list(dict.fromkeys(fit.effects + ["air_refraction"])),
-                               fit.model_.params, fit.model_.values())
-            pts = meas.points
-            readings = np.arange(pts.t_s.size) < len(df)     # the zero rows follow the readings
-            wander = pressure_u_Pa * rng.standard_normal(pts.t_s.size) * readings
-            e = air.predict_path(dataclasses.replace(meas, points=dataclasses.replace(
-                pts, pressure_Pa=pts.pressure_Pa + wander))) - air.predict_path(meas)
+            e = _pressure_change(fit, len(df), lambda n: pressure_u_Pa * rng.standard_normal(n))
             out[source] = zero_centred(meas, e)
             continue
         other = _switched(sc, source)
