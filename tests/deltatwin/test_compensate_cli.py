@@ -99,3 +99,14 @@ def test_bad_input_is_named(lab, capsys):
     code = main(["compensate", str(lab / "lab.toml"), "--model", str(lab / "true.toml"),
                  "--targets", "0"])
     assert code == 2 and "--targets" in capsys.readouterr().err
+
+
+def test_a_controller_file_that_cannot_be_written_is_refused_before_the_run(lab, capsys):
+    """--controller naming a folder: exit 2 naming it, before any point is run (no compensated
+    data written)."""
+    out = lab / "never.parquet"
+    code = main(["compensate", str(lab / "lab.toml"), "--model", str(lab / "true.toml"),
+                 "--data", str(lab / "cal.parquet"), "--targets", "2", "-o", str(out),
+                 "--controller", str(lab)])
+    assert code == 2 and "is a folder" in capsys.readouterr().err
+    assert not out.exists()
