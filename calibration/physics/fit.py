@@ -18,10 +18,12 @@ from deltatwin.calibration.physics.model import (
     group_offsets,
     residuals,
 )
+from deltatwin.models.kinematics import KinematicsError
 from deltatwin.models.params import RobotParams
 from deltatwin.twin.instruments.optics import AXES
 
 NM = 1e9   # the solver works on residuals in nm
+RADIUS_MIN = 1e-9   # fit scales: a trust region this small has only round-off left
 STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of their uncertainty
 log = logging.getLogger(__name__)
 
@@ -114,57 +116,38 @@ class PhysicsFit:
             return prior + S * (V @ z)
 
         def fun(z):
+            """The projected calibration residual (nm) at z and the prediction (N,3) there."""
             A = model.predict_path(meas, theta_of(z))
             self.n_evaluations_ += 1
-            return _projected(meas, cal, meas.y - A) * NM
-
-        last = {"theta": theta0, "J": J0}      # the latest Jacobian, re-used at the end
+            return _projected(meas, cal, meas.y - A) * NM, A
 
         def jac(z):
-            th = theta_of(z)
-            if not np.array_equal(th, last["theta"]):
-                last["theta"], last["J"] = th, model.jacobian(meas, th)[1]
-                self.n_evaluations_ += p + 1
-            return -_projected(meas, cal, last["J"] * S) @ V * NM
+            """The residual's exact Jacobian in z (nm per fit scale) and the full one (N,3,p)."""
+            J = model.jacobian(meas, theta_of(z))[1]
+            self.n_evaluations_ += p + 1
+            return -_projected(meas, cal, J * S) @ V * NM, J
 
-        # A trust-region least-squares fit (scipy's TRF with the model's exact Jacobian) in the
-        # identified coordinates z, already in units of the parameters' fit_scale (x_scale 1).
-        # It stops when an accepted step lowers the cost by less than STEP_SIGMA^2 / dof of
-        # itself: a step then moves the parameters by ~STEP_SIGMA of their uncertainty
-        # (cost change ~ |J dz|^2 / 2, uncertainty sigma_r^2 = 2 cost / dof), a stop relative to
-        # the residual, so a misspecified model (residual 100x the noise) stops as soon as a
-        # well-specified one does. The x and gradient tolerances, absolute in z, are off.
         k = V.shape[1]
         n_res = int(np.sum((meas.group >= 0) & cal[:, None]))
         dof = max(n_res - k - len(meas.groups), 1)
-        z = z_start
         self.solver_message_ = "nothing to fit: no identified direction"
-        keep_start = keep_converged_start and k and _remaining_step_sigma(
-            -_projected(meas, cal, J0 * S) @ V, _projected(meas, cal, meas.y - A0),
-            dof) <= STEP_SIGMA
+        Jz0 = -_projected(meas, cal, J0 * S) @ V * NM
+        r0 = _projected(meas, cal, meas.y - A0) * NM
+        keep_start = keep_converged_start and k and _remaining_step_sigma(Jz0, r0, dof) \
+            <= STEP_SIGMA
+        theta, J, A = theta0, J0, A0
         if keep_start:
             self.solver_message_ = "the start is converged on these data: kept"
         elif k:
-            def residual_nm(z):
-                r = fun(z)
-                if self.progress:
-                    log.info("fit %s: calibration rms %.3f nm", "+".join(self.effects),
-                             np.sqrt(np.mean(r ** 2)))
-                return r
-
-            sol = scipy.optimize.least_squares(
-                residual_nm, z_start, jac=jac, method="trf", x_scale=1.0,
-                ftol=STEP_SIGMA ** 2 / dof, xtol=None, gtol=None,
-                max_nfev=self.max_evaluations)
-            z = sol.x
-            self.solver_message_ = sol.message
-        if keep_start:
-            theta, J, A = theta0, J0, A0
-        else:
+            z, J, A, self.solver_message_ = _gauss_newton(
+                fun, jac, z_start, Jz0, dof, self.max_evaluations,
+                # the start's prediction and exact Jacobian when z_start is the start itself
+                (r0, A0, J0) if np.array_equal(theta_of(z_start), theta0) else None,
+                progress=(lambda r: log.info(
+                    "fit %s: calibration rms %.3f nm", "+".join(self.effects),
+                    np.sqrt(np.mean(r ** 2)))) if self.progress else None)
             theta = theta_of(z)
-            jac(z)
-            J = last["J"]
-            A = model.predict_path(meas, theta)
+        model.set_theta(theta)          # the solver's last evaluation may have been a trial
         r = _projected(meas, cal, meas.y - A)
         Jz = -_projected(meas, cal, J * S) @ V
         self.remaining_step_sigma_ = _remaining_step_sigma(Jz, r, dof)
@@ -261,6 +244,106 @@ class PhysicsFit:
                            columns=[f"{a}_nm" for a in AXES])
         out["split"] = meas.df["split"].to_numpy()
         return out
+
+
+def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None,
+                  progress=None):
+    """Minimise |r(z)|^2 by Gauss-Newton steps that re-use a Jacobian while they are accepted.
+
+    ``fun(z)`` -> (r, prediction), ``jac(z)`` -> (exact dr/dz, the model's full Jacobian);
+    ``Jz``: dr/dz near the start; ``at_start``: (r, prediction, full Jacobian) when ``Jz`` is
+    exact at z (no evaluation needed there). Returns (z, the full Jacobian at z, the prediction
+    at z, a message).
+
+    Most parameters move the readings nearly linearly, so the Jacobian changes little between
+    steps while an exact one costs as many evaluations as there are parameters: a step is taken
+    with the Jacobian at hand (Broyden-updated by each accepted step's residual change), costing
+    one evaluation. A Jacobian is recomputed only where it must be exact: when its step says
+    the fit has converged (the Gauss-Newton step left moves the parameters by < STEP_SIGMA of
+    their uncertainty, the test ``converged_`` applies, so convergence is always judged with an
+    exact Jacobian), or when an inexact one's step fails to lower the cost. An exact
+    Jacobian's failed step is damped (Levenberg-Marquardt) until the cost falls; a model that
+    cannot be evaluated at a trial point (its kinematics fail) counts as a failed step there.
+    ``max_evaluations`` counts the points evaluated, the start included."""
+    if at_start is None:
+        r, A = fun(z)
+        J, exact = None, False
+    else:
+        r, A, J = at_start
+        exact = True
+    evaluations, radius, message, failed = 1, math.inf, None, 0
+    cost = float(r @ r)
+    while True:
+        if progress:
+            progress(r)
+        if _remaining_step_sigma(Jz, r, dof) <= STEP_SIGMA:
+            if exact:
+                message = ("converged: the Gauss-Newton step left moves the parameters by < "
+                           f"{STEP_SIGMA} of their uncertainty")
+                break
+            Jz, J = jac(z)
+            exact = True
+            continue
+        if radius < RADIUS_MIN:
+            message = "no step lowers the cost any further (round-off)"
+            break
+        if evaluations >= max_evaluations:
+            message = f"stopped at the limit of {max_evaluations} model evaluations"
+            break
+        step = _trust_region_step(Jz, r, radius)
+        length = float(np.linalg.norm(step))
+        predicted = cost - float(np.sum((r + Jz @ step) ** 2))
+        evaluations += 1
+        try:
+            r_new, A_new = fun(z + step)
+            cost_new = float(r_new @ r_new)
+        except KinematicsError:
+            cost_new = math.inf
+        log.debug("evaluation %d: cost %.6g -> %.6g (predicted %.6g; Jacobian %s, |step| %.3g "
+                  "of radius %.3g)", evaluations, cost, cost_new, cost - predicted,
+                  "exact" if exact else "re-used", length, radius)
+        if math.isfinite(cost_new):
+            # Broyden's update: the Jacobian that reproduces the trial's residual change (a
+            # failed trial too: it says how the residual curves along the step)
+            Jz = Jz + np.outer((r_new - r) - Jz @ step, step / (length * length))
+        if math.isfinite(cost_new) and cost_new < cost:
+            gain = (cost - cost_new) / predicted if predicted > 0 else 0.0
+            z, r, A, cost, exact, failed = z + step, r_new, A_new, cost_new, False, 0
+            if gain < 0.25:
+                radius = 0.5 * length
+            elif gain > 0.75:
+                radius = max(radius, 2.0 * length)
+        else:
+            failed += 1
+            radius = 0.25 * length
+            if failed >= 2 and not exact:
+                # steps of the updated Jacobian keep failing: an exact one, same radius
+                Jz, J = jac(z)
+                exact, radius, failed = True, 4.0 * radius, 0
+    if not exact:
+        J = jac(z)[1]
+    return z, J, A, message
+
+
+def _trust_region_step(Jz: np.ndarray, r: np.ndarray, radius: float) -> np.ndarray:
+    """The step dz minimising |r + Jz dz| with |dz| <= ``radius`` (fit scales): the
+    Gauss-Newton step when it is that short, else the Levenberg-Marquardt step
+    -(Jz^T Jz + mu)^-1 Jz^T r whose length is the radius (mu by bisection on its logarithm)."""
+    U, s, Vt = np.linalg.svd(Jz, full_matrices=False)
+    g = U.T @ r
+    keep = s > s.max(initial=0.0) * 1e-12
+    s, g, Vt = s[keep], g[keep], Vt[keep]
+    if np.linalg.norm(g / s) <= radius:
+        return -Vt.T @ (g / s)
+    lo, hi = -40.0, 40.0          # log10 of mu / s_max^2: the step's length falls with mu
+    s2 = s.max() ** 2
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if np.linalg.norm(s * g / (s ** 2 + s2 * 10.0 ** mid)) > radius:
+            lo = mid
+        else:
+            hi = mid
+    return -Vt.T @ (s * g / (s ** 2 + s2 * 10.0 ** hi))
 
 
 def _remaining_step_sigma(Jz: np.ndarray, r: np.ndarray, dof: int) -> float:
