@@ -24,6 +24,9 @@ from deltatwin.twin.instruments.optics import AXES
 
 NM = 1e9   # the solver works on residuals in nm
 RADIUS_MIN = 1e-9   # fit scales: a trust region this small has only round-off left
+# a parameter whose identified directions' weights are below this (squared, summed) is unseen by
+# the fit: its column changes the fitted directions' Jacobian by < 1e-8 of a fitted column
+UNSEEN_FRACTION = 1e-16
 STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of their uncertainty
 log = logging.getLogger(__name__)
 
@@ -121,10 +124,16 @@ class PhysicsFit:
             self.n_evaluations_ += 1
             return _projected(meas, cal, meas.y - A) * NM, A
 
+        # the parameters the identified directions hold (the others' columns, e.g. a coil's
+        # in a campaign without current, are orthogonal to them: weights < 1e-8): the solver's
+        # Jacobians need only these; the fitted model's is completed at the end
+        seen = np.sum(V ** 2, axis=1) > UNSEEN_FRACTION
+
         def jac(z):
-            """The residual's exact Jacobian in z (nm per fit scale) and the full one (N,3,p)."""
-            J = model.jacobian(meas, theta_of(z))[1]
-            self.n_evaluations_ += p + 1
+            """The residual's exact Jacobian in z (nm per fit scale) and the model's (N,3,p),
+            its columns outside ``seen`` left zero."""
+            J = model.jacobian(meas, theta_of(z), seen)[1]
+            self.n_evaluations_ += int(seen.sum()) + 1
             return -_projected(meas, cal, J * S) @ V * NM, J
 
         k = V.shape[1]
@@ -147,6 +156,9 @@ class PhysicsFit:
                     "fit %s: calibration rms %.3f nm", "+".join(self.effects),
                     np.sqrt(np.mean(r ** 2)))) if self.progress else None)
             theta = theta_of(z)
+            if J is not J0 and not seen.all():
+                J[:, :, ~seen] = model.jacobian(meas, theta, ~seen)[1][:, :, ~seen]
+                self.n_evaluations_ += int((~seen).sum()) + 1
         model.set_theta(theta)          # the solver's last evaluation may have been a trial
         r = _projected(meas, cal, meas.y - A)
         Jz = -_projected(meas, cal, J * S) @ V
@@ -257,12 +269,13 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
 
     Most parameters move the readings nearly linearly, so the Jacobian changes little between
     steps while an exact one costs as many evaluations as there are parameters: a step is taken
-    with the Jacobian at hand (Broyden-updated by each accepted step's residual change), costing
-    one evaluation. A Jacobian is recomputed only where it must be exact: when its step says
-    the fit has converged (the Gauss-Newton step left moves the parameters by < STEP_SIGMA of
-    their uncertainty, the test ``converged_`` applies, so convergence is always judged with an
-    exact Jacobian), or when an inexact one's step fails to lower the cost. An exact
-    Jacobian's failed step is damped (Levenberg-Marquardt) until the cost falls; a model that
+    with the Jacobian at hand (Broyden-updated by each trial's residual change), costing one
+    evaluation. A Jacobian is recomputed only where it must be exact: when its step says the
+    fit has converged (the Gauss-Newton step left moves the parameters by < STEP_SIGMA of their
+    uncertainty, the test ``converged_`` applies, so convergence is always judged with an exact
+    Jacobian), or when an updated one's steps fail twice running. Steps stay within a trust
+    region (fit scales) that a failed step shrinks and a well-predicted one widens (a curved
+    valley of weakly determined directions: the Gauss-Newton step overshoots it); a model that
     cannot be evaluated at a trial point (its kinematics fail) counts as a failed step there.
     ``max_evaluations`` counts the points evaluated, the start included."""
     if at_start is None:
@@ -302,24 +315,28 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
         log.debug("evaluation %d: cost %.6g -> %.6g (predicted %.6g; Jacobian %s, |step| %.3g "
                   "of radius %.3g)", evaluations, cost, cost_new, cost - predicted,
                   "exact" if exact else "re-used", length, radius)
-        if math.isfinite(cost_new):
-            # Broyden's update: the Jacobian that reproduces the trial's residual change (a
-            # failed trial too: it says how the residual curves along the step)
-            Jz = Jz + np.outer((r_new - r) - Jz @ step, step / (length * length))
         if math.isfinite(cost_new) and cost_new < cost:
             gain = (cost - cost_new) / predicted if predicted > 0 else 0.0
+            # Broyden's update: the Jacobian that reproduces the step's residual change
+            Jz = Jz + np.outer((r_new - r) - Jz @ step, step / (length * length))
             z, r, A, cost, exact, failed = z + step, r_new, A_new, cost_new, False, 0
             if gain < 0.25:
                 radius = 0.5 * length
             elif gain > 0.75:
                 radius = max(radius, 2.0 * length)
+        elif exact:
+            radius = 0.25 * length          # the exact Jacobian's model fails this far out
         else:
+            # the updated Jacobian may be what failed: it learns how the residual curves along
+            # the step (Broyden's update from the failed trial too) and, failing twice running,
+            # is recomputed (as Powell's hybrid method does)
             failed += 1
-            radius = 0.25 * length
-            if failed >= 2 and not exact:
-                # steps of the updated Jacobian keep failing: an exact one, same radius
+            if math.isfinite(cost_new):
+                Jz = Jz + np.outer((r_new - r) - Jz @ step, step / (length * length))
+            radius = 0.5 * length
+            if failed >= 2:
                 Jz, J = jac(z)
-                exact, radius, failed = True, 4.0 * radius, 0
+                exact, failed = True, 0
     if not exact:
         J = jac(z)[1]
     return z, J, A, message

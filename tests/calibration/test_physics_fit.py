@@ -1,0 +1,106 @@
+"""The physics fit's solver (calibration.physics.fit): Gauss-Newton steps that re-use a
+Broyden-updated Jacobian, an exact Jacobian wherever convergence is judged, a trust region where
+steps fail, and the fitted model's Jacobian complete."""
+import numpy as np
+import scipy.optimize
+
+from deltatwin.calibration.physics.fit import (
+    STEP_SIGMA,
+    PhysicsFit,
+    _gauss_newton,
+    _remaining_step_sigma,
+    _trust_region_step,
+)
+from deltatwin.calibration.physics.measurements import measurements
+from deltatwin.twin.scenario import Scenario
+
+
+def _decay_problem(rng):
+    """Readings a exp(-b t) + c with noise: nonlinear in b (a curved valley in (a, b))."""
+    t = np.linspace(0.0, 4.0, 400)
+    y = 2.0 * np.exp(-1.3 * t) + 0.5 + rng.normal(0.0, 0.01, t.size)
+
+    def residual(z):
+        a, b, c = z
+        return a * np.exp(-b * t) + c - y
+
+    def jacobian(z):
+        a, b, _ = z
+        e = np.exp(-b * t)
+        return np.stack([e, -a * t * e, np.ones_like(t)], axis=1)
+    return residual, jacobian, t.size - 3
+
+
+def test_gauss_newton_converges_where_scipy_does_with_few_exact_jacobians():
+    residual, jacobian, dof = _decay_problem(np.random.default_rng(7))
+    calls = {"jac": 0, "fun": 0}
+
+    def fun(z):
+        calls["fun"] += 1
+        return residual(z), None
+
+    def jac(z):
+        calls["jac"] += 1
+        return jacobian(z), jacobian(z)
+
+    z0 = np.array([0.5, 4.0, 0.0])                   # far: b three times off
+    z, J, _, message = _gauss_newton(fun, jac, z0, jacobian(z0), dof, 100,
+                                     (residual(z0), None, jacobian(z0)))
+    assert message.startswith("converged"), message
+    # judged with the exact Jacobian at the returned point
+    np.testing.assert_array_equal(J, jacobian(z))
+    assert _remaining_step_sigma(jacobian(z), residual(z), dof) <= STEP_SIGMA
+    reference = scipy.optimize.least_squares(residual, z0, jac=jacobian, xtol=1e-15,
+                                             ftol=1e-15, gtol=1e-15).x
+    # the same minimum, to a small part of the parameters' uncertainty
+    r = residual(reference)
+    cov = np.linalg.inv(jacobian(reference).T @ jacobian(reference)) * (r @ r) / dof
+    assert np.all(np.abs(z - reference) < 0.1 * np.sqrt(np.diag(cov))), (z, reference)
+    assert calls["jac"] < calls["fun"]          # steps mostly re-use the Jacobian
+
+
+def test_gauss_newton_stops_at_its_evaluation_limit_with_a_message():
+    residual, jacobian, dof = _decay_problem(np.random.default_rng(8))
+    z0 = np.array([0.5, 4.0, 0.0])
+    z, J, _, message = _gauss_newton(lambda z: (residual(z), None),
+                                     lambda z: (jacobian(z), jacobian(z)), z0, jacobian(z0),
+                                     dof, 4, (residual(z0), None, jacobian(z0)))
+    assert "limit of 4" in message
+    np.testing.assert_array_equal(J, jacobian(z))    # still the exact one where it stopped
+    assert residual(z) @ residual(z) < residual(z0) @ residual(z0)
+
+
+def test_trust_region_step_is_gauss_newton_inside_and_the_best_on_the_boundary():
+    rng = np.random.default_rng(1)
+    J = rng.normal(size=(50, 4)) * np.array([1.0, 10.0, 0.1, 3.0])
+    r = rng.normal(size=50)
+    gn = np.linalg.lstsq(J, -r, rcond=None)[0]
+    np.testing.assert_allclose(_trust_region_step(J, r, 2 * np.linalg.norm(gn)), gn,
+                               rtol=1e-10)
+    radius = 0.3 * np.linalg.norm(gn)
+    step = _trust_region_step(J, r, radius)
+    assert abs(np.linalg.norm(step) - radius) < 1e-9 * radius
+
+    def cost(d):
+        return np.sum((r + J @ d) ** 2)
+    # no other step of that length does better (random directions on the sphere)
+    others = rng.normal(size=(2000, 4))
+    others *= radius / np.linalg.norm(others, axis=1, keepdims=True)
+    assert cost(step) <= min(cost(d) for d in others)
+
+
+def test_fitted_jacobian_is_complete_where_the_solver_skipped_unseen_columns():
+    """A thermal campaign's coils carry no current: their columns are unseen by the fitted
+    directions and the solver's Jacobians skip them; the fitted model's Jacobian has them,
+    as the model's own full Jacobian at the fitted values."""
+    df, meta = Scenario.load("quiet/loop-drift").simulate(0.02)
+    effects = ["geometric_errors", "thermal_expansion", "loop_drift", "magnetic_force"]
+    known = {"loop_drift": {"frame_arm_m": [-0.6, 0.0]}}
+    fit = PhysicsFit(effects, start=known).fit(df, meta)
+    unseen = np.sum(fit.identified_directions_ ** 2, axis=1) <= 1e-16
+    assert unseen.any() and fit.n_evaluations_ > 0
+    meas = measurements(df, meta, fit.model_.params)
+    _, J = fit.model_.jacobian(meas, fit.theta_)
+    scale = np.nanmax(np.abs(J), axis=(0, 1))
+    error = np.nanmax(np.abs(fit.jacobian_ - J), axis=(0, 1))
+    assert np.all(error <= 1e-9 * scale + 1e-30), error / np.maximum(scale, 1e-300)
