@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pandas as pd
-import scipy.optimize
 
 from deltatwin.calibration.errors import FitError, TooFewPointsError
 from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
@@ -40,15 +39,17 @@ class PhysicsFit:
     diagnosis adds),
     ``noise_nm`` (the readings' noise, nm: sets which directions are identifiable),
     ``identifiable_ratio`` (a direction is fitted if the data determine it to better than this
-    fraction of its parameters' typical size), ``max_evaluations`` (the solver's model
-    evaluations), ``progress`` (a callable given a message after each evaluation, or None).
+    fraction of its parameters' typical size), ``max_evaluations`` (the points the solver
+    evaluates, the start included; a Jacobian, many evaluations' work, is not one),
+    ``progress`` (a callable given a message after each evaluation, or None).
 
     Attributes after ``fit``: ``model_`` (PhysicsModel at the fitted values), ``offsets_`` (m per
     (session, axis)), ``residual_`` ((N,3) m), ``cal_``/``val_`` (error figures, nm),
     ``identifiability_`` (dict), ``converged_`` and ``status_`` (a misspecified model that
     stops short returns its best fit with ``converged_`` False, the reason in ``status_``, and a
-    logged warning), ``n_evaluations_``, ``parameters_`` (list of
-    {label, value, start, unit, uncertainty, identified_fraction}).
+    logged warning), ``n_evaluations_`` (model evaluations, a Jacobian counting one per column
+    it computes and one), ``n_jacobians_`` (exact Jacobians computed, the start's included),
+    ``parameters_`` (list of {label, value, start, unit, uncertainty, identified_fraction}).
     """
 
     def __init__(self, effects, params: RobotParams | None = None, start: dict | None = None,
@@ -108,7 +109,7 @@ class PhysicsFit:
             s, Vt = np.zeros(0), np.zeros((0, 0))
         keep = (s > sigma / self.identifiable_ratio) & (s > s.max(initial=0) * 1e-12)
         V = Vt[keep].T                                                   # (p, k)
-        self.n_evaluations_ = p + 1
+        self.n_evaluations_, self.n_jacobians_ = p + 1, 1
         # directions the data cannot determine are held at the prior (the effects' starting
         # values), not at a warm start's values: a previous fit may have pushed them anywhere
         # while standing in for an effect it lacked
@@ -134,6 +135,7 @@ class PhysicsFit:
             its columns outside ``seen`` left zero."""
             J = model.jacobian(meas, theta_of(z), seen)[1]
             self.n_evaluations_ += int(seen.sum()) + 1
+            self.n_jacobians_ += 1
             return -_projected(meas, cal, J * S) @ V * NM, J
 
         k = V.shape[1]

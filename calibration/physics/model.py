@@ -41,7 +41,7 @@ READING_ROUNDOFF_M = 1e-15
 
 
 def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
-                          roundoff: float = 0.0) -> tuple:
+                          roundoff: float = 0.0, at_zero: tuple | None = None) -> tuple:
     """The derivative at 0 of ``evaluate(offset)`` (a tuple of arrays, the last one judged):
     fourth-order central differences (f(-2h) - 8 f(-h) + 8 f(h) - f(2h)) / 12h from h = ``step``
     (a parameter's fit scale: large steps keep the predictions' round-off, ~5e-17 m of a 0.3 m
@@ -55,8 +55,22 @@ def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
     last array's unit: below it a halving only measures round-off), the third derivative's
     share of the estimate is below that (the stencil removes it and leaves a fifth-derivative
     one, smaller still) and the stencil is kept without a halving (four evaluations instead of
-    six or more)."""
-    f = {o * step: evaluate(o * step) for o in (1.0, -1.0, 2.0, -2.0)}
+    six or more). ``at_zero``: ``evaluate(0)`` when the caller has it (a model's prediction at
+    theta): then f(h), f(-h) and f(2h) come first, and when the third difference
+    f(2h) - 3 f(h) + 3 f(0) - f(-h) = h^3 f3 + O(h^4) (f3 the third derivative) says the
+    central difference's error, h^2 f3 / 6, is below DERIVATIVE_TOL of it (or the round-off),
+    that difference less this error estimate is kept (three evaluations; what remains is of
+    order h^3 times the fourth derivative); else f(-2h) and the above."""
+    f = {o * step: evaluate(o * step) for o in (1.0, -1.0, 2.0)}
+    if at_zero is not None:
+        h = step
+        central = [(a - b) / (2 * h) for a, b in zip(f[h], f[-h])]
+        error = [(c - 3 * a + 3 * z - b) / (6 * h) for a, b, c, z in
+                 zip(f[h], f[-h], f[2 * h], at_zero)]
+        largest = np.nanmax(np.abs(error[-1]))
+        if largest <= DERIVATIVE_TOL * np.nanmax(np.abs(central[-1])) or largest * h < roundoff:
+            return tuple(d - e for d, e in zip(central, error))
+    f[-2.0 * step] = evaluate(-2.0 * step)
 
     def stencil(h):
         return tuple((8 * (a - b) - (c - d)) / (12 * h) for a, b, c, d in
@@ -336,8 +350,10 @@ class PhysicsModel:
                 return (rod_residuals(geom_j, motor_positions(self.effects, pts), stage.kin),
                         self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
 
-            d_rods, J[:, :, j] = richardson_derivative(evaluate, self.scales[j],
-                                                       roundoff=READING_ROUNDOFF_M)
+            # a load or optics parameter at theta reads A (the rod equations do not move)
+            d_rods, J[:, :, j] = richardson_derivative(
+                evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M,
+                at_zero=(0.0, A) if by["load_optics"][j] else None)
             if not by["load_optics"][j]:
                 d_residuals[:, :, np.searchsorted(moving, j)] = d_rods
         self.set_theta(theta)

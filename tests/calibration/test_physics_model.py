@@ -191,3 +191,32 @@ def test_richardson_keeps_its_first_stencil_only_when_the_differences_agree():
     calls.clear()
     richardson_derivative(counted(lambda h: 1e-9 * h + 1e-17 * h ** 3 + x), 1.0)
     assert len(calls) > 4
+
+
+def test_richardson_with_the_value_at_zero_keeps_three_evaluations_only_when_the_third_difference_is_small():
+    """Given f(0), a function whose third derivative's share is below the tolerance costs three
+    evaluations (f(h), f(-h), f(2h)) and its derivative is exact; a curved one is still
+    halved until the estimate settles."""
+    calls = []
+
+    def counted(f):
+        def evaluate(offset):
+            calls.append(offset)
+            return (f(offset),)
+        return evaluate
+
+    x = np.linspace(-1.0, 1.0, 7)
+    quadratic = lambda h: 3e-9 * (1.0 + x) * h + 2e-9 * x * h ** 2 + 0.3  # noqa: E731
+    (d,) = richardson_derivative(counted(quadratic), 1.0, at_zero=(quadratic(0.0),))
+    assert len(calls) == 3 and np.allclose(d, 3e-9 * (1.0 + x), rtol=1e-6, atol=1e-15)
+    calls.clear()
+    cubic = lambda h: 1e-9 * h + 1e-18 * h ** 3 * (1 + x)  # noqa: E731
+    # the third derivative's error removed: exact for a cubic too
+    (d,) = richardson_derivative(counted(cubic), 1.0, at_zero=(cubic(0.0),))
+    np.testing.assert_allclose(d, 1e-9, rtol=1e-12)
+    assert len(calls) == 3
+    calls.clear()
+    wave = lambda h: np.sin(2.0 * (h + x))  # noqa: E731
+    (d,) = richardson_derivative(counted(wave), 1.0, at_zero=(wave(0.0),))
+    assert len(calls) > 4
+    np.testing.assert_allclose(d, 2.0 * np.cos(2.0 * x), rtol=0, atol=1e-8)
