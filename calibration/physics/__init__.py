@@ -22,8 +22,9 @@ exact to ~1e-7 (the kinematics' pose derivative by the implicit function theorem
 thermally corrected geometry, Richardson-extrapolated central differences elsewhere; checked
 against central differences in tests); its singular value decomposition says which parameter
 combinations the data determine to better than ``identifiable_ratio`` of their typical size,
-given the readings' noise. Only those are fitted (scipy.optimize.least_squares, trust region,
-stopping when a step moves the parameters by less than 0.1 of their uncertainty); the others
+given the readings' noise. Only those are fitted (a trust-region Gauss-Newton re-using its
+Jacobian while steps succeed, stopping when the step left, by an exact Jacobian, moves the
+parameters by less than 0.1 of their uncertainty); the others
 stay at their prior and are named in the identifiability report, never fitted to noise. A model
 that lacks an effect fits badly: it returns its best fit with ``converged_`` and ``status_``
 and a logged warning, never an error. Units: SI inside (m, rad, K), nm in reports.

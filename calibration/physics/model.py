@@ -58,9 +58,10 @@ def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
     six or more). ``at_zero``: ``evaluate(0)`` when the caller has it (a model's prediction at
     theta): then f(h), f(-h) and f(2h) come first, and when the third difference
     f(2h) - 3 f(h) + 3 f(0) - f(-h) = h^3 f3 + O(h^4) (f3 the third derivative) says the
-    central difference's error, h^2 f3 / 6, is below DERIVATIVE_TOL of it (or the round-off),
-    that difference less this error estimate is kept (three evaluations; what remains is of
-    order h^3 times the fourth derivative); else f(-2h) and the above."""
+    central difference's error, h^2 f3 / 6, is below DERIVATIVE_TOL of it, that difference less
+    this error estimate is kept (three evaluations; what remains is of order h^3 times the fourth
+    derivative), or the difference alone when the third difference is below the ``roundoff``
+    (so a column the parameter does not move stays exactly zero); else f(-2h) and the above."""
     f = {o * step: evaluate(o * step) for o in (1.0, -1.0, 2.0)}
     if at_zero is not None:
         h = step
@@ -68,7 +69,9 @@ def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
         error = [(c - 3 * a + 3 * z - b) / (6 * h) for a, b, c, z in
                  zip(f[h], f[-h], f[2 * h], at_zero)]
         largest = np.nanmax(np.abs(error[-1]))
-        if largest <= DERIVATIVE_TOL * np.nanmax(np.abs(central[-1])) or largest * h < roundoff:
+        if largest * h < roundoff:
+            return tuple(central)           # the third difference is round-off: nothing to remove
+        if largest <= DERIVATIVE_TOL * np.nanmax(np.abs(central[-1])):
             return tuple(d - e for d, e in zip(central, error))
     f[-2.0 * step] = evaluate(-2.0 * step)
 
