@@ -271,11 +271,12 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
 
     Most parameters move the readings nearly linearly, so the Jacobian changes little between
     steps while an exact one costs as many evaluations as there are parameters: a step is taken
-    with the Jacobian at hand (Broyden-updated by each trial's residual change), costing one
-    evaluation. A Jacobian is recomputed only where it must be exact: when its step says the
+    with the Jacobian at hand (Broyden-updated by each accepted step's residual change), costing
+    one evaluation. A Jacobian is recomputed only where it must be exact: when its step says the
     fit has converged (the Gauss-Newton step left moves the parameters by < STEP_SIGMA of their
     uncertainty, the test ``converged_`` applies, so convergence is always judged with an exact
-    Jacobian), or when an updated one's steps fail twice running. Steps stay within a trust
+    Jacobian), or when an updated one fails a step no longer than one that succeeded (a longer
+    one may only have outrun the trust region). Steps stay within a trust
     region (fit scales) that a failed step shrinks and a well-predicted one widens (a curved
     valley of weakly determined directions: the Gauss-Newton step overshoots it); a model that
     cannot be evaluated at a trial point (its kinematics fail) counts as a failed step there.
@@ -286,7 +287,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     else:
         r, A, J = at_start
         exact = True
-    evaluations, radius, message, failed = 1, math.inf, None, 0
+    evaluations, radius, message, accepted = 1, math.inf, None, 0.0
     cost = float(r @ r)
     while True:
         if progress:
@@ -321,24 +322,22 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
             gain = (cost - cost_new) / predicted if predicted > 0 else 0.0
             # Broyden's update: the Jacobian that reproduces the step's residual change
             Jz = Jz + np.outer((r_new - r) - Jz @ step, step / (length * length))
-            z, r, A, cost, exact, failed = z + step, r_new, A_new, cost_new, False, 0
+            z, r, A, cost, exact, accepted = z + step, r_new, A_new, cost_new, False, length
             if gain < 0.25:
                 radius = 0.5 * length
             elif gain > 0.75:
                 radius = max(radius, 2.0 * length)
         elif exact:
             radius = 0.25 * length          # the exact Jacobian's model fails this far out
+        elif length > accepted:
+            radius = 0.5 * length           # a step longer than the last one that succeeded
         else:
-            # the updated Jacobian may be what failed: it learns how the residual curves along
-            # the step (Broyden's update from the failed trial too) and, failing twice running,
-            # is recomputed (as Powell's hybrid method does)
-            failed += 1
-            if math.isfinite(cost_new):
-                Jz = Jz + np.outer((r_new - r) - Jz @ step, step / (length * length))
+            # no longer than a step that succeeded: the updated Jacobian is what failed (a
+            # strongly nonlinear parameter, such as a coil's offset, outruns Broyden's
+            # updates): recomputed, in a smaller region
             radius = 0.5 * length
-            if failed >= 2:
-                Jz, J = jac(z)
-                exact, failed = True, 0
+            Jz, J = jac(z)
+            exact = True
     if not exact:
         J = jac(z)[1]
     return z, J, A, message
