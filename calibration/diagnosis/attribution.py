@@ -355,7 +355,7 @@ def best_step(t: np.ndarray, target: Residual, fixed: np.ndarray | None = None) 
 def family_columns(var: Variable, target: Residual) -> tuple[np.ndarray, int, dict]:
     """The regressors of one variable (N,p), the number of scanned parameters, and how they
     were built ({"period": ..., "step_s": ...})."""
-    v, cal = var.values, target.cal
+    v = var.values
     if var.kind == "session":
         t = target.time
         names = list(dict.fromkeys(v))
@@ -363,9 +363,8 @@ def family_columns(var: Variable, target: Residual) -> tuple[np.ndarray, int, di
         return cols / 3600.0, 0, {}
     if var.kind == "sign":
         return v[:, None].astype(np.float64), 0, {}
-    x = _standard(v, cal)
-    poly = np.column_stack([x, x ** 2, x ** 3])
-    info = scans(var, target, poly)
+    poly = _poly(var, target)
+    info = scans(var, target)
     extra = []
     if "period" in info:
         extra += [np.sin(2 * np.pi * v / info["period"]), np.cos(2 * np.pi * v / info["period"])]
@@ -375,38 +374,54 @@ def family_columns(var: Variable, target: Residual) -> tuple[np.ndarray, int, di
     return np.column_stack([poly] + extra) if extra else poly, scanned, info
 
 
-def scans(var: Variable, target: Residual, poly: np.ndarray | None = None) -> dict:
+def _poly(var: Variable, target: Residual) -> np.ndarray:
+    x = _standard(var.values, target.cal)
+    return np.column_stack([x, x ** 2, x ** 3])
+
+
+def scans(var: Variable, target: Residual) -> dict:
     """The scanned parameters of a coordinate's or time's family on ``target`` (once per
     variable, kept on the target): the periodogram's peak period after the cubic polynomial
     and, for time, the best step moment."""
-    if var.name in target.scans:
-        return target.scans[var.name]
-    info = {}
-    if var.kind in ("coordinate", "time"):
-        if poly is None:
-            x = _standard(var.values, target.cal)
-            poly = np.column_stack([x, x ** 2, x ** 3])
-        period = peak_period(var.values, target, poly, 0.5 if var.kind == "time" else 2.5)
-        if period:
-            info["period"] = period
-    if var.kind == "time":
-        tau = best_step(var.values, target)
-        if tau is not None:
-            info["step_s"] = tau
-    target.scans[var.name] = info
-    return info
+    if var.name not in target.scans:
+        scan_together([var], [target])
+    return target.scans[var.name]
+
+
+def scan_together(variables: list[Variable], targets: list[Residual]) -> None:
+    """``scans`` of every variable on every target (residuals of the same rows, e.g. a model's
+    and the same one linear step further), kept on each target: the periodograms of all the
+    targets' axes made in one pass per variable (the costly part of a diagnosis)."""
+    for var in variables:
+        todo = [t for t in targets if var.name not in t.scans]
+        if not todo:
+            continue
+        infos = [{} for _ in todo]
+        if var.kind in ("coordinate", "time"):
+            periods = peak_periods(var.values, [(t, _poly(var, t)) for t in todo],
+                                   0.5 if var.kind == "time" else 2.5)
+            for info, period in zip(infos, periods):
+                if period:
+                    info["period"] = period
+        if var.kind == "time":
+            for info, t in zip(infos, todo):
+                tau = best_step(var.values, t)
+                if tau is not None:
+                    info["step_s"] = tau
+        for info, t in zip(infos, todo):
+            t.scans[var.name] = info
 
 
 def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
-              min_share: float = MIN_SHARE) -> dict:
+              min_share: float = MIN_SHARE, variables: list[Variable] | None = None) -> dict:
     """Rank the laboratory variables by the validation residual power each explains beyond the
     others (module docstring). ``target``: the residual of the rows of ``df``
-    (``Residual.of``).
+    (``Residual.of``); ``variables``: ``laboratory_variables(df)`` when already made.
 
     Returns {"variables": [{variable, explained_nm, explained_fraction, by_axis_nm, p_value,
     columns}, ...] strongest first, "val_rms_nm", "explained_fraction" (all selected
     together), "tried"}."""
-    variables = laboratory_variables(df)
+    variables = laboratory_variables(df) if variables is None else variables
     p0 = target.val_power()
     n_val = max(target.n_val(), 1)
     out = {"val_rms_nm": float(np.sqrt(p0 / n_val) * 1e9), "variables": [],
