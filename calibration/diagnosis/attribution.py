@@ -312,8 +312,8 @@ def peak_periods(v: np.ndarray, jobs: list, nyquist_factor: float = 2.5) -> list
             # the peak between the grid's frequencies (a period off by a fraction of a bin
             # leaves a beat in the residual over the range)
             weights = np.array([1.0 / var[i] for i in cols])
-            total = lambda w, cols=cols, weights=weights: -float(
-                periodogram(xs, Y[:, cols], w, d_omega, 1, mask=inside[:, cols])[0] @ weights)
+            total = lambda w, x=xs, y=Y[:, cols], m=inside[:, cols], dw=d_omega, wt=weights: \
+                -float(periodogram(x, y, w, dw, 1, mask=m)[0] @ wt)
             w0 = omega0 + best * d_omega
             peak = optimize.minimize_scalar(total, bounds=(w0 - d_omega, w0 + d_omega),
                                             method="bounded",
