@@ -27,10 +27,10 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="also print one JSON object")
     p.add_argument("--no-recording", action="store_true", help="skip the Rerun recording")
     p.add_argument("--measured-budget", action="store_true",
-                   help="measure the floor's budget per source on the twin (one twin run and "
+                   help="split the floor's budget per source on the twin (one twin run and "
                         "refit of the complete model per source, as `deltatwin simulate` "
-                        "records it: several times the demo's time) instead of predicting it "
-                        "from the instruments' specifications")
+                        "records it: several times the demo's time); without it the budget is "
+                        "the interferometers' share and the other instruments'")
     p.set_defaults(func=run)
 
 
@@ -39,7 +39,6 @@ def run(args) -> int:
     from deltatwin.calibration.diagnosis.floor import (
         AT_FLOOR,
         budget_lines,
-        predicted_floor_budget,
         record_achievable_floor,
     )
     from deltatwin.calibration.diagnosis.report import write_report
@@ -99,16 +98,6 @@ def run(args) -> int:
             say(f"  missing effect: {d['missing_effect']} -> {d['next_command']}")
         else:
             say("  " + d["unexplained"]["message"])
-    predicted = None
-    if not args.measured_budget:
-        # the floor's sources predicted from the instruments' specifications through the last
-        # model's sensitivities (design/budget.py: no refit, ~1 s); the measured budget (one
-        # twin run and refit per source) is --measured-budget's, and `deltatwin simulate`'s
-        say("predicting the floor's budget from the instruments' specifications")
-        servo = next((e.values.get("angle_std_rad", 0.0) for e in sc.effects
-                      if e.name == "servo_settling"), 0.0)
-        predicted = predicted_floor_budget(fits[-1], df, meta, sc.settings,
-                                           servo_u_rad=float(servo))
     recording = None
     if not args.no_recording:
         say("writing the Rerun recording")
@@ -123,9 +112,8 @@ def run(args) -> int:
                "diagnosed_effects": [d["missing_effect"] for d in diagnoses if d["missing_effect"]],
                "noise_floor_nm": floor, "achievable_floor_nm": achievable,
                "floor_budget_nm": meta["truth"]["floor_budget_nm"],
-               "floor_budget_kind": "measured" if args.measured_budget else "predicted",
-               "predicted_floor_budget_nm": (None if predicted is None else
-                                             predicted.to_dict(orient="records")),
+               "floor_budget_kind": ("per source" if args.measured_budget else
+                                     "interferometers and the rest"),
                "ladder": [{"model": r["model"], "effects": r["effects"],
                            "val_err90_nm": r["val_err90_nm"],
                            "at_floor": r["val_err90_nm"] <= AT_FLOOR * achievable["all"]}
@@ -146,19 +134,13 @@ def run(args) -> int:
           + f" nm (the twin's complete model refitted on these data; at the floor: within "
           f"{AT_FLOOR}x). No model gets below it: the model reads the robot's conditions through "
           "the lab's instruments, whose errors no effect can remove")
-    if predicted is None:
-        print("  the floor's budget, measured on the twin (each source alone, the complete model "
-              "refitted):")
-        for line in budget_lines(meta["truth"]["floor_budget_nm"]):
-            print("  " + line)
-    else:
-        print("  the floor's budget, predicted from the instruments' specifications through the "
-              "last model's sensitivities (--measured-budget measures it on the twin), nm "
-              "(90 %) per axis:")
-        axes = [c[:-7] for c in predicted.columns if c.endswith("_p90_nm")]
-        print(f"    {'source':<44}" + "".join(f"{a:>8}" for a in axes))
-        for row in predicted.to_dict(orient="records"):
-            print(f"    {row['source']:<44.44}" + "".join(f"{row[a + '_p90_nm']:8.1f}"
-                                                        for a in axes))
+    # measured either way: the complete model's refit gives the interferometers' share and the
+    # rest's; --measured-budget splits the rest per source (a twin run and refit per source)
+    print("  the floor's budget, measured on the twin " + (
+        "(each source alone, the complete model refitted):" if args.measured_budget else
+        "(the interferometers' share and the other instruments'; --measured-budget splits it "
+        "per source):"))
+    for line in budget_lines(meta["truth"]["floor_budget_nm"]):
+        print("  " + line)
     print(f"report: {report}" + (f"; recording: {recording}" if recording else ""))
     return 0
