@@ -198,43 +198,54 @@ def _standard(v: np.ndarray, cal: np.ndarray) -> np.ndarray:
 
 
 def periodogram(x: np.ndarray, y: np.ndarray, omega0: float, d_omega: float, count: int,
-                chunk: int = 2 ** 21) -> np.ndarray:
+                chunk: int = 2 ** 21, mask: np.ndarray | None = None) -> np.ndarray:
     """Lomb-Scargle power of the centred series ``y`` sampled at ``x`` at the angular
     frequencies ``omega0 + k d_omega``, k < ``count`` (the classical normalisation of
     ``scipy.signal.lombscargle``, which this reproduces to ~1e-12; every sample's phasor is
     advanced from one frequency to the next by one complex product instead of a sine and a
-    cosine per sample and frequency: several times faster)."""
-    out = np.empty(count)
-    n = x.size
+    cosine per sample and frequency: several times faster). ``y`` (n,) or (n, s): s series
+    on the same abscissae, series j sampled where ``mask[:, j]`` (default everywhere; its
+    other entries are ignored): the phasors, the costly part, are made once for all of them
+    (count, s) instead of once per series."""
+    series = y[:, None] if y.ndim == 1 else y
+    n, n_series = series.shape
+    inside = (np.ones(series.shape) if mask is None else np.asarray(mask, np.float64))
+    series = np.where(inside > 0, series, 0.0)
+    counts = inside.sum(axis=0)                             # samples of each series
+    # interleaved (real, imaginary) weights: one real matrix product gives the real and the
+    # imaginary parts of sum y exp(i omega x) (and of sum exp(2 i omega x) per series)
+    weights_y = np.zeros((2 * n, 2 * n_series))
+    weights_y[0::2, :n_series], weights_y[1::2, n_series:] = series, series
+    weights_1 = np.zeros((2 * n, 2 * n_series))
+    weights_1[0::2, :n_series], weights_1[1::2, n_series:] = inside, inside
+    out = np.empty((count, n_series))
     step = max(chunk // max(n, 1), 1)
-    turn = np.exp(1j * d_omega * x)
+    turn = np.exp(1j * d_omega * x) if count > 1 else None
     for i in range(0, count, step):
         m = min(step, count - i)
         z = np.empty((m, n), complex)
         z[0] = np.exp(1j * (omega0 + i * d_omega) * x)
-        z[1:] = turn
-        np.cumprod(z, axis=0, out=z)
-        c, s = z.real, z.imag
-        cy, sy = c @ y, s @ y
-        z2 = np.sum(z * z, axis=1)                          # sum exp(2 i omega x)
-        c2, s2 = z2.real, z2.imag
+        if m > 1:
+            z[1:] = turn
+            np.cumprod(z, axis=0, out=z)
+        cs = z.view(np.float64) @ weights_y
+        cy, sy = cs[:, :n_series], cs[:, n_series:]
+        np.multiply(z, z, out=z)                            # exp(2 i omega x)
+        cs2 = z.view(np.float64) @ weights_1
+        c2, s2 = cs2[:, :n_series], cs2[:, n_series:]
         two_tau = np.arctan2(s2, c2)                        # 2 omega tau
         ct, st = np.cos(0.5 * two_tau), np.sin(0.5 * two_tau)
         # sum cos^2(omega (x - tau)) = (n + |sum exp(2 i omega x)|) / 2, sin^2: (n - ...) / 2
-        r2 = np.abs(z2)
-        out[i:i + m] = ((ct * cy + st * sy) ** 2 / (n + r2)
-                        + (ct * sy - st * cy) ** 2 / np.maximum(n - r2, 1e-12 * n))
-    return out
+        r2 = np.hypot(c2, s2)
+        out[i:i + m] = ((ct * cy + st * sy) ** 2 / (counts + r2)
+                        + (ct * sy - st * cy) ** 2 / np.maximum(counts - r2, 1e-12 * counts))
+    return out[:, 0] if y.ndim == 1 else out
 
 
-def peak_period(v: np.ndarray, target: Residual, fixed: np.ndarray | None = None,
-                nyquist_factor: float = 2.5) -> float | None:
-    """The period (unit of ``v``) at which the residual (summed over axes, calibration rows,
-    after ``fixed`` columns) varies most, from a Lomb-Scargle periodogram (irregular sampling;
-    readings at the same value of ``v`` averaged first) over periods from the range of ``v``
-    down to 1 / ``nyquist_factor`` of its mean spacing of distinct values (random positions
-    resolve periods below their mean spacing, a campaign's near-regular times do not); None if
-    ``v`` has too few distinct values."""
+def _series(v: np.ndarray, target: Residual, fixed: np.ndarray | None) -> list:
+    """Per axis of ``target``, its residual (calibration rows, after ``fixed`` columns) against
+    ``v``: (distinct values x, mean residual at each, centred); only axes with at least 20
+    distinct values and a varying residual."""
     X = np.zeros((v.size, 0)) if fixed is None else fixed
     per_axis, _ = target.fit(X)
     series = []
@@ -245,30 +256,70 @@ def peak_period(v: np.ndarray, target: Residual, fixed: np.ndarray | None = None
         y = np.bincount(inv, e[c]) / np.bincount(inv)
         if x.size >= 20 and np.std(y) > 0:
             series.append((x, y - y.mean()))
-    if not series:
-        return None
-    span = max(np.ptp(x) for x, _ in series)
-    n_distinct = max(x.size for x, _ in series)
-    d_omega = 2 * np.pi / (OVERSAMPLING * span)
-    omega0 = 2 * np.pi / span
-    count = int((2 * np.pi * nyquist_factor * n_distinct / span - omega0) / d_omega)
-    if count < 1:
-        return None
-    power = np.zeros(count)
-    for x, y in series:
-        # the sample's own origin keeps omega * x small (float64 phases)
-        power += periodogram(x - x[0], y, omega0, d_omega, count) / np.var(y)
-    best = int(np.argmax(power))
-    if power[best] <= 0:
-        return None
-    # the peak between the grid's frequencies (a period off by a fraction of a bin leaves a
-    # beat in the residual over the range)
-    total = lambda w: -sum(periodogram(x - x[0], y, w, d_omega, 1)[0] / np.var(y)
-                           for x, y in series)
-    w0 = omega0 + best * d_omega
-    peak = optimize.minimize_scalar(total, bounds=(w0 - d_omega, w0 + d_omega), method="bounded",
-                                    options={"xatol": 1e-6 * d_omega})
-    return float(2 * np.pi / (peak.x if peak.fun <= -power[best] else w0))
+    return series
+
+
+def peak_period(v: np.ndarray, target: Residual, fixed: np.ndarray | None = None,
+                nyquist_factor: float = 2.5) -> float | None:
+    """The period (unit of ``v``) at which the residual (summed over axes, calibration rows,
+    after ``fixed`` columns) varies most, from a Lomb-Scargle periodogram (irregular sampling;
+    readings at the same value of ``v`` averaged first) over periods from the range of ``v``
+    down to 1 / ``nyquist_factor`` of its mean spacing of distinct values (random positions
+    resolve periods below their mean spacing, a campaign's near-regular times do not); None if
+    ``v`` has too few distinct values."""
+    return peak_periods(v, [(target, fixed)], nyquist_factor)[0]
+
+
+def peak_periods(v: np.ndarray, jobs: list, nyquist_factor: float = 2.5) -> list:
+    """``peak_period`` of each (target, fixed) of ``jobs`` (residuals of the same rows: a
+    fitted model's and the same one step further), their periodograms made in one pass where
+    their frequency grids agree: every axis' series on the union of their abscissae."""
+    todo = {}
+    for j, (target, fixed) in enumerate(jobs):
+        series = _series(v, target, fixed)
+        if not series:
+            continue
+        span = max(np.ptp(x) for x, _ in series)
+        n_distinct = max(x.size for x, _ in series)
+        d_omega = 2 * np.pi / (OVERSAMPLING * span)
+        omega0 = 2 * np.pi / span
+        count = int((2 * np.pi * nyquist_factor * n_distinct / span - omega0) / d_omega)
+        if count >= 1:
+            todo.setdefault((omega0, d_omega, count), []).append((j, series))
+    periods = [None] * len(jobs)
+    for (omega0, d_omega, count), group in todo.items():
+        xu = np.unique(np.concatenate([x for _, series in group for x, _ in series]))
+        n_series = sum(len(series) for _, series in group)
+        Y, inside = np.zeros((xu.size, n_series)), np.zeros((xu.size, n_series), bool)
+        owner, var = [], []
+        for j, series in group:
+            for x, y in series:
+                at = np.searchsorted(xu, x)
+                Y[at, len(owner)], inside[at, len(owner)] = y, True
+                owner.append(j)
+                var.append(np.var(y))
+        # the union's own origin keeps omega * x small (float64 phases)
+        xs = xu - xu[0]
+        every = periodogram(xs, Y, omega0, d_omega, count, mask=inside)
+        for j, _ in group:
+            cols = [i for i, o in enumerate(owner) if o == j]
+            power = np.zeros(count)
+            for i in cols:
+                power += every[:, i] / var[i]
+            best = int(np.argmax(power))
+            if power[best] <= 0:
+                continue
+            # the peak between the grid's frequencies (a period off by a fraction of a bin
+            # leaves a beat in the residual over the range)
+            weights = np.array([1.0 / var[i] for i in cols])
+            total = lambda w, x=xs, y=Y[:, cols], m=inside[:, cols], dw=d_omega, wt=weights: \
+                -float(periodogram(x, y, w, dw, 1, mask=m)[0] @ wt)
+            w0 = omega0 + best * d_omega
+            peak = optimize.minimize_scalar(total, bounds=(w0 - d_omega, w0 + d_omega),
+                                            method="bounded",
+                                            options={"xatol": 1e-6 * d_omega})
+            periods[j] = float(2 * np.pi / (peak.x if peak.fun <= -power[best] else w0))
+    return periods
 
 
 def best_step(t: np.ndarray, target: Residual, fixed: np.ndarray | None = None) -> float | None:
@@ -304,7 +355,7 @@ def best_step(t: np.ndarray, target: Residual, fixed: np.ndarray | None = None) 
 def family_columns(var: Variable, target: Residual) -> tuple[np.ndarray, int, dict]:
     """The regressors of one variable (N,p), the number of scanned parameters, and how they
     were built ({"period": ..., "step_s": ...})."""
-    v, cal = var.values, target.cal
+    v = var.values
     if var.kind == "session":
         t = target.time
         names = list(dict.fromkeys(v))
@@ -312,9 +363,8 @@ def family_columns(var: Variable, target: Residual) -> tuple[np.ndarray, int, di
         return cols / 3600.0, 0, {}
     if var.kind == "sign":
         return v[:, None].astype(np.float64), 0, {}
-    x = _standard(v, cal)
-    poly = np.column_stack([x, x ** 2, x ** 3])
-    info = scans(var, target, poly)
+    poly = _poly(var, target)
+    info = scans(var, target)
     extra = []
     if "period" in info:
         extra += [np.sin(2 * np.pi * v / info["period"]), np.cos(2 * np.pi * v / info["period"])]
@@ -324,38 +374,54 @@ def family_columns(var: Variable, target: Residual) -> tuple[np.ndarray, int, di
     return np.column_stack([poly] + extra) if extra else poly, scanned, info
 
 
-def scans(var: Variable, target: Residual, poly: np.ndarray | None = None) -> dict:
+def _poly(var: Variable, target: Residual) -> np.ndarray:
+    x = _standard(var.values, target.cal)
+    return np.column_stack([x, x ** 2, x ** 3])
+
+
+def scans(var: Variable, target: Residual) -> dict:
     """The scanned parameters of a coordinate's or time's family on ``target`` (once per
     variable, kept on the target): the periodogram's peak period after the cubic polynomial
     and, for time, the best step moment."""
-    if var.name in target.scans:
-        return target.scans[var.name]
-    info = {}
-    if var.kind in ("coordinate", "time"):
-        if poly is None:
-            x = _standard(var.values, target.cal)
-            poly = np.column_stack([x, x ** 2, x ** 3])
-        period = peak_period(var.values, target, poly, 0.5 if var.kind == "time" else 2.5)
-        if period:
-            info["period"] = period
-    if var.kind == "time":
-        tau = best_step(var.values, target)
-        if tau is not None:
-            info["step_s"] = tau
-    target.scans[var.name] = info
-    return info
+    if var.name not in target.scans:
+        scan_together([var], [target])
+    return target.scans[var.name]
+
+
+def scan_together(variables: list[Variable], targets: list[Residual]) -> None:
+    """``scans`` of every variable on every target (residuals of the same rows, e.g. a model's
+    and the same one linear step further), kept on each target: the periodograms of all the
+    targets' axes made in one pass per variable (the costly part of a diagnosis)."""
+    for var in variables:
+        todo = [t for t in targets if var.name not in t.scans]
+        if not todo:
+            continue
+        infos = [{} for _ in todo]
+        if var.kind in ("coordinate", "time"):
+            periods = peak_periods(var.values, [(t, _poly(var, t)) for t in todo],
+                                   0.5 if var.kind == "time" else 2.5)
+            for info, period in zip(infos, periods):
+                if period:
+                    info["period"] = period
+        if var.kind == "time":
+            for info, t in zip(infos, todo):
+                tau = best_step(var.values, t)
+                if tau is not None:
+                    info["step_s"] = tau
+        for info, t in zip(infos, todo):
+            t.scans[var.name] = info
 
 
 def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
-              min_share: float = MIN_SHARE) -> dict:
+              min_share: float = MIN_SHARE, variables: list[Variable] | None = None) -> dict:
     """Rank the laboratory variables by the validation residual power each explains beyond the
     others (module docstring). ``target``: the residual of the rows of ``df``
-    (``Residual.of``).
+    (``Residual.of``); ``variables``: ``laboratory_variables(df)`` when already made.
 
     Returns {"variables": [{variable, explained_nm, explained_fraction, by_axis_nm, p_value,
     columns}, ...] strongest first, "val_rms_nm", "explained_fraction" (all selected
     together), "tried"}."""
-    variables = laboratory_variables(df)
+    variables = laboratory_variables(df) if variables is None else variables
     p0 = target.val_power()
     n_val = max(target.n_val(), 1)
     out = {"val_rms_nm": float(np.sqrt(p0 / n_val) * 1e9), "variables": [],

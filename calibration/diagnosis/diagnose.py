@@ -40,7 +40,11 @@ from deltatwin.calibration.blackbox.features import (
     geometric,
     thermal_preset,
 )
-from deltatwin.calibration.diagnosis.attribution import Residual, attribute
+from deltatwin.calibration.diagnosis.attribution import (
+    Residual,
+    attribute,
+    laboratory_variables,
+)
 from deltatwin.calibration.diagnosis.compare import evaluate
 from deltatwin.calibration.diagnosis.conditions import (
     extrapolated_variables,
@@ -263,14 +267,16 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
 
 
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
-                        form: bool | list = True) -> dict:
+                        form: bool | list = True, target: Residual | None = None,
+                        variables: list | None = None) -> dict:
     """What the residual (N,3) m still depends on: the laboratory variables ranked by the
     validation power each explains beyond the others (attribution.py) and, with ``form``, the
     proposed form of the missing term (term_form.py; a list: the form computed already, on a
     physics model jointly with its directions, model_form.py); with the message that says
-    both."""
-    target = Residual.of(df, res, cal, val)
-    att = attribute(df, target)
+    both. ``target`` (``Residual.of`` the same) and ``variables`` (``laboratory_variables(df)``):
+    when already made (their scans too)."""
+    target = target or Residual.of(df, res, cal, val)
+    att = attribute(df, target, variables=variables)
     out = {"depends_on": att["variables"], "explained_fraction": att["explained_fraction"],
            "val_rms_nm": att["val_rms_nm"]}
     if isinstance(form, list):
@@ -309,7 +315,11 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     # the missing term's form fitted jointly with the model's directions: what a library
     # candidate must beat to be claimed, and the form proposed when none is
     JS = fit.jacobian_ * fit.model_.scales @ fit.identified_directions_
-    form, G, generic_explained = joint_form(fit, Jm, JS, r0)
+    # the model's residual, whose dependence is reported below: its periodograms are made in
+    # the same pass as the joint form's (the same rows, one pass instead of two)
+    variables = laboratory_variables(meas.df)
+    own = Residual.of(meas.df, fit.residual_, cal, meas.val)
+    form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, scan_with=own)
     generic = (_projected(meas, cal, G), generic_explained, r0)
     ranking = []
     for name in candidates:
@@ -346,7 +356,8 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
                             "message": extrapolation_message(extrapolated)}
     best = next((c for c in ranking if c["significant"]), None)
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
-                                     form=form if best is None else False)
+                                     form=form if best is None else False, target=own,
+                                     variables=variables)
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]

@@ -24,7 +24,11 @@ from __future__ import annotations
 import numpy as np
 from scipy import special
 
-from deltatwin.calibration.diagnosis.attribution import Residual, laboratory_variables
+from deltatwin.calibration.diagnosis.attribution import (
+    Residual,
+    laboratory_variables,
+    scan_together,
+)
 from deltatwin.calibration.diagnosis.term_form import (
     ALPHA,
     MAX_TERMS,
@@ -177,11 +181,14 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
 
 
 def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float = ALPHA,
-               min_share: float = MIN_SHARE, max_terms: int = MAX_TERMS):
+               min_share: float = MIN_SHARE, max_terms: int = MAX_TERMS,
+               variables: list | None = None, scan_with: Residual | None = None):
     """The missing term's form on a fitted physics model (module docstring). ``Jm`` (n, k_m):
     the model's identified directions on the calibration readings (session means out), ``JS``
     (N,3,k_m) the same directions on every row, ``r0`` (n,) the model's calibration residual
-    (session means out).
+    (session means out). ``variables``: ``laboratory_variables`` of the fit's rows when already
+    made; ``scan_with``: another residual of the same rows (the model's own, for attribution)
+    whose periodograms are made in the same pass as this one's (attribution.scan_together).
 
     Returns (form, G, explained): the form as term_form.sparse_form's ([{axis, terms,
     explained_fraction, val_rms_nm, val_rms_after_nm}], relative to the residual the model's
@@ -195,7 +202,10 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     empty = [], np.zeros(meas.y.shape + (0,)), 0.0
     if p0 <= 0 or not target.axes:
         return empty
-    candidates = candidate_library(laboratory_variables(meas.df), target) + load_candidates(fit)
+    variables = laboratory_variables(meas.df) if variables is None else variables
+    if scan_with is not None:
+        scan_together(variables, [target, scan_with])
+    candidates = candidate_library(variables, target) + load_candidates(fit)
     axes = [k for k, _, _ in target.axes]
     pairs = []                        # (candidate, axis, C (N,3,c), P, D)
     for cand in candidates:

@@ -151,6 +151,23 @@ def test_periodogram_is_scipys_lombscargle():
                                rtol=1e-8, atol=1e-10 * y.size)
 
 
+
+def test_periodogram_of_several_series_on_their_union_is_each_ones():
+    """Series on different abscissae in one pass (the union, a mask per series) give each
+    series' own periodogram (scipy's), with the union's origin instead of the series' own."""
+    from scipy import signal
+
+    rng = np.random.default_rng(1)
+    xu = np.sort(rng.uniform(0, 3, 300))
+    inside = np.stack([rng.uniform(size=300) < f for f in (1.0, 0.7, 0.4)], axis=1)
+    Y = rng.standard_normal((300, 3))
+    w = 0.5 + 0.1 * np.arange(2000)
+    both = periodogram(xu, Y, 0.5, 0.1, 2000, chunk=4096, mask=inside)
+    for j in range(3):
+        x, y = xu[inside[:, j]], Y[inside[:, j], j]
+        np.testing.assert_allclose(both[:, j], signal.lombscargle(x, y, w), rtol=1e-8,
+                                   atol=1e-10 * y.size)
+
 USER_FILE = '''
 import numpy as np
 from deltatwin.twin.effects import Effect, Parameter, shift_reading
