@@ -154,13 +154,14 @@ class CSession:
     def conditions(self, values: dict) -> _Conditions:
         """The C conditions of one point (missing values as in the numpy evaluator)."""
         c = _Conditions.from_buffer_copy(self._ref)
+        one = lambda k, size: np.broadcast_to(np.asarray(values[k], float).reshape(-1), (size,))
         for k, name in enumerate(ce.CONDITIONS):
             if name in values:
-                c.T_C[k] = float(values[name])
+                c.T_C[k] = one(name, 1)[0]
         if "pressure_Pa" in values:
-            c.pressure_Pa = float(values["pressure_Pa"])
+            c.pressure_Pa = one("pressure_Pa", 1)[0]
         if "currents_A" in values:
-            c.currents_A[:] = np.broadcast_to(np.asarray(values["currents_A"], float), (3,))
+            c.currents_A[:] = one("currents_A", 3)
         return c
 
     def forward(self, q, cond, pose: _Pose | None = None) -> np.ndarray:
