@@ -10,6 +10,7 @@
 #define CLOSURE_TOL_M 1e-12             /* largest |rod length - L| accepted */
 #define MAX_ITER 50
 #define N_STATICS 42                    /* preload (6) and compliance (36) per node */
+#define FIXED_SIZE 127                  /* the block up to its optics steps */
 static const double MU0 = 4e-7 * 3.14159265358979323846;
 static const double PI = 3.14159265358979323846;
 
@@ -105,7 +106,7 @@ int dtc_model_init(dtc_model *m, const double *block, size_t n)
     double head[3], flag[1];
     size_t nodes;
     int k;
-    if (n < 3 || block[0] != DTC_MAGIC || block[1] != DTC_LAYOUT_VERSION || block[2] != (double)n)
+    if (n < FIXED_SIZE || block[0] != DTC_MAGIC || block[1] != DTC_LAYOUT_VERSION || block[2] != (double)n)
         return DTC_ERR_BLOCK;
     at += 3;
     take(&at, &m->T_ref, 1);
