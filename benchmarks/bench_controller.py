@@ -123,11 +123,11 @@ def _scenario(name, scale, n_points, library, driver, d: Path) -> list[bool]:
             # a fresh copy of the previous decision's pose each call (included in the time)
             "c_warm": _per_point_us(lambda i: c_session.inverse(
                 target[i] + STEP_M, c_cond[i], q0=c_cold[i]["q"],
-                pose=controller_c._Pose.from_buffer_copy(c_poses[i])), k),
+                pose=c_session.new_pose(c_poses[i])), k),
         }
     alone = _in_c(driver, controller_c.block_path(path), zero, target, cond, d, 20)
     c_warm = [c_session.inverse(target[i] + STEP_M, c_cond[i], q0=c_cold[i]["q"],
-                                pose=controller_c._Pose.from_buffer_copy(c_poses[i]))
+                                pose=c_session.new_pose(c_poses[i]))
               for i in range(k)]
     q_c = np.array([r["q"] for r in c_cold])
     forward = max(np.abs(c_session.forward(meas.points.q[r], c_cond[i])

@@ -185,5 +185,6 @@ class CSession:
                 "residual_m": self._resid.value, "iterations": self._iters.value}
 
     @staticmethod
-    def new_pose() -> _Pose:
-        return _Pose()
+    def new_pose(like: _Pose | None = None) -> _Pose:
+        """A pose for ``inverse``: empty (the closed-form start), or a copy of ``like``."""
+        return _Pose() if like is None else _Pose.from_buffer_copy(like)
