@@ -17,6 +17,9 @@ What the file holds (SI units throughout; docs/compensation.md lists every field
   the model's optics steps in order;
 * ``evaluation``: the steps in words.
 
+Beside it, ``FILE.bin``: the same contents as the flat float64 block the portable C evaluator
+(controller_evaluator.c) loads; controller_c.py defines its layout.
+
 Only the library's model effects are exported; a model holding another effect (a researcher's
 own) is refused with its name: its form is code the evaluator does not have.
 """
@@ -30,10 +33,11 @@ import numpy as np
 from numpy.polynomial import chebyshev
 
 from deltatwin.calibration.errors import FitError
+from deltatwin.calibration.physics import controller_c
 from deltatwin.calibration.physics import controller_evaluator as ce
 from deltatwin.calibration.physics.measurements import TEMPERATURE_WINDOW_S, Measurements
 from deltatwin.calibration.physics.model import PhysicsModel
-from deltatwin.files import atomic_write_text
+from deltatwin.files import atomic_write, atomic_write_text
 from deltatwin.models.geometry import PART_TEMPERATURES, build_geometry
 from deltatwin.models.kinematics import forward
 from deltatwin.models.layout import FOLD_MIRROR_Z, INSTRUMENT_SITES, magnet_positions
@@ -206,13 +210,19 @@ def _plain(v):
 
 
 def write_controller_model(model: PhysicsModel, path, sensors=None, source_path=None) -> Path:
-    """Write the controller file of ``model`` (atomically); ``source_path``: the fitted TOML
-    it came from (named, with its sha256)."""
+    """Write the controller file of ``model`` (atomically) and, beside it (``FILE.bin``), the
+    same contents as the C evaluator's coefficient block (controller_c.py); ``source_path``:
+    the fitted TOML it came from (named, with its sha256)."""
+    block = controller_c.block_path(path)
+    if block == Path(path):
+        raise ValueError(f"{path}: a controller file must not end in .bin (its C coefficient "
+                         "block is written beside it as NAME.bin)")
     source = {}
     if source_path is not None:
         source = {"model_file": str(source_path),
                   "sha256": hashlib.sha256(Path(source_path).read_bytes()).hexdigest()}
     doc = controller_model(model, sensors, source)
+    atomic_write(block, lambda tmp: controller_c.coefficient_block(doc).tofile(tmp))
     return atomic_write_text(path, json.dumps(doc, separators=(",", ":")) + "\n")
 
 

@@ -66,7 +66,8 @@ def register(sub) -> None:
     p.add_argument("--controller", type=Path, default=None, metavar="FILE.json",
                    help="also write a physics model as the file a real-time controller loads "
                         "(documented JSON; calibration/physics/controller_evaluator.py, numpy "
-                        "only, evaluates and inverts it; docs/compensation.md)")
+                        "only, evaluates and inverts it; beside it FILE.bin, the same model "
+                        "for the portable C evaluator; docs/compensation.md)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON line")
     p.set_defaults(func=run)
 

@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 
 from deltatwin.calibration.physics import controller_evaluator
+from deltatwin.calibration.physics.controller_c import coefficient_block
 from deltatwin.cli import main
 from deltatwin.files import toml_text
 from deltatwin.twin.dataset import write_dataset
@@ -52,6 +53,8 @@ def test_true_model_compensates_to_the_noise(lab, capsys):
     exported = controller_evaluator.load(lab / "controller.json")     # the controller's file
     assert exported["source"]["effects"] == MODEL_EFFECTS
     assert [s["kind"] for s in exported["optics"]["steps"]] == ["loop_drift", "air_refraction"]
+    # beside it, the same model as the C evaluator's block
+    assert (lab / "controller.bin").read_bytes() == coefficient_block(exported).tobytes()
     assert rep["model"]["kind"] == "physics" and rep["n_not_converged"] == 0
     df = pd.read_parquet(lab / "comp.parquet")
     assert len(df) == 2 * TARGETS and list(df["command"][:2]) == ["nominal", "model"]
