@@ -122,6 +122,14 @@ def _servo_floor(sc, compensated: Path) -> None:
     print("  servo settling floor (1.645 sigma of J dq over the targets, angle std "
           f"{servo[0].angle_std_rad:g} rad): " + " / ".join(f"{1.645 * v * 1e9:.1f}" for v in sd)
           + " nm (x / y / z)")
+    # the session's one zero settle is a constant for every target: what the physics model
+    # would reach with a zero free of it is its err90 about the session's mean error
+    err = df.loc[df["command"] == "model", [f"error_{a}_nm" for a in "xyz"]].to_numpy()
+    mean = err.mean(axis=0)
+    about = np.percentile(np.abs(err - mean), 90, axis=0)
+    print("  physics achieved: mean error " + " / ".join(f"{v:.1f}" for v in mean)
+          + " nm (the zero's settle draw, sigma ~ floor / 1.645, plus the model's offset); err90 "
+          "about that mean " + " / ".join(f"{v:.1f}" for v in about) + " nm (x / y / z)")
 
 
 def _median_us(f, repeat: int) -> float:
