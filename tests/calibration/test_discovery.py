@@ -161,3 +161,41 @@ def test_the_ladder_keeps_the_deeper_basin_of_two_starts(tmp_path):
     assert fit.start_label_ == "previous fit" and costs["previous fit"] < 0.8 * costs["priors"]
     leak = fit.model_.values()["sensor_contact"]["leak_W_per_K"]
     assert leak > 0, leak
+
+
+def _ar1(rng, n: int, rho: float) -> np.ndarray:
+    e = np.empty(n)
+    e[0] = rng.standard_normal()
+    for i in range(1, n):
+        e[i] = rho * e[i - 1] + np.sqrt(1 - rho ** 2) * rng.standard_normal()
+    return e
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_the_validation_test_holds_its_level_on_correlated_residuals(rho):
+    """Under the null (a change unrelated to the residual, both slow where rho = 0.9) the
+    validation p-value is not small more often than its level allows: the effective number of
+    rows guards against the spurious regression of two slow series."""
+    rng = np.random.default_rng(15)
+    n, val = 300, np.ones(300, bool)
+    p = []
+    for _ in range(400):
+        before = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
+        change = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
+        p.append(diagnosis._validation_p(before, before - change, val))
+    p = np.array(p)
+    assert np.mean(p < 0.05) <= 0.08
+    assert np.mean(p < 0.01) <= 0.025
+
+
+def test_the_validation_test_finds_a_change_that_explains_the_residual():
+    """A change that is the residual's structure, leaving white noise, is confirmed (tiny p);
+    the same change with the opposite sign, or none, is not."""
+    rng = np.random.default_rng(16)
+    t = np.linspace(0, 1, 300)
+    change = np.column_stack([np.sin(3 * t), t ** 2, np.cos(2 * t)]) * 2e-8
+    before = change + rng.standard_normal((300, 3)) * 5e-9
+    val = np.ones(300, bool)
+    assert diagnosis._validation_p(before, before - change, val) < 1e-6
+    assert diagnosis._validation_p(before, before + change, val) == 1.0
+    assert diagnosis._validation_p(before, before, val) == 1.0
