@@ -199,3 +199,25 @@ def test_the_validation_test_finds_a_change_that_explains_the_residual():
     assert diagnosis._validation_p(before, before - change, val) < 1e-6
     assert diagnosis._validation_p(before, before + change, val) == 1.0
     assert diagnosis._validation_p(before, before, val) == 1.0
+
+
+def test_a_candidate_the_calibration_rows_barely_see_is_claimed_when_validation_confirms_it():
+    """Calibration F test p = 0.0025 and the BIC rising (2 directions): not enough alone. When
+    the change closes the gap to the floor on the validation rows and leaves noise there, the
+    two tests combined claim it; with the model already at the floor (no gap), or a change
+    that leaves the residual as it was, nothing is claimed."""
+    rng = np.random.default_rng(17)
+    t = np.linspace(0, 1, 300)
+    change = np.column_stack([t ** 2, 0.3 * t, np.sin(2 * t)]) * 1e-7
+    noise = rng.standard_normal((300, 3)) * 1e-8
+    val = np.ones(300, bool)
+    floor_nm = diagnosis.figures_nm(noise, val)["all"]["err_p90"]
+    args = (3002.0, 2990.0, 2, 3000, 2990)
+    v = diagnosis._verdict(*args, change + noise, noise, val, floor_nm)
+    assert 1e-3 < v["p_value"] < 1e-2 and v["delta_bic"] > 0
+    assert v["gap_closed"] > 0.9 and v["p_combined"] < 1e-3 and v["significant"]
+    assert not diagnosis._verdict(*args, change + noise, noise, val, None)["significant"]
+    at_floor = diagnosis._verdict(*args, noise, noise - 0.1 * change, val, floor_nm)
+    assert at_floor["gap_closed"] == 0 and not at_floor["significant"]
+    useless = diagnosis._verdict(*args, change + noise, change + noise, val, floor_nm)
+    assert not useless["significant"]
