@@ -162,3 +162,63 @@ def test_the_ladder_keeps_the_deeper_basin_of_two_starts(tmp_path):
     assert fit.start_label_ == "previous fit" and costs["previous fit"] < 0.8 * costs["priors"]
     leak = fit.model_.values()["sensor_contact"]["leak_W_per_K"]
     assert leak > 0, leak
+
+
+def _ar1(rng, n: int, rho: float) -> np.ndarray:
+    e = np.empty(n)
+    e[0] = rng.standard_normal()
+    for i in range(1, n):
+        e[i] = rho * e[i - 1] + np.sqrt(1 - rho ** 2) * rng.standard_normal()
+    return e
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_the_validation_test_holds_its_level_on_correlated_residuals(rho):
+    """Under the null (a change unrelated to the residual, both slow where rho = 0.9) the
+    validation p-value is not small more often than its level allows: the effective number of
+    rows guards against the spurious regression of two slow series."""
+    rng = np.random.default_rng(15)
+    n, val = 300, np.ones(300, bool)
+    p = []
+    for _ in range(400):
+        before = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
+        change = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
+        p.append(diagnosis._validation_p(before, before - change, val))
+    p = np.array(p)
+    assert np.mean(p < 0.05) <= 0.08
+    assert np.mean(p < 0.01) <= 0.025
+
+
+def test_the_validation_test_finds_a_change_that_explains_the_residual():
+    """A change that is the residual's structure, leaving white noise, is confirmed (tiny p);
+    the same change with the opposite sign, or none, is not."""
+    rng = np.random.default_rng(16)
+    t = np.linspace(0, 1, 300)
+    change = np.column_stack([np.sin(3 * t), t ** 2, np.cos(2 * t)]) * 2e-8
+    before = change + rng.standard_normal((300, 3)) * 5e-9
+    val = np.ones(300, bool)
+    assert diagnosis._validation_p(before, before - change, val) < 1e-6
+    assert diagnosis._validation_p(before, before + change, val) == 1.0
+    assert diagnosis._validation_p(before, before, val) == 1.0
+
+
+def test_a_candidate_the_calibration_rows_barely_see_is_claimed_when_validation_confirms_it():
+    """Calibration F test p = 0.0025 and the BIC rising (2 directions): not enough alone. When
+    the change closes the gap to the floor on the validation rows and leaves noise there, the
+    two tests combined claim it; with the model already at the floor (no gap), or a change
+    that leaves the residual as it was, nothing is claimed."""
+    rng = np.random.default_rng(17)
+    t = np.linspace(0, 1, 300)
+    change = np.column_stack([t ** 2, 0.3 * t, np.sin(2 * t)]) * 1e-7
+    noise = rng.standard_normal((300, 3)) * 1e-8
+    val = np.ones(300, bool)
+    floor_nm = diagnosis.figures_nm(noise, val)["all"]["err_p90"]
+    args = (3002.0, 2990.0, 2, 3000, 2990)
+    v = diagnosis._verdict(*args, change + noise, noise, val, floor_nm)
+    assert 1e-3 < v["p_value"] < 1e-2 and v["delta_bic"] > 0
+    assert v["gap_closed"] > 0.9 and v["p_combined"] < 1e-3 and v["significant"]
+    assert not diagnosis._verdict(*args, change + noise, noise, val, None)["significant"]
+    at_floor = diagnosis._verdict(*args, noise, noise - 0.1 * change, val, floor_nm)
+    assert at_floor["gap_closed"] == 0 and not at_floor["significant"]
+    useless = diagnosis._verdict(*args, change + noise, change + noise, val, floor_nm)
+    assert not useless["significant"]
