@@ -54,6 +54,16 @@ FORCE_ORDERS = ("papers", "interleaved")   # the cal grid then the val grid, or 
 SESSION_KEYS = {"name", "axes", "cal", "val"}
 
 
+# The laboratory's error sources beyond the robot, which Scenario.with_perfect can make perfect:
+# what each is.
+ERROR_SOURCES = {"interferometers": "the interferometers' noise and resolution (and the "
+                                    "autocollimators' of the cosine correction)",
+                 "thermometers": "the thermometers' noise and resolution",
+                 "air": "the air's pressure and humidity: their unrecorded wander, or the "
+                        "barometer's and hygrometer's noise where the lab records them",
+                 "servo_settling": "where the motors' controllers settled"}
+
+
 class ScenarioError(ValueError):
     """A scenario file that cannot be used; the message names file, key and reason."""
 
@@ -269,6 +279,47 @@ class Scenario:
             raise ScenarioError(f"{f} [sensors]: no sensor; every campaign scans its "
                                 "thermometers: name at least one (sensor = \"part\")")
         return sc
+
+    # -- the laboratory's error sources -------------------------------------------------------
+    def sources(self) -> list[str]:
+        """The laboratory's error sources (keys of ERROR_SOURCES) present in this scenario: the
+        interferometers and thermometers always, the air where its index moves (air_refraction),
+        the servos where they settle (servo_settling)."""
+        names = {e.name for e in self.effects}
+        return [s for s in ERROR_SOURCES if s not in ("air", "servo_settling") or
+                {"air": "air_refraction", "servo_settling": "servo_settling"}[s] in names]
+
+    def with_perfect(self, sources) -> Scenario:
+        """This scenario with the laboratory's error ``sources`` (keys of ERROR_SOURCES) made
+        perfect: the same seed, timeline and random draws (the twin multiplies a perfect
+        instrument's draws by zero), so two runs differ by those sources' errors alone. A
+        source the scenario lacks is ignored; an unknown one raises ScenarioError."""
+        unknown = set(sources) - set(ERROR_SOURCES)
+        if unknown:
+            raise ScenarioError(f"{self.name}: unknown error source(s) {sorted(unknown)}; "
+                                f"known: {list(ERROR_SOURCES)}")
+        s = self.settings
+        change = {}
+        if "interferometers" in sources:
+            change.update(noise_floor_m=0.0, resolution_m=0.0, ac_noise_rad=0.0,
+                          ac_resolution_rad=0.0)
+        if "thermometers" in sources:
+            change.update(T_noise_C=0.0, T_resolution_C=0.0)
+        if "air" in sources:
+            change.update(barometer_noise_Pa=0.0, barometer_resolution_Pa=0.0,
+                          hygrometer_noise_pct=0.0, hygrometer_resolution_pct=0.0)
+        effects = []
+        for e in self.effects:
+            quiet = {}
+            if e.name == "room_climate" and "air" in sources:
+                # what the lab does not record stands still at its mean
+                quiet.update({} if s.barometer else {"pressure_std_Pa": 0.0})
+                quiet.update({} if s.hygrometer else {"vapour_std_Pa": 0.0})
+            if e.name == "servo_settling" and "servo_settling" in sources:
+                quiet["angle_std_rad"] = 0.0
+            effects.append(make_effect(type(e), {**e.values, **quiet}) if quiet else e)
+        return dataclasses.replace(self, settings=dataclasses.replace(s, **change),
+                                   effects=effects)
 
     # -- the campaign -------------------------------------------------------------------------
     def plan(self, rng, scale: float | None = None) -> Plan:

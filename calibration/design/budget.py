@@ -224,34 +224,21 @@ def fixed_robot(sc, robot_seed: int):
 
 def without_random_errors(sc):
     """The scenario read without what no model predicts: the interferometers' reading noise
-    and the servos' random settling switched off (every other draw where it was: the same
-    campaign, for the truth a fitted model is judged against)."""
-    sc = _switched(sc, "interferometer reading")
-    return _switched(sc, "servo settling") or sc
+    and resolution and the servos' random settling switched off (every other draw where it was:
+    the same campaign, for the truth a fitted model is judged against)."""
+    return sc.with_perfect(["interferometers", "servo_settling"])
 
 
-def _switched(sc, source: str):
-    """The scenario with one noise source changed on the twin: the interferometers' reading
-    noise, the thermometers' noise or the servos' settling switched off (None: the source is
-    not in the scenario). Every random draw stays where it was (the twin multiplies its draws by the
-    setting), so the difference of two campaigns of one seed is the source's part alone."""
-    from deltatwin.twin.effects import make_effect
+def thermometer_u_K(settings) -> float:
+    """A thermometer's standard uncertainty per scan (K): its noise and its resolution's
+    rounding (step^2 / 12), what Scenario.with_perfect(["thermometers"]) removes."""
+    return float(np.hypot(settings.T_noise_C, settings.T_resolution_C / np.sqrt(12)))
 
-    def effect_changed(name, key, value):
-        if not any(e.name == name for e in sc.effects):
-            return None
-        effects = [make_effect(type(e), {**e.values, key: value(e.values[key])})
-                   if e.name == name else e for e in sc.effects]
-        return dataclasses.replace(sc, effects=effects)
 
-    if source == "interferometer reading":
-        return dataclasses.replace(sc, settings=dataclasses.replace(sc.settings,
-                                                                    noise_floor_m=0.0))
-    if source == "thermometers":
-        return dataclasses.replace(sc, settings=dataclasses.replace(sc.settings, T_noise_C=0.0))
-    if source == "servo settling":
-        return effect_changed("servo_settling", "angle_std_rad", lambda v: 0.0)
-    raise ValueError(f"no switch for the noise source {source!r}")
+# the noise lines the Monte Carlo measures on the twin: the scenario's error source switched
+# perfect (twin/scenario.py ERROR_SOURCES) for each
+SWITCHED = {"interferometer reading": "interferometers", "thermometers": "thermometers",
+            "servo settling": "servo_settling"}
 
 
 def _source_errors(sc, robot_seed, scale, df, meta, fit, pressure_u_Pa, rng) -> dict:
@@ -270,10 +257,9 @@ def _source_errors(sc, robot_seed, scale, df, meta, fit, pressure_u_Pa, rng) -> 
             e = _pressure_change(fit, len(df), lambda n: pressure_u_Pa * rng.standard_normal(n))
             out[source] = zero_centred(meas, e)
             continue
-        other = _switched(sc, source)
-        if other is None:
+        if SWITCHED[source] not in sc.sources():
             continue
-        df2, _ = fixed_robot(other, robot_seed).simulate(scale)
+        df2, _ = fixed_robot(sc.with_perfect([SWITCHED[source]]), robot_seed).simulate(scale)
         if source == "thermometers":
             sensors = [c for c in df.columns if c.startswith("T_") and c.endswith("_C")]
             clean = df.copy()
@@ -347,7 +333,7 @@ def budget_monte_carlo(scenario, effects, campaigns: int, scale: float, seed: in
                       if e.name == "servo_settling"), 0.0)
         readings = sc.campaign.get("readings", 1) if sc.campaign["kind"] == "force" else 1
         b = uncertainty_budget(fit, df, meta, sc.settings.noise_floor_m / np.sqrt(readings),
-                               sc.settings.T_noise_C, servo, pressure_u_Pa, rng)
+                               thermometer_u_K(sc.settings), servo, pressure_u_Pa, rng)
         read = fit.measurements_.group >= 0
         sampling = {name: _figures(np.where(read, u, np.nan), read)["all"]
                     for _, name, u in parameter_lines(fit, parameter_covariance(fit, False))}

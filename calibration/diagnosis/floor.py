@@ -30,8 +30,6 @@ derivative with respect to each measured input, GUM-style).
 """
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
@@ -39,14 +37,12 @@ from deltatwin.calibration.physics.measurements import measurements
 from deltatwin.calibration.physics.model import _projected, model_effects
 from deltatwin.twin.effects import LIBRARY
 from deltatwin.twin.instruments.optics import AXES
+from deltatwin.twin.scenario import ERROR_SOURCES
 
-# the floor's sources in the twin: what each is, as a budget line's name
-SOURCES = {"interferometer_noise_nm": "interferometers' noise and resolution (and the "
-                                      "autocollimators' of the cosine correction)",
-           "thermometers_nm": "thermometers' noise and resolution through their levers",
-           "air_nm": "the air's pressure and humidity: their unrecorded wander, or the "
-                     "barometer's and hygrometer's noise where the lab records them",
-           "servo_settling_nm": "where the motors' controllers settled"}
+# the floor's sources in the twin (twin/scenario.py ERROR_SOURCES), by their budget line's name
+SOURCE_LINE = {"interferometers": "interferometer_noise_nm", "thermometers": "thermometers_nm",
+               "air": "air_nm", "servo_settling": "servo_settling_nm"}
+SOURCES = {SOURCE_LINE[k]: v for k, v in ERROR_SOURCES.items()}
 REMAINDER = "thermal_state_nm"   # what perfect instruments leave
 # the sum of the sources in quadrature is within this fraction of the achievable floor on the
 # shipped papers' scenarios and the hidden ones (tests/calibration/test_floor_budget.py)
@@ -109,43 +105,6 @@ def achievable_floor(df, meta: dict, noise_nm: float = 5.0, fit: PhysicsFit | No
             "calibration_rms_nm": getattr(fit, "start_costs_", {})}
 
 
-def _perfect(scenario, sources):
-    """The scenario with the floor's ``sources`` (keys of SOURCES) made perfect: the same seed,
-    timeline and draws (a perfect instrument multiplies its draws by zero)."""
-    s = scenario.settings
-    change, effects = {}, []
-    if "interferometer_noise_nm" in sources:
-        change.update(noise_floor_m=0.0, resolution_m=0.0, ac_noise_rad=0.0,
-                      ac_resolution_rad=0.0)
-    if "thermometers_nm" in sources:
-        change.update(T_noise_C=0.0, T_resolution_C=0.0)
-    if "air_nm" in sources:
-        change.update(barometer_noise_Pa=0.0, barometer_resolution_Pa=0.0,
-                      hygrometer_noise_pct=0.0, hygrometer_resolution_pct=0.0)
-    for e in scenario.effects:
-        quiet = {}
-        if e.name == "room_climate" and "air_nm" in sources:
-            # what the lab does not record stands still at its mean
-            quiet.update({} if s.barometer else {"pressure_std_Pa": 0.0})
-            quiet.update({} if s.hygrometer else {"vapour_std_Pa": 0.0})
-        if e.name == "servo_settling" and "servo_settling_nm" in sources:
-            quiet["angle_std_rad"] = 0.0
-        effects.append(type(e)(where=e.name, **{**e.values, **quiet}) if quiet else e)
-    return dataclasses.replace(scenario, settings=dataclasses.replace(s, **change),
-                               effects=effects)
-
-
-def _sources(scenario) -> list[str]:
-    """The floor's sources present in the scenario's laboratory."""
-    names = {e.name for e in scenario.effects}
-    out = ["interferometer_noise_nm", "thermometers_nm"]
-    if "air_refraction" in names:          # without it the air's index does not move
-        out.append("air_nm")
-    if "servo_settling" in names:
-        out.append("servo_settling_nm")
-    return out
-
-
 def _refit_change(fit: PhysicsFit, delta: np.ndarray) -> np.ndarray:
     """(N,3) m: what a change ``delta`` (N,3) m of the model's prediction leaves once the fit
     has taken up what it can (its identified directions, each session's zero), to first order."""
@@ -188,12 +147,12 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
     floor}, "sources": {source_nm: what it is}}``. ``full``: the true model's fit
     on ``df`` when already made."""
     full = full or true_fit(df, meta)
-    sources = _sources(scenario)
+    present = scenario.sources()
+    sources = [SOURCE_LINE[s] for s in present]
     floors = {}
     quiet_df = None
-    for name in [REMAINDER, *sources]:
-        off = [s for s in sources if s != name]
-        d, m = _perfect(scenario, off).simulate(scale)
+    for name, source in [(REMAINDER, None), *zip(sources, present)]:
+        d, m = scenario.with_perfect([s for s in present if s != source]).simulate(scale)
         if not np.array_equal(d["t_s"].to_numpy(), df["t_s"].to_numpy()):
             raise RuntimeError(f"floor budget: the {name} run's timeline differs from the "
                                "dataset's (a source that is not a pure draw?)")
@@ -233,11 +192,11 @@ def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
     as an offset through each lever (an upper bound: the model's smoothing averages white
     noise); the pressure's is the barometer's where the data record it, else
     ``pressure_u_Pa`` (default 80 Pa, the papers' unrecorded wander)."""
-    from deltatwin.calibration.design.budget import uncertainty_budget
+    from deltatwin.calibration.design.budget import thermometer_u_K, uncertainty_budget
     from deltatwin.twin.instruments.simulated import InstrumentSettings
 
     s = settings or InstrumentSettings()
-    T_u = float(np.hypot(s.T_noise_C, s.T_resolution_C / np.sqrt(12)))
+    T_u = thermometer_u_K(s)
     if pressure_u_Pa is None:
         pressure_u_Pa = (float(np.hypot(s.barometer_noise_Pa, s.barometer_resolution_Pa
                                         / np.sqrt(12))) if "p_Pa" in df else 80.0)
