@@ -166,17 +166,21 @@ def test_jacobian_matches_central_differences_at_the_corrected_geometry(scenario
         assert error < max(1e-7 * size, PATH_ROUND_OFF_M), (label, error / size, size)
 
 
-def test_richardson_keeps_its_first_stencil_only_when_the_differences_agree():
-    """Four evaluations for a function linear over the step (or whose differences are round-off
-    below ``roundoff``); a curved one is still halved until the estimate settles."""
-    calls = []
-
+def _counting(calls: list):
+    """A wrapper that records each offset a Richardson derivative evaluates in ``calls``."""
     def counted(f):
         def evaluate(offset):
             calls.append(offset)
             return (f(offset),)
         return evaluate
+    return counted
 
+
+def test_richardson_keeps_its_first_stencil_only_when_the_differences_agree():
+    """Four evaluations for a function linear over the step (or whose differences are round-off
+    below ``roundoff``); a curved one is still halved until the estimate settles."""
+    calls = []
+    counted = _counting(calls)
     x = np.linspace(-1.0, 1.0, 7)
     (d,) = richardson_derivative(counted(lambda h: 3e-9 * (1.0 + x) * h + 0.3), 1.0)
     assert len(calls) == 4 and np.allclose(d, 3e-9 * (1.0 + x), rtol=1e-6, atol=0)
@@ -198,13 +202,7 @@ def test_richardson_with_the_value_at_zero_keeps_three_evaluations_only_when_the
     evaluations (f(h), f(-h), f(2h)) and its derivative is exact; a curved one is still
     halved until the estimate settles."""
     calls = []
-
-    def counted(f):
-        def evaluate(offset):
-            calls.append(offset)
-            return (f(offset),)
-        return evaluate
-
+    counted = _counting(calls)
     x = np.linspace(-1.0, 1.0, 7)
     quadratic = lambda h: 3e-9 * (1.0 + x) * h + 2e-9 * x * h ** 2 + 0.3  # noqa: E731
     (d,) = richardson_derivative(counted(quadratic), 1.0, at_zero=(quadratic(0.0),))
