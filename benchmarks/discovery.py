@@ -145,6 +145,11 @@ def main() -> None:
                     "(pickle) to study its failures")
     ap.add_argument("--skip-full", action="store_true", help="skip the full-scale timing")
     args = ap.parse_args()
+    if args.dump:
+        # a bad --dump is the command line's error, not a crash of every case being scored
+        if args.dump.exists() and not args.dump.is_dir():
+            ap.error(f"--dump {args.dump}: not a folder")
+        args.dump.mkdir(parents=True, exist_ok=True)
     cases = generate_cases(np.random.default_rng(args.seed), args.cases)
     print(f"{len(cases)} cases from seed {args.seed}, simulated at scale {SCALE} of the papers' "
           "campaigns (their noise, sensors and climate unchanged)", flush=True)
