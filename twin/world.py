@@ -45,10 +45,24 @@ STANDARD_VAPOUR_PA = 1000.0    # the air's water vapour when no climate sets it 
 COMPENSATION_SENSORS = {f"comp_{a}": f"air_{a}" for a in AXES}
 
 
-def random_streams(seed: int) -> dict[str, np.random.Generator]:
-    """One independent generator per purpose, all from ``seed`` (same seed, same data)."""
+# the streams drawn per event (a motor settling, an interferometer window, an autocollimator
+# read), counted from the world's start; the others are the robot, or indexed by campaign time
+EVENT_STREAMS = ("interferometers", "autocollimators", "servo")
+
+
+def random_streams(seed: int, session: tuple[int, ...] | None = None
+                   ) -> dict[str, np.random.Generator]:
+    """One independent generator per purpose, all from ``seed`` (same seed, same data).
+    ``session``: the world is a later session of the same robot in the same laboratory (a
+    compensated campaign): its ``EVENT_STREAMS`` are drawn from ``(seed, *session)`` instead,
+    so that its settles and reading windows are new draws, not those the calibration campaign's
+    world (and every other session) counts from its start."""
     children = np.random.SeedSequence(seed).spawn(len(STREAMS))
-    return {name: np.random.default_rng(s) for name, s in zip(STREAMS, children)}
+    streams = {name: np.random.default_rng(s) for name, s in zip(STREAMS, children)}
+    if session is not None:
+        fresh = np.random.SeedSequence([seed, *session]).spawn(len(EVENT_STREAMS))
+        streams.update({name: np.random.default_rng(s) for name, s in zip(EVENT_STREAMS, fresh)})
+    return streams
 
 
 class Schedule:
@@ -156,13 +170,15 @@ class Truth:
 
 
 class Twin:
-    """One robot, its effects and its laboratory, for one scenario and seed."""
+    """One robot, its effects and its laboratory, for one scenario and seed (``session``: a
+    later session's own event noise, ``random_streams``)."""
 
     def __init__(self, params: RobotParams, effects: list[Effect], sensors: dict[str, str],
-                 seed: int, horizon_s: float, warmup_s: float = 7200.0):
+                 seed: int, horizon_s: float, warmup_s: float = 7200.0,
+                 session: tuple[int, ...] | None = None):
         self.effects = list(effects)
         self.names = {e.name for e in self.effects}
-        self.rng = random_streams(seed)
+        self.rng = random_streams(seed, session)
         for e in self.effects:
             params = e.robot(params, self.rng["robot"])
         self.params = params

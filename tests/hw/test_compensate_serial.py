@@ -31,7 +31,7 @@ def test_serial_compensated_campaign_equals_the_simulated_one(lab, capsys, tmp_p
     sc = Scenario.load(lab / "lab.toml")
     plan, *_ = compensation_plan(sc, np.random.default_rng(3), TARGETS,
                                  NominalCompensator(sc.params), ("x", "y", "z"))
-    _, world = compensation_world(sc, None, 2.0, plan)
+    _, world = compensation_world(sc, None, 2.0, plan, 3)
     with EmulatedLab(world.instrument_set(), tmp_path / "dev") as emulated:
         write_ports(tmp_path / "ports.toml", emulated.ports())
         serial = _compensate(lab, capsys, tmp_path / "serial.parquet", "--instruments",

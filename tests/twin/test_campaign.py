@@ -228,3 +228,59 @@ def test_session_start_puts_coils_to_zero_and_checks_it():
     with pytest.raises(InstrumentError, match=r"coils: set to 0 A at the session start but reads "
                                               r"back \[1\.0, 1\.0, 1\.0\] A"):
         campaign(lambda inst: inst.coils.set_currents(np.ones(3)), StuckCoils)
+
+
+def _zero_errors(settles: int, sessions: int) -> np.ndarray:
+    """(sessions, 3) m: where each session's zero (``settles`` home settles averaged) sits
+    along x, y, z from the home the motors were sent to, each session a later one of
+    paper-force's robot (its own servo settles and reading windows)."""
+    from deltatwin.twin.campaign import known_state, zero_offset
+    from deltatwin.twin.instruments.optics import AXES
+    from deltatwin.twin.instruments.simulated import SimulatedLab
+    from deltatwin.twin.world import Twin
+
+    sc = Scenario.load("paper-force")
+    effects = [e for e in sc.effects if e.name in ("geometric_errors", "servo_settling")]
+    out = []
+    for s in range(sessions):
+        twin = Twin(sc.params, effects, sc.sensors, sc.seed, 3600.0, 0.0, session=(s, 0))
+        lab = SimulatedLab(twin, sc.settings)
+        inst = lab.instrument_set()
+        known_state(inst)
+        inst.interferometers.zero()
+        offset = zero_offset(inst, sc.settings, AXES, 1, settles)
+        twin.advance(lab.t, lab.schedule)
+        still = twin.truth(twin.points([lab.t], np.zeros((1, 3)), np.zeros((1, 3)),
+                                       settled=False))
+        out.append([(lab.zero_path[a] - still.optical_path_m[a][0]) / still.n_comp[a][0]
+                    + offset[k] for k, a in enumerate(AXES)])
+    return np.array(out)
+
+
+def test_zero_averaged_over_home_settles_scatters_by_one_over_sqrt_n():
+    """With servo settling the zero holds one settle's error for a whole session (~20 nm per
+    axis on paper-force); the mean of 9 home settles holds a third of it (1/sqrt(9); with one
+    7 nm reading per settle, 2.8x expected), over 40 sessions, each with its own settles."""
+    one, nine = _zero_errors(1, 40), _zero_errors(9, 40)
+    assert np.all(one.std(axis=0) > 10e-9), one.std(axis=0)     # the settle, not noise
+    ratio = np.sqrt(np.mean(one ** 2) / np.mean(nine ** 2))      # 120 draws each
+    assert 2.2 < ratio < 3.7, ratio
+
+
+def test_a_later_session_draws_its_own_events_on_the_same_robot():
+    """A compensated session's world (``session``) has the robot and laboratory of its seed,
+    but its own servo settles and interferometer and autocollimator windows: counted from the
+    world's start with the robot's seed they were the calibration campaign's (and every
+    session's: each session's zero sat on the same settle)."""
+    from deltatwin.twin.world import EVENT_STREAMS, random_streams
+
+    base, a, a2, b = (random_streams(2), random_streams(2, (5, 1)), random_streams(2, (5, 1)),
+                      random_streams(2, (8, 1)))
+    for name, g in base.items():
+        draws = [s[name].standard_normal(4) for s in (a, a2, b)]
+        np.testing.assert_array_equal(draws[0], draws[1])            # deterministic
+        if name in EVENT_STREAMS:
+            assert not np.allclose(g.standard_normal(4), draws[0]) and \
+                not np.allclose(draws[0], draws[2]), name
+        else:
+            np.testing.assert_array_equal(g.standard_normal(4), draws[2])   # the same robot
