@@ -68,12 +68,16 @@ class ConditionLog:
         self.history_s = float(history_s)
         self.zero_window_s = float(zero_window_s)
         self.zero_t_s = None
+        self._zero_scan_t_s = None
         self._zero_T = None
         self._scans: dict[float, list] = {}
 
-    def zero(self, t_s: float, T_C) -> None:
-        """A new session zero (its time and scan): the history starts again."""
+    def zero(self, t_s: float, T_C, scan_t_s: float | None = None) -> None:
+        """A new session zero (the time it refers to, and its scan, read at ``scan_t_s``, by
+        default ``t_s``): the history starts again. A zero averaged over home settles refers
+        to their mean time, after the scan read when the interferometers were zeroed."""
         self.zero_t_s, self._zero_T, self._scans = float(t_s), list(T_C), {}
+        self._zero_scan_t_s = self.zero_t_s if scan_t_s is None else float(scan_t_s)
 
     def add(self, t_s: float, T_C) -> None:
         """A scan completed at ``t_s`` (a scan read twice is kept once)."""
@@ -86,10 +90,11 @@ class ConditionLog:
         one scan alone carries the thermometers' noise into every reading of the session (a
         frame hanging the robot from a 0.6 m aluminium arm reads 14 nm per mK along X)."""
         T0 = np.asarray(self._zero_T, dtype=np.float64)
-        after = sorted(t for t in self._scans if 0 < t - self.zero_t_s <= self.zero_window_s)
+        t0 = self._zero_scan_t_s
+        after = sorted(t for t in self._scans if 0 < t - t0 <= self.zero_window_s)
         if not after or T0.size == 0:
             return T0
-        dt = np.array([0.0] + [t - self.zero_t_s for t in after])
+        dt = np.array([t0 - self.zero_t_s] + [t - self.zero_t_s for t in after])
         T = np.vstack([T0] + [self._scans[t] for t in after])
         line = np.linalg.lstsq(np.column_stack([np.ones_like(dt), dt]), T, rcond=None)[0]
         return line[0]
@@ -406,7 +411,7 @@ class LoopController:
 
     def _zero(self, zero: dict) -> None:
         if self.log.zero_t_s != zero["zero_t_s"]:
-            self.log.zero(zero["zero_t_s"], zero["zero_T_C"])
+            self.log.zero(zero["zero_t_s"], zero["zero_T_C"], zero.get("zero_scan_t_s"))
             self._transferred = False
 
     def _transfer_zero(self) -> None:

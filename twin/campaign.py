@@ -189,22 +189,29 @@ def accepted_reading(inst: InstrumentSet, settings: InstrumentSettings, axes, wh
 
 
 def zero_offset(inst: InstrumentSet, settings: InstrumentSettings, axes, readings: int,
-                settles: int) -> np.ndarray:
-    """The zero as the mean of ``settles`` home settles (m per axis of ``AXES``, NaN off
-    ``axes``), to be subtracted from every reading counted from the interferometers' zero just
-    set at home (the first settle, reading 0 by definition): ``settles - 1`` times the robot
-    moves ``HOME_EXCURSION_RAD`` away and back home, waits, and takes ``readings`` accepted
-    windows. With servo settling the zero otherwise holds one settle's error for the whole
-    session; the mean of n holds 1/sqrt(n) of it."""
-    total = np.zeros(len(AXES))
+                settles: int, zero_t_s: float) -> tuple[np.ndarray, float]:
+    """The zero as the mean of ``settles`` home settles: (offset (m per axis of ``AXES``, NaN
+    off ``axes``), the time it refers to (s)). The offset is to be subtracted from every
+    reading counted from the interferometers' zero just set at home at ``zero_t_s`` (the first
+    settle, reading 0 by definition): ``settles - 1`` times the robot moves
+    ``HOME_EXCURSION_RAD`` away and back home, waits, and takes ``readings`` accepted windows.
+    With servo settling the zero otherwise holds one settle's error for the whole session; the
+    mean of n holds 1/sqrt(n) of it. It refers to the settles' mean time: the robot drifts
+    meanwhile (paper-thermal's home, up to 15 nm along X in 35 s), and a model is to be given
+    the conditions of that time."""
+    total, times = np.zeros(len(AXES)), [zero_t_s]
     for i in range(1, settles):
         inst.robot.move_to(np.full(3, HOME_EXCURSION_RAD))
         inst.robot.move_to(np.zeros(3))
         inst.clock.sleep(settings.wait_s)
+        t = 0.0
         for r in range(readings):
             reading = accepted_reading(inst, settings, axes, f"zero settle {i + 1} reading {r}")
             total += [reading.displacement_m.get(a, np.nan) for a in AXES]
-    return np.where([a in axes for a in AXES], total / (settles * readings), np.nan)
+            t += reading.t_s / readings
+        times.append(t)
+    offset = np.where([a in axes for a in AXES], total / (settles * readings), np.nan)
+    return offset, float(np.mean(times))
 
 
 def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, cosine: bool,
@@ -239,7 +246,9 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
 
     ``zero_settles`` (n): every zero is the mean of n home settles (``zero_offset``; its
     offsets, ``zero_offset_m``, are journaled with each point and subtracted from its
-    readings); 1, the papers' zero: the readings set to 0 at home once.
+    readings; ``zero_t_s`` is then the settles' mean time, ``zero_scan_t_s`` the time the
+    interferometers were zeroed and the zero's scan read); 1, the papers' zero: the readings
+    set to 0 at home once.
     """
     import json
     import logging
@@ -289,9 +298,10 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
             if controller is not None:          # the conditions the zero was taken in
                 scan0 = inst.thermometers.scan()
                 zero["zero_T_C"] = [scan0.temperatures_C[s] for s in sensors]
-            if zero_settles > 1:
-                offset = zero_offset(inst, settings, plan.sessions[session][1], R, zero_settles)
-                zero["zero_offset_m"] = offset
+            if zero_settles > 1:                # the zero then refers to the settles' mean time
+                offset, zero["zero_t_s"] = zero_offset(inst, settings, plan.sessions[session][1],
+                                                       R, zero_settles, zero_t)
+                zero.update(zero_offset_m=offset, zero_scan_t_s=zero_t)
             if rezero and not new_session:
                 log.warning("point %d: interferometers zeroed again at home at t = %.1f s (the "
                             "zero of session %r did not survive the interruption)", k, zero_t,

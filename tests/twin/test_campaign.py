@@ -248,7 +248,7 @@ def _zero_errors(settles: int, sessions: int) -> np.ndarray:
         inst = lab.instrument_set()
         known_state(inst)
         inst.interferometers.zero()
-        offset = zero_offset(inst, sc.settings, AXES, 1, settles)
+        offset, _ = zero_offset(inst, sc.settings, AXES, 1, settles, lab.t)
         twin.advance(lab.t, lab.schedule)
         still = twin.truth(twin.points([lab.t], np.zeros((1, 3)), np.zeros((1, 3)),
                                        settled=False))
