@@ -139,6 +139,19 @@ def test_the_zero_temperature_is_fitted_over_the_window_after_it():
     assert fitted < 0.35 * raw, (raw, fitted)          # 2 / sqrt(61) = 0.26 for a line's end
 
 
+def test_an_averaged_zero_takes_the_temperatures_of_its_mean_time():
+    """A zero averaged over home settles refers to their mean time, after its scan (read when
+    the interferometers were zeroed): the line through the scans is taken at that time, and
+    the scan enters it at its own time (on a ramp of 1 mK/min: exact)."""
+    ramp = lambda t: 20.0 + t / 60e3
+    log = ConditionLog(("a",))
+    log.zero(135.0, [ramp(100.0)], scan_t_s=100.0)
+    for t in np.arange(110.0, 700.0, 10.0):
+        log.add(t, [ramp(t)])
+    assert log.zero_temperatures()[0] == pytest.approx(ramp(135.0), abs=1e-12)
+    assert log.frame()["t_s"].iloc[0] == 135.0
+
+
 def test_nominal_forward_and_inverse_agree():
     nominal = NominalCompensator()
     log = ConditionLog(())
