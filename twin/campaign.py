@@ -170,10 +170,11 @@ def known_state(inst: InstrumentSet) -> None:
                               f"{HOME_TOLERANCE_RAD:g} rad)")
 
 
-def accepted_reading(inst: InstrumentSet, settings: InstrumentSettings, axes, what: str):
-    """One interferometer reading whose window passes the acceptance rule on ``axes`` (sample
-    std below ``std_limit_m``), re-reading up to ``max_rereads`` times; ``what`` names it in
-    the log and the error."""
+def accepted_reading(inst: InstrumentSet, settings: InstrumentSettings, axes, what: str,
+                     r: int):
+    """Reading ``r`` of ``what`` (a point, a zero settle): one interferometer window that
+    passes the acceptance rule on ``axes`` (sample std below ``std_limit_m``), re-reading up to
+    ``max_rereads`` times."""
     import logging
 
     for _attempt in range(settings.max_rereads + 1):
@@ -181,8 +182,9 @@ def accepted_reading(inst: InstrumentSet, settings: InstrumentSettings, axes, wh
         if all(reading.std_m[a] < settings.std_limit_m for a in axes):
             return reading
         logging.getLogger(__name__).info(
-            "%s: window rejected (sample std %s nm, limit %.0f nm); taking it again", what,
-            {a: round(reading.std_m[a] * 1e9, 1) for a in axes}, settings.std_limit_m * 1e9)
+            "%s reading %d: window rejected (sample std %s nm, limit %.0f nm); taking it again",
+            what, r, {a: round(reading.std_m[a] * 1e9, 1) for a in axes},
+            settings.std_limit_m * 1e9)
     raise InstrumentError(inst.interferometers.name,
                           f"{what}: sample std above {settings.std_limit_m * 1e9:.0f}"
                           f" nm in {settings.max_rereads + 1} windows in a row")
@@ -206,7 +208,7 @@ def zero_offset(inst: InstrumentSet, settings: InstrumentSettings, axes, reading
         inst.clock.sleep(settings.wait_s)
         t = 0.0
         for r in range(readings):
-            reading = accepted_reading(inst, settings, axes, f"zero settle {i + 1} reading {r}")
+            reading = accepted_reading(inst, settings, axes, f"zero settle {i + 1}", r)
             total += [reading.displacement_m.get(a, np.nan) for a in AXES]
             t += reading.t_s / readings
         times.append(t)
@@ -320,7 +322,7 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
         ifm_std = np.full((R, 3), np.nan)
         ac = np.full((R, 4), np.nan)
         for r in range(R):
-            reading = accepted_reading(inst, settings, axes, f"point {k} reading {r}")
+            reading = accepted_reading(inst, settings, axes, f"point {k}", r)
             for a in axes:
                 ifm[r, AXES.index(a)] = reading.displacement_m[a] - offset[AXES.index(a)]
                 ifm_std[r, AXES.index(a)] = reading.std_m[a]
