@@ -46,7 +46,8 @@ COMPENSATION_SENSORS = {f"comp_{a}": f"air_{a}" for a in AXES}
 
 
 # the streams drawn per event (a motor settling, an interferometer window, an autocollimator
-# read), counted from the world's start; the others are the robot, or indexed by campaign time
+# read), counted from the world's start; the others make the robot, its climate and the
+# campaign's plan, or are indexed by campaign time (the thermometer and air-sensor scans)
 EVENT_STREAMS = ("interferometers", "autocollimators", "servo")
 
 
