@@ -102,6 +102,9 @@ def test_bad_input_is_named(lab, capsys):
     code = main(["compensate", str(lab / "lab.toml"), "--model", str(lab / "true.toml"),
                  "--targets", "0"])
     assert code == 2 and "--targets" in capsys.readouterr().err
+    code = main(["compensate", str(lab / "lab.toml"), "--model", str(lab / "true.toml"),
+                 "--zero-settles", "0"])
+    assert code == 2 and "--zero-settles" in capsys.readouterr().err
 
 
 def test_a_controller_file_that_cannot_be_written_is_refused_before_the_run(lab, capsys):
