@@ -353,6 +353,12 @@ class PhysicsModel:
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
         gradient, response = self._pose_gradients(meas, stage, truth)
+        if np.any(wanted & ~by["robot"] & ~by["load_optics"]):
+            # theta's rod equations (~0 at the solved pose) and readings: the third
+            # difference that lets a nearly linear column keep three evaluations
+            pts = self._stage_points(meas, stage)
+            at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
+                        A)
         for j in np.flatnonzero(wanted & ~by["robot"]):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
@@ -371,7 +377,7 @@ class PhysicsModel:
                         self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
 
             d_residuals[:, :, np.searchsorted(moving, j)], J[:, :, j] = richardson_derivative(
-                evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M)
+                evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M, at_zero=at_theta)
         self.set_theta(theta)
         if moving.size:
             d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient, response)
