@@ -316,7 +316,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
             message = "no step lowers the cost any further (round-off)"
             break
         if evaluations >= max_evaluations:
-            message = f"stopped at its budget of {max_evaluations} model evaluations' work"
+            message = f"stopped at the limit of {max_evaluations} model evaluations' work"
             break
         step = _trust_region_step(Jz, r, radius)
         length = float(np.linalg.norm(step))
