@@ -323,14 +323,17 @@ class PhysicsModel:
         pose's derivative by the implicit function theorem (models.kinematics.pose_derivative),
         times the readings' derivative with respect to the pose; plus the parameter's direct
         effect on the readings at the fixed pose (through the part temperatures the optics read,
-        or, for the robot, through its home where the instruments were aligned). So a fit costs a
-        few optics evaluations per parameter, not a kinematics. Every partial derivative is a
-        central difference of a smooth function: the joint arrays (quadratic in the rod
-        equations) with steps of GEOMETRY_STEP fit scales, the paths with steps of 1 um and
-        1 urad in the pose, the rest with the fourth-order stencil over one fit scale (the
-        kinematics' 1e-15 m and the paths' 5e-17 m round-off set steps this large). Checked
-        against central differences of the whole prediction to 1e-7 of each column in
-        tests/calibration/test_physics_model.py."""
+        or, for the robot, through its home where the instruments were aligned). The readings'
+        derivative in the pose is analytic at fixed optics (optical_path_pose_gradient), in the
+        wrench the same through the compliance; a load parameter differences its effect's wrench
+        alone, an optics parameter the optics alone. So a fit costs no kinematics per parameter
+        and no load stage per optics parameter. The remaining partial derivatives are central
+        differences of smooth functions: the joint arrays (quadratic in the rod equations) with
+        steps of GEOMETRY_STEP fit scales, the wrench and the instruments in the kinematic pose
+        and the home with steps of 1 um and 1 urad, the rest with the stencils of
+        ``richardson_derivative`` over one fit scale (the kinematics' 1e-15 m and the paths'
+        5e-17 m round-off set steps this large). Checked against central differences of the
+        whole prediction to 1e-7 of each column in tests/calibration/test_physics_model.py."""
         self.set_theta(theta)
         stage = self._kinematics(meas)
         truth = self._truth(meas, stage)
@@ -528,7 +531,7 @@ class PhysicsModel:
         d_home_path = np.zeros(d_kin.shape[:2] + (3,))
         loads = [e for e in self.effects if "wrench" in self.classes[e.name].model_stages()]
         pts = self._stage_points(meas, stage)
-        for d in range(9):
+        for d in range(0 if loads else 6, 9):       # without a load: only the home's optics
             sides = []
             for sign in (1.0, -1.0):
                 moved, home = kin, stage.home
