@@ -106,7 +106,8 @@ def full_loop(df, meta, repeats: int) -> None:
         print(f"   {name:<8} {wall:6.2f} s wall, CPU {cpu:6.2f} s, target <= {target} s: ratio "
               f"{cpu / target:4.2f} (CPU) {'MET' if cpu <= target else 'NOT MET'}; floor "
               f"{floor:5.2f} s CPU, ratio {cpu / floor:5.1f}  ({note})")
-    print(f"   one Jacobian {c_jac:.2f} s CPU, one evaluation {c_eval:.3f} s CPU")
+    print(f"   one Jacobian {c_jac:.2f} s CPU ({c_jac / c_eval:.0f} evaluations' worth, "
+          f"{model.n_free} parameters), one evaluation {c_eval:.3f} s CPU")
 
 
 def evaluation(df, meta, repeats: int) -> None:

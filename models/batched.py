@@ -101,6 +101,29 @@ def rotation_matrices(rotvec):
     return R
 
 
+def left_jacobian(rotvec):
+    """(3, 3, ...) the exponential map's left Jacobian at rotation vectors (3, ...):
+    exp([w + dw]x) = exp([J dw]x) exp([w]x) to first order in dw,
+    J = I + b [w]x + c [w]x^2 with b = (1 - cos t)/t^2, c = (t - sin t)/t^3."""
+    t2 = dot(rotvec, rotvec)
+    b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+    c = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
+    large = t2 >= _SERIES_ANGLE ** 2
+    if large.any():
+        t = np.sqrt(t2[large])
+        b[large] = (1.0 - np.cos(t)) / t ** 2
+        c[large] = (t - np.sin(t)) / t ** 3
+    x, y, z = rotvec
+    J = np.empty((3, 3) + t2.shape)
+    # [w]x^2 = w w^T - t^2 I
+    J[0, 0], J[1, 1], J[2, 2] = (1.0 + c * (x * x - t2), 1.0 + c * (y * y - t2),
+                                 1.0 + c * (z * z - t2))
+    J[0, 1], J[1, 0] = c * x * y - b * z, c * x * y + b * z
+    J[0, 2], J[2, 0] = c * x * z + b * y, c * x * z - b * y
+    J[1, 2], J[2, 1] = c * y * z - b * x, c * y * z + b * x
+    return J
+
+
 def cholesky(K):
     """Cholesky factors of symmetric positive-definite matrices K (n,n,...), outer-product form:
     the lower triangle holds the factor L, with the reciprocal of L's diagonal on the diagonal

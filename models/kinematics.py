@@ -239,16 +239,22 @@ def rod_vectors(geom: Geometry, q, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     return d, w
 
 
-def pose_derivative(geom: Geometry, q, pose: Pose, d_residuals: np.ndarray) -> np.ndarray:
+def pose_derivative(geom: Geometry, q, pose: Pose, d_residuals: np.ndarray,
+                    through: np.ndarray | None = None) -> np.ndarray:
     """Exact derivative of the forward kinematics' pose with respect to parameters, from the rod
     equations' partial derivatives at the fixed pose ``d_residuals`` (N,6,k): the implicit
     function theorem, d pose = -(d f / d pose)^-1 d f / d parameter. Returns (N,6,k): position
     (m) then rotation vector (rad, the rotation applied on the left of ``pose.R``) per unit of
-    each parameter."""
+    each parameter. ``through`` (N,a,6): the derivative of ``a`` outputs in the pose; then the
+    outputs' derivative (N,a,k) is returned, -(through (d f / d pose)^-1) d f / d parameter,
+    with ``a`` right-hand sides solved instead of k (the adjoint)."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     d, w = rod_vectors(geom, q, pose)
     J = np.concatenate([2 * d, 2 * np.cross(w, d)], axis=-1).reshape(q.shape[0], 6, 6)
-    return -np.linalg.solve(J, d_residuals)
+    if through is None:
+        return -np.linalg.solve(J, d_residuals)
+    adjoint = np.linalg.solve(J.transpose(0, 2, 1), through.transpose(0, 2, 1))   # (N,6,a)
+    return -np.einsum("nia,nik->nak", adjoint, d_residuals)
 
 
 def _ideal_chain_angles(geom: Geometry, p: np.ndarray) -> np.ndarray:

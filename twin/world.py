@@ -344,6 +344,28 @@ def platform_wrench(effects: list[Effect], pts: Points) -> np.ndarray:
     return wrench
 
 
+def deflection(preload: np.ndarray, compliance: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+    """The platform's small displacement (N,6: position, rotation vector) under the wrench: the
+    preload deflection plus C w, in one pass over C (a batched 6x6 product pays per item, and
+    C's columns one at a time stride through it six times: 3.4x slower at 29,000 rows)."""
+    return preload + np.einsum("nij,nj->ni", compliance, wrench)
+
+
+def deflected_pose(kin: Pose, y: np.ndarray) -> Pose:
+    """The kinematic pose displaced by ``y`` (N,6): its small rotation applied on the kinematic
+    one, component-first (models/batched.py)."""
+    R = batched.matmul(batched.rotation_matrices(y[:, 3:6].T), kin.R.transpose(1, 2, 0))
+    return Pose(kin.p + y[:, :3], np.ascontiguousarray(R.transpose(2, 0, 1)))
+
+
+def instrument_optics(effects: list[Effect], pts: Points, cube_home: np.ndarray) -> Optics:
+    """The effects' optics (heads, beams, fold mirror, air indices) at the points."""
+    optics = Optics.nominal(cube_home, pts.t_s.shape[0], n_nominal=1.0)
+    for e in effects:
+        e.optics(pts, optics)
+    return optics
+
+
 def observe(geom, kin: Pose, effects: list[Effect], pts: Points, preload: np.ndarray,
             compliance: np.ndarray, cube_home: np.ndarray, cube_size_m: float,
             wrench: np.ndarray | None = None) -> Truth:
@@ -351,20 +373,11 @@ def observe(geom, kin: Pose, effects: list[Effect], pts: Points, preload: np.nda
     preload deflection (N,6) moves the platform; the effects' optics give what the
     instruments look at. ``wrench``: the effects' wrench at ``kin`` when the caller has it
     already (a model's derivative in an optics parameter re-uses it), else computed here."""
-    n = pts.t_s.shape[0]
     pts.pose = kin
     if wrench is None:
         wrench = platform_wrench(effects, pts)
-    # the deflection C w column by column (a batched 6x6 product pays per item)
-    y = preload.copy()
-    for j in range(6):
-        y += compliance[:, :, j] * wrench[:, j, None]
-    # the deflection's small rotation on the kinematic one, component-first (models/batched.py)
-    R = batched.matmul(batched.rotation_matrices(y[:, 3:6].T), kin.R.transpose(1, 2, 0))
-    pose = Pose(kin.p + y[:, :3], np.ascontiguousarray(R.transpose(2, 0, 1)))
-    optics = Optics.nominal(cube_home, n, n_nominal=1.0)
-    for e in effects:
-        e.optics(pts, optics)
+    pose = deflected_pose(kin, deflection(preload, compliance, wrench))
+    optics = instrument_optics(effects, pts, cube_home)
     paths = {a: optical_path(pose, geom.cube_offset, cube_size_m, optics, a) for a in AXES}
     return Truth(pose=pose, kinematic_pose=kin, wrench=wrench, optical_path_m=paths,
                  n_comp=dict(optics.n_comp), angles_rad=autocollimator_angles(pose.R),

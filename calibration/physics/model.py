@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.metrics import error_figures
 from deltatwin.calibration.physics.measurements import Measurements
+from deltatwin.models import batched
 from deltatwin.models.geometry import build_geometry, part_scales
 from deltatwin.models.kinematics import (
     Pose,
@@ -23,12 +24,16 @@ from deltatwin.models.kinematics import (
 )
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, effect_spec, make_effect
-from deltatwin.twin.instruments.optics import AXES
+from deltatwin.twin.instruments.optics import AXES, optical_path, optical_path_pose_gradient
 from deltatwin.twin.world import (
+    Truth,
+    deflection,
     geometry_temperatures,
+    instrument_optics,
     kinematic_pose,
     motor_positions,
     observe,
+    platform_wrench,
     point_geometry,
 )
 
@@ -259,16 +264,33 @@ class PhysicsModel:
         pts.pose = stage.kin
         return pts
 
+    def _truth(self, meas: Measurements, stage: Stage, wrench: np.ndarray | None = None) -> Truth:
+        """What the instruments look at on ``stage`` (``wrench``: the effects' wrench at the
+        stage when known)."""
+        pts = self._stage_points(meas, stage)
+        preload, C = meas.statics(self.params)
+        return observe(stage.geom, stage.kin, self.effects, pts, preload, C, stage.cube_home,
+                       stage.params.mirror_cube_size_m, wrench)
+
     def _paths(self, meas: Measurements, stage: Stage,
                wrench: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Optical path n s (m) and the index the instrument divides by, (N + S, 3) each, at the
         rows and at the session zeros (``wrench``: the effects' wrench at the stage when known)."""
-        pts = self._stage_points(meas, stage)
-        preload, C = meas.statics(self.params)
-        truth = observe(stage.geom, stage.kin, self.effects, pts, preload, C, stage.cube_home,
-                        stage.params.mirror_cube_size_m, wrench)
+        truth = self._truth(meas, stage, wrench)
         return (np.stack([truth.optical_path_m[a] for a in AXES], axis=1),
                 np.stack([truth.n_comp[a] for a in AXES], axis=1))
+
+    def _optics_paths(self, meas: Measurements, stage: Stage, pose: Pose,
+                      cube_home: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``_paths`` with the platform held at ``pose`` (the deflected pose): the effects'
+        optics alone, from the instruments aligned on ``cube_home`` (the stage's by default)."""
+        pts = self._stage_points(meas, stage)
+        optics = instrument_optics(self.effects, pts,
+                                   stage.cube_home if cube_home is None else cube_home)
+        size = stage.params.mirror_cube_size_m
+        return (np.stack([optical_path(pose, stage.geom.cube_offset, size, optics, a)
+                          for a in AXES], axis=1),
+                np.stack([optics.n_comp[a] for a in AXES], axis=1))
 
     @staticmethod
     def _counted(meas: Measurements, path: np.ndarray, n_comp: np.ndarray,
@@ -301,17 +323,22 @@ class PhysicsModel:
         pose's derivative by the implicit function theorem (models.kinematics.pose_derivative),
         times the readings' derivative with respect to the pose; plus the parameter's direct
         effect on the readings at the fixed pose (through the part temperatures the optics read,
-        or, for the robot, through its home where the instruments were aligned). So a fit costs a
-        few optics evaluations per parameter, not a kinematics. Every partial derivative is a
-        central difference of a smooth function: the joint arrays (quadratic in the rod
-        equations) with steps of GEOMETRY_STEP fit scales, the paths with steps of 1 um and
-        1 urad in the pose, the rest with the fourth-order stencil over one fit scale (the
-        kinematics' 1e-15 m and the paths' 5e-17 m round-off set steps this large). Checked
-        against central differences of the whole prediction to 1e-7 of each column in
-        tests/calibration/test_physics_model.py."""
+        or, for the robot, through its home where the instruments were aligned). The readings'
+        derivative in the pose is analytic at fixed optics (optical_path_pose_gradient), in the
+        wrench the same through the compliance; a load parameter differences its effect's wrench
+        alone, an optics parameter the optics alone. So a fit costs no kinematics per parameter
+        and no load stage per optics parameter. The remaining partial derivatives are central
+        differences of smooth functions: the joint arrays (quadratic in the rod equations) with
+        steps of GEOMETRY_STEP fit scales, the wrench and the instruments in the kinematic pose
+        and the home with steps of 1 um and 1 urad, the rest with the stencils of
+        ``richardson_derivative`` over one fit scale (the kinematics' 1e-15 m and the paths'
+        5e-17 m round-off set steps this large). Checked against central differences of the
+        whole prediction to 1e-7 of each column in tests/calibration/test_physics_model.py."""
         self.set_theta(theta)
         stage = self._kinematics(meas)
-        path, n_comp = self._paths(meas, stage)
+        truth = self._truth(meas, stage)
+        path = np.stack([truth.optical_path_m[a] for a in AXES], axis=1)
+        n_comp = np.stack([truth.n_comp[a] for a in AXES], axis=1)
         A = self._counted(meas, path, n_comp)
         J = np.zeros(A.shape + (theta.size,))
         by = self.free_by_stage()
@@ -328,42 +355,102 @@ class PhysicsModel:
                                         GEOMETRY_STEP * self.scales)
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
-        # each effect's wrench at the stage (theta): a load or optics parameter changes its own
-        wrench_of = ({e.name: e.wrench(self._stage_points(meas, stage)) for e in self.effects}
-                     if np.any(wanted & by["load_optics"]) else {})
+        gradient, response = self._pose_gradients(meas, stage, truth)
+        if np.any(wanted & ~by["robot"] & ~by["load_optics"]):
+            # theta's rod equations (~0 at the solved pose) and readings: the third
+            # difference that lets a nearly linear column keep three evaluations
+            pts = self._stage_points(meas, stage)
+            at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
+                        A)
         for j in np.flatnonzero(wanted & ~by["robot"]):
+            if by["load_optics"][j]:
+                J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
+                                                      response, n_comp, A)
+                continue
+
             def evaluate(offset, j=j):
+                # a part temperature: the geometry at the points and what the optics read
                 th = theta.copy()
                 th[j] += offset
                 self.set_theta(th)
-                if by["load_optics"][j]:
-                    # only the stepped parameter's effect can change the wrench: the others'
-                    # is re-used (an optics parameter moves none)
-                    at_stage = self._stage_points(meas, stage)
-                    wrench = np.zeros((at_stage.t_s.shape[0], 6))
-                    for e in self.effects:           # in the order observe sums them
-                        w = e.wrench(at_stage) if e is owner[j] else wrench_of[e.name]
-                        if w is not None:
-                            wrench += w
-                    return 0.0, self._observe(meas, stage, wrench)
-                # a part temperature: the geometry at the points and what the optics read
                 pts.node_T = meas.part_temperatures(self.effects)
                 geom_j = point_geometry(stage.params, stage.geom, self.effects, pts)
                 # (or a motor angle error: where the motors sit)
                 return (rod_residuals(geom_j, motor_positions(self.effects, pts), stage.kin),
                         self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
 
-            # a load or optics parameter at theta reads A (the rod equations do not move)
-            d_rods, J[:, :, j] = richardson_derivative(
-                evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M,
-                at_zero=(0.0, A) if by["load_optics"][j] else None)
-            if not by["load_optics"][j]:
-                d_residuals[:, :, np.searchsorted(moving, j)] = d_rods
+            d_residuals[:, :, np.searchsorted(moving, j)], J[:, :, j] = richardson_derivative(
+                evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M, at_zero=at_theta)
         self.set_theta(theta)
         if moving.size:
-            dpose = pose_derivative(stage.geom, q, stage.kin, d_residuals)
-            J[:, :, moving] += self._pose_sensitivity(meas, stage, n_comp, dpose, d_home)
+            d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient, response)
+            # the chain rule per point: the paths' derivative through the kinematic pose
+            # (adjoint: three right-hand sides, not one per parameter) and the home
+            out = pose_derivative(stage.geom, q, stage.kin, d_residuals, through=d_kin)
+            J[:, :, moving] += self._counted(meas, out + d_home_path @ d_home, n_comp,
+                                             derivative=True)
         return A, J
+
+    def _pose_gradients(self, meas: Measurements, stage: Stage,
+                        truth: Truth) -> tuple[np.ndarray, np.ndarray]:
+        """The optical paths' derivatives (N + S, 3, 6) with respect to the deflected pose
+        (position, a rotation vector applied on its rotation; at fixed optics, analytic) and
+        with respect to the wrench (through the compliance: the deflection y = preload + C w
+        moves the position by y[:3] and rotates by exp(y[3:]), whose change the exponential
+        map's left Jacobian turns into a rotation applied on the deflected one)."""
+        size = stage.params.mirror_cube_size_m
+        gradient = np.stack([optical_path_pose_gradient(truth.pose, stage.geom.cube_offset,
+                                                        size, truth.optics, a) for a in AXES],
+                            axis=1)
+        preload, C = meas.statics(self.params)
+        y = deflection(preload, C, truth.wrench)
+        turn = batched.left_jacobian(y[:, 3:].T)                       # (3, 3, N + S)
+        d_path_d_y = np.concatenate(
+            [gradient[:, :, :3], np.einsum("nai,ijn->naj", gradient[:, :, 3:], turn)], axis=2)
+        return gradient, np.einsum("nai,nij->naj", d_path_d_y, C)
+
+    def _load_optics_column(self, meas: Measurements, theta, j: int, effect, stage: Stage,
+                            truth: Truth, response: np.ndarray, n_comp: np.ndarray,
+                            A: np.ndarray) -> np.ndarray:
+        """(N,3) the readings' derivative in the load or optics parameter ``j`` of ``effect``:
+        its wrench's derivative through the compliance (``response``: the paths' derivative
+        in the wrench) plus its optics' derivative at the deflected pose. Each is a difference
+        of that effect's wrench, or of the optics alone, never of a whole load stage."""
+        stages = self.classes[effect.name].model_stages()
+        pts = self._stage_points(meas, stage)
+        n_rows = pts.t_s.shape[0]
+
+        def evaluate(offset):
+            th = theta.copy()
+            th[j] += offset
+            self.set_theta(th)
+            pts.pose = stage.kin
+            out = []
+            if "wrench" in stages:
+                w = effect.wrench(pts)
+                out.append(np.zeros((n_rows, 6)) if w is None else w)
+            if "optics" in stages:
+                out.append(self._counted(meas, *self._optics_paths(meas, stage, truth.pose)))
+            return tuple(out)
+
+        at_zero = []                          # theta's: the effect's wrench, the readings A
+        if "wrench" in stages:
+            pts.pose = stage.kin
+            w = effect.wrench(pts)
+            at_zero.append(np.zeros((n_rows, 6)) if w is None else w)
+        if "optics" in stages:
+            at_zero.append(A)
+        d = richardson_derivative(evaluate, self.scales[j],
+                                  roundoff=READING_ROUNDOFF_M if "optics" in stages else 0.0,
+                                  at_zero=tuple(at_zero))
+        self.set_theta(theta)
+        column = np.zeros(A.shape)
+        if "wrench" in stages:
+            column += self._counted(meas, np.einsum("nak,nk->na", response, d[0]), n_comp,
+                                    derivative=True)
+        if "optics" in stages:
+            column += d[-1]
+        return column
 
     def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps):
         """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
@@ -425,34 +512,57 @@ class PhysicsModel:
         d_rods *= 2
         return d_rods.reshape(n, 6, k), d_home
 
-    def _pose_sensitivity(self, meas, stage: Stage, n_comp, dpose, d_home) -> np.ndarray:
-        """(N,3,k): the readings' change for pose changes ``dpose`` (N + S, 6, k: position,
-        rotation vector) and home changes ``d_home`` (3, k), by central differences."""
+    def _pose_sensitivity(self, meas, stage: Stage, truth: Truth, gradient,
+                          response) -> tuple[np.ndarray, np.ndarray]:
+        """The paths' derivatives (N + S, 3, 6) and (N + S, 3, 3) with respect to the kinematic
+        pose (position, rotation vector applied on its rotation) and the home. A kinematic pose change
+        moves the deflected pose with it (``gradient``: the paths' analytic derivative there; its
+        rotation carried through the deflection's) and changes the effects' wrench (a coil's
+        force grows as the gap closes: ``response``, the paths' derivative in the wrench);
+        the home moves the instruments aligned there and what is placed relative to it (the
+        coils). The wrench's and the instruments' derivatives are central differences of
+        those stages alone."""
         kin = stage.kin
-        dpath = []                                  # (N + S, 3) per pose and home coordinate
-        for d in range(9):
+        preload, C = meas.statics(self.params)
+        y = deflection(preload, C, truth.wrench)
+        turn = batched.rotation_matrices(y[:, 3:].T)                   # (3, 3, N + S)
+        d_kin = np.concatenate([gradient[:, :, :3],
+                                np.einsum("nai,ijn->naj", gradient[:, :, 3:], turn)], axis=2)
+        d_home_path = np.zeros(d_kin.shape[:2] + (3,))
+        loads = [e for e in self.effects if "wrench" in self.classes[e.name].model_stages()]
+        pts = self._stage_points(meas, stage)
+        for d in range(0 if loads else 6, 9):       # without a load: only the home's optics
             sides = []
             for sign in (1.0, -1.0):
+                moved, home = kin, stage.home
                 if d < 3:
                     p = kin.p.copy()
                     p[:, d] += sign * POSE_STEP
-                    moved = stage._replace(kin=Pose(p, kin.R))
+                    moved = Pose(p, kin.R)
                 elif d < 6:
                     w = np.zeros(3)
                     w[d - 3] = sign * POSE_STEP
-                    moved = stage._replace(kin=Pose(kin.p, Rotation.from_rotvec(w).as_matrix()
-                                                    @ kin.R))
+                    moved = Pose(kin.p, Rotation.from_rotvec(w).as_matrix() @ kin.R)
                 else:
-                    shift = np.zeros(3)
-                    shift[d - 6] = sign * POSE_STEP
-                    moved = stage._replace(home=stage.home + shift,
-                                           cube_home=stage.cube_home + shift)
-                sides.append(self._paths(meas, moved)[0])
-            dpath.append((sides[0] - sides[1]) / (2 * POSE_STEP))
-        dpath = np.stack(dpath, axis=-1)                                 # (N + S, 3, 9)
-        # the chain rule per point in one pass (no (N + S, 3, k) temporary per coordinate)
-        out = np.einsum("nad,ndk->nak", dpath[:, :, :6], dpose) + dpath[:, :, 6:] @ d_home
-        return self._counted(meas, out, n_comp, derivative=True)
+                    home = stage.home.copy()
+                    home[d - 6] += sign * POSE_STEP
+                pts.pose, pts.home_p = moved, home
+                sides.append(platform_wrench(loads, pts) if loads else None)
+                if d >= 6:                                   # the instruments aligned there
+                    sides[-1] = (sides[-1], self._optics_paths(
+                        meas, stage, truth.pose, stage.cube_home + (home - stage.home))[0])
+            pts.pose, pts.home_p = kin, stage.home
+            if d < 6:
+                if loads:
+                    d_kin[:, :, d] += np.einsum("naj,nj->na", response,
+                                                (sides[0] - sides[1]) / (2 * POSE_STEP))
+                continue
+            (w_plus, path_plus), (w_minus, path_minus) = sides
+            d_home_path[:, :, d - 6] = (path_plus - path_minus) / (2 * POSE_STEP)
+            if loads:
+                d_home_path[:, :, d - 6] += np.einsum("naj,nj->na", response,
+                                                      (w_plus - w_minus) / (2 * POSE_STEP))
+        return d_kin, d_home_path
 
 
 # ---------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ from deltatwin.twin.instruments.optics import (
     cosine_factor,
     nominal_dead_path,
     optical_path,
+    optical_path_pose_gradient,
 )
 
 from .raytrace import Mirror, make_head, trace_reading
@@ -159,3 +160,32 @@ def test_cosine_correction_recovers_the_distance_along_the_beam(axis):
     assert raw_err > 5e-9                             # the cosine error: nanometres
     print(f"{axis}: cosine error before correction {raw_err:.3e} m, after {worst:.3e} m")
     assert worst < (1e-14 if axis != "z" else 2e-12), worst
+
+
+@pytest.mark.parametrize("axis", AXES)
+def test_optical_path_pose_gradient_equals_central_differences(axis):
+    """The analytic derivative of the optical path in the cube's position and a rotation applied
+    on its rotation, against central differences (1e-6 m and rad: truncation ~1e-12, round-off
+    ~5e-17 m / 1e-6 of a path derivative of order one), for tilted and offset beams through the
+    air index."""
+    rng = np.random.default_rng(13)
+    p, R = _poses(rng, 30)
+    offset, tilt = HEADS["tilted-offset"]
+    vertex, direction = _head(axis, offset, tilt)
+    optics = Optics.nominal(np.zeros(3), 30)
+    optics.head[axis] = np.tile(vertex, (30, 1))
+    optics.direction[axis] = np.tile(direction, (30, 1))
+    optics.n_air[axis] = 1.0 + rng.uniform(2.6e-4, 2.8e-4, 30)
+    cube_offset = np.array([0.001, -0.002, 0.03])
+    gradient = optical_path_pose_gradient(Pose(p, R), cube_offset, CUBE_SIZE, optics, axis)
+    h = 1e-6
+    for k in range(6):
+        sides = []
+        for sign in (1.0, -1.0):
+            step = np.zeros(3)
+            step[k % 3] = sign * h
+            moved = (Pose(p + step, R) if k < 3 else
+                     Pose(p, Rotation.from_rotvec(step).as_matrix() @ R))
+            sides.append(optical_path(moved, cube_offset, CUBE_SIZE, optics, axis))
+        central = (sides[0] - sides[1]) / (2 * h)
+        assert np.abs(gradient[:, k] - central).max() < 1e-9 * max(np.abs(central).max(), 1.0)

@@ -61,25 +61,36 @@ class MagneticForce(Effect):
 
     def wrench(self, points):
         pose, params = points.pose, points.params
+        w = np.zeros((pose.p.shape[0], 6))
+        # a coil without current has no moment and exerts nothing: only the rows with a current
+        # are computed (a thermal campaign's are all zero)
+        rows = np.flatnonzero(np.any(points.currents_A != 0, axis=1))
+        if rows.size == 0:
+            return w
+        every = rows.size == w.shape[0]
+        p, R_all, I_all = ((pose.p, pose.R, points.currents_A) if every else
+                           (pose.p[rows], pose.R[rows], points.currents_A[rows]))
         coils = self.coil_dipoles(params, points.home_p).T[:, None, :, None]   # (3,1,3 coils,1)
         magnets = magnet_positions(params).T[:, :, None]                       # (3,3 magnets,1)
-        w = np.empty((pose.p.shape[0], 6))
+        out = w if every else np.empty((rows.size, 6))
 
         def chunk(sl):      # chunks of points: the nine pairs' arrays stay in the CPU caches
-            R = pose.R[sl].transpose(1, 2, 0)                                  # (3,3,m)
+            R = R_all[sl].transpose(1, 2, 0)                                   # (3,3,m)
             # magnets (axis 1) component-first: lever from the platform origin, centre (3,3,m)
             arm = batched.matvec(R[:, :, None], magnets)
-            mag = pose.p[sl].T[:, None] + arm
+            mag = p[sl].T[:, None] + arm
             m_mag = (-self.magnet_moment_Am2 * R[:, 2])[:, None, None]        # down, with platform
-            currents = points.currents_A[sl].T
+            currents = I_all[sl].T
             m_coil = np.zeros((3, 1) + currents.shape)                         # (3,1,3 coils,m)
             m_coil[2, 0] = self.coil_moment_per_A * currents
             # every coil (axis 2) on every magnet (axis 1)
             F, tau = dipole_force_torque(m_coil, coils, m_mag, mag[:, :, None])
             F_mag = F[:, :, 0] + F[:, :, 1] + F[:, :, 2]                       # (3,3 magnets,m)
-            w[sl, :3] = (F_mag[:, 0] + F_mag[:, 1] + F_mag[:, 2]).T
+            out[sl, :3] = (F_mag[:, 0] + F_mag[:, 1] + F_mag[:, 2]).T
             moment = batched.cross(arm, F_mag) + tau.sum(axis=2)
-            w[sl, 3:] = (moment[:, 0] + moment[:, 1] + moment[:, 2]).T
+            out[sl, 3:] = (moment[:, 0] + moment[:, 1] + moment[:, 2]).T
 
-        batched.map_chunks(chunk, w.shape[0])
+        batched.map_chunks(chunk, rows.size)
+        if not every:
+            w[rows] = out
         return w

@@ -67,6 +67,25 @@ class Optics:
         return self.fold + reflect(o - self.fold), reflect(b / np.linalg.norm(b, axis=-1, keepdims=True))
 
 
+def _double_pass_terms(pose, cube_offset, cube_size: float, axis: str, vertex, direction):
+    """h, cos(alpha) and the face's outward normal in the world (3 arrays (N,)) of the double
+    pass on the face of ``axis`` (see ``double_pass_reading``)."""
+    nf = FACE_NORMALS[axis]
+    k = int(np.flatnonzero(nf)[0])                     # the face's normal is +-e_k of the cube
+    centre = np.asarray(cube_offset + 0.5 * cube_size * nf)   # (3,) or (N,3): platform frame
+    R, p = pose.R, pose.p
+    h = cos_alpha = 0.0
+    normal = []
+    for i in range(3):
+        c_i = p[:, i] + R[:, i, 0] * centre[..., 0] + R[:, i, 1] * centre[..., 1] \
+            + R[:, i, 2] * centre[..., 2]                       # face centre, world
+        nw_i = nf[k] * R[:, i, k]                      # outward normal, towards the head
+        h = h + nw_i * (vertex[:, i] - c_i)
+        cos_alpha = cos_alpha - nw_i * direction[:, i]
+        normal.append(nw_i)
+    return h, cos_alpha, normal
+
+
 def double_pass_reading(pose, cube_offset: np.ndarray, cube_size: float, axis: str, vertex,
                         direction) -> np.ndarray:
     """Geometric reading h cos(alpha) (m, (N,)) of a double-pass plane-mirror interferometer on
@@ -75,17 +94,7 @@ def double_pass_reading(pose, cube_offset: np.ndarray, cube_size: float, axis: s
     The head's own constant path is left out (readings count from a zero). Written entry by
     entry over the points (models/batched.py: (N,3) arrays reduced over their last axis pay
     numpy's per-item overhead)."""
-    nf = FACE_NORMALS[axis]
-    k = int(np.flatnonzero(nf)[0])                     # the face's normal is +-e_k of the cube
-    centre = np.asarray(cube_offset + 0.5 * cube_size * nf)   # (3,) or (N,3): platform frame
-    R, p = pose.R, pose.p
-    h = cos_alpha = 0.0
-    for i in range(3):
-        c_i = p[:, i] + R[:, i, 0] * centre[..., 0] + R[:, i, 1] * centre[..., 1] \
-            + R[:, i, 2] * centre[..., 2]                       # face centre, world
-        nw_i = nf[k] * R[:, i, k]                      # outward normal, towards the head
-        h = h + nw_i * (vertex[:, i] - c_i)
-        cos_alpha = cos_alpha - nw_i * direction[:, i]
+    h, cos_alpha, _ = _double_pass_terms(pose, cube_offset, cube_size, axis, vertex, direction)
     return h * cos_alpha
 
 
@@ -94,6 +103,26 @@ def optical_path(pose, cube_offset, cube_size, optics: Optics, axis: str) -> np.
     double pass's round trips)."""
     vertex, b = optics.beam(axis)
     return optics.n_air[axis] * double_pass_reading(pose, cube_offset, cube_size, axis, vertex, b)
+
+
+def optical_path_pose_gradient(pose, cube_offset, cube_size, optics: Optics,
+                               axis: str) -> np.ndarray:
+    """(N,6) the derivative of ``optical_path`` with respect to the platform's pose: its
+    position and a small rotation w applied on its rotation (R -> exp([w]x) R), at fixed
+    optics. With the face's world normal n_w and the vertex v: a move dp changes h by
+    -n_w . dp; a rotation turns n_w by w x n_w and the face centre c about p, so h changes by
+    w . (n_w x (v - p)) and cos(alpha) = -n_w . b by w . (b x n_w)."""
+    v, b = optics.beam(axis)
+    h, cos_alpha, nw = _double_pass_terms(pose, cube_offset, cube_size, axis, v, b)
+    n = optics.n_air[axis]
+    lever = [v[:, i] - pose.p[:, i] for i in range(3)]
+    out = np.empty((h.shape[0], 6))
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        out[:, i] = -n * cos_alpha * nw[i]
+        out[:, 3 + i] = n * (cos_alpha * (nw[j] * lever[k] - nw[k] * lever[j])
+                             + h * (b[:, j] * nw[k] - b[:, k] * nw[j]))
+    return out
 
 
 def nominal_dead_path(cube_size: float) -> dict:
