@@ -27,7 +27,6 @@ RADIUS_MIN = 1e-9   # fit scales: a trust region this small has only round-off l
 # the fit: its column changes the fitted directions' Jacobian by < 1e-8 of a fitted column
 UNSEEN_FRACTION = 1e-16
 STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of their uncertainty
-JACOBIAN_BUDGET = 20   # the default work budget, in exact Jacobians of the model (TRF's 20 steps)
 log = logging.getLogger(__name__)
 
 
@@ -40,11 +39,8 @@ class PhysicsFit:
     diagnosis adds),
     ``noise_nm`` (the readings' noise, nm: sets which directions are identifiable),
     ``identifiable_ratio`` (a direction is fitted if the data determine it to better than this
-    fraction of its parameters' typical size), ``max_evaluations`` (the solver's budget of work,
-    in model evaluations: a point it tries costs one, an exact Jacobian one per column it
-    computes and one, as ``n_evaluations_`` counts them; the start's Jacobian is not charged;
-    None: the work of JACOBIAN_BUDGET exact Jacobians of the model, what scipy's TRF spent at
-    its default of 20 steps, so a hard fit is not cut short by its cheap steps),
+    fraction of its parameters' typical size), ``max_evaluations`` (the points the solver
+    evaluates, the start included; a Jacobian, many evaluations' work, is not one),
     ``progress`` (a callable given a message after each evaluation, or None).
 
     Attributes after ``fit``: ``model_`` (PhysicsModel at the fitted values), ``offsets_`` (m per
@@ -58,8 +54,7 @@ class PhysicsFit:
 
     def __init__(self, effects, params: RobotParams | None = None, start: dict | None = None,
                  noise_nm: float = 5.0, identifiable_ratio: float = 0.3,
-                 max_evaluations: int | None = None, progress: bool = False,
-                 prior: dict | None = None):
+                 max_evaluations: int = 20, progress: bool = False, prior: dict | None = None):
         if noise_nm <= 0 or not math.isfinite(noise_nm):
             raise FitError(f"noise_nm = {noise_nm}: must be a positive number of nanometres")
         if not 0 < identifiable_ratio:
@@ -77,9 +72,9 @@ class PhysicsFit:
         self.prior = prior
         self.noise_nm = noise_nm
         self.identifiable_ratio = identifiable_ratio
-        if max_evaluations is not None and max_evaluations < 1:
+        if max_evaluations < 1:
             raise FitError(f"max_evaluations = {max_evaluations}: must be at least 1")
-        self.max_evaluations = None if max_evaluations is None else int(max_evaluations)
+        self.max_evaluations = int(max_evaluations)
         self.progress = progress
         PhysicsModel(self.effects, params, self.start)   # validate names and values once
 
@@ -135,13 +130,11 @@ class PhysicsFit:
         # Jacobians need only these; the fitted model's is completed at the end
         seen = np.sum(V ** 2, axis=1) > UNSEEN_FRACTION
 
-        jacobian_work = int(seen.sum()) + 1
-
         def jac(z):
             """The residual's exact Jacobian in z (nm per fit scale) and the model's (N,3,p),
             its columns outside ``seen`` left zero."""
             J = model.jacobian(meas, theta_of(z), seen)[1]
-            self.n_evaluations_ += jacobian_work
+            self.n_evaluations_ += int(seen.sum()) + 1
             self.n_jacobians_ += 1
             return -_projected(meas, cal, J * S) @ V * NM, J
 
@@ -158,15 +151,12 @@ class PhysicsFit:
             self.solver_message_ = "the start is converged on these data: kept"
         elif k:
             z, J, A, self.solver_message_ = _gauss_newton(
-                fun, jac, z_start, Jz0, dof,
-                JACOBIAN_BUDGET * jacobian_work if self.max_evaluations is None
-                else self.max_evaluations,
+                fun, jac, z_start, Jz0, dof, self.max_evaluations,
                 # the start's prediction and exact Jacobian when z_start is the start itself
                 (r0, A0, J0) if np.array_equal(theta_of(z_start), theta0) else None,
                 progress=(lambda r: log.info(
                     "fit %s: calibration rms %.3f nm", "+".join(self.effects),
-                    np.sqrt(np.mean(r ** 2)))) if self.progress else None,
-                jacobian_work=jacobian_work)
+                    np.sqrt(np.mean(r ** 2)))) if self.progress else None)
             theta = theta_of(z)
             if J is not J0 and not seen.all():
                 J[:, :, ~seen] = model.jacobian(meas, theta, ~seen)[1][:, :, ~seen]
@@ -271,7 +261,7 @@ class PhysicsFit:
 
 
 def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None,
-                  progress=None, jacobian_work: int = 1):
+                  progress=None):
     """Minimise |r(z)|^2 by Gauss-Newton steps that re-use a Jacobian while they are accepted.
 
     ``fun(z)`` -> (r, prediction), ``jac(z)`` -> (exact dr/dz, the model's full Jacobian);
@@ -290,9 +280,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     region (fit scales) that a failed step shrinks and a well-predicted one widens (a curved
     valley of weakly determined directions: the Gauss-Newton step overshoots it); a model that
     cannot be evaluated at a trial point (its kinematics fail) counts as a failed step there.
-    ``max_evaluations`` is a budget of work in evaluations: each point evaluated (the start
-    included) costs one, each exact Jacobian ``jacobian_work``; no step is taken once it is
-    spent (a Jacobian the status needs is still computed)."""
+    ``max_evaluations`` counts the points evaluated, the start included."""
     if at_start is None:
         r, A = fun(z)
         J, exact = None, False
@@ -310,13 +298,13 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
                            f"{STEP_SIGMA} of their uncertainty")
                 break
             Jz, J = jac(z)
-            exact, evaluations = True, evaluations + jacobian_work
+            exact = True
             continue
         if radius < RADIUS_MIN:
             message = "no step lowers the cost any further (round-off)"
             break
         if evaluations >= max_evaluations:
-            message = f"stopped at the limit of {max_evaluations} model evaluations' work"
+            message = f"stopped at the limit of {max_evaluations} model evaluations"
             break
         step = _trust_region_step(Jz, r, radius)
         length = float(np.linalg.norm(step))
@@ -349,7 +337,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
             # updates): recomputed, in a smaller region
             radius = 0.5 * length
             Jz, J = jac(z)
-            exact, evaluations = True, evaluations + jacobian_work
+            exact = True
     if not exact:
         J = jac(z)[1]
     return z, J, A, message
