@@ -14,7 +14,8 @@ above it (the quadrature difference).
 
 ``measured_floor_budget`` splits the floor per source, in nm per axis, for twin data: each
 source alone is switched on in the twin with every other made perfect (same seed: the same
-timeline and draws), the true model refitted, and the source's share is what its run adds in
+timeline and draws), the true model refitted from the complete fit's values (its basin), and
+the source's share is what its run adds in
 quadrature to the run where every instrument is perfect. That last run's floor is itself a
 line of the budget: what perfect instruments leave, the parts' temperatures the sensors do not
 see (parts without a sensor, gradients, the model's smoothing of the readings). Each source
@@ -139,6 +140,15 @@ def _by_sensor(fit: PhysicsFit, df, meta: dict, perfect_df) -> dict:
     return out
 
 
+def _refit_in_basin(full: PhysicsFit, df, meta: dict) -> PhysicsFit:
+    """The true model refitted on a run of the twin with some sources made perfect, started
+    from the complete fit's values (``full``, with its prior): the budget splits that one floor,
+    so each run must stay in the basin it was found in; a run started afresh can land in a
+    basin that extrapolates differently to validation (fit_from_starts)."""
+    return PhysicsFit(full.effects, full.params, start=full.model_.values(), prior=full.prior,
+                      noise_nm=full.noise_nm).fit(df, meta)
+
+
 def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | None = None) -> dict:
     """The achievable floor of the twin's dataset ``df`` (``scenario`` at ``scale``) split per
     source (module docstring): ``{axis: {source_nm: nm, ..., "thermal_state_nm": nm,
@@ -156,7 +166,7 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
         if not np.array_equal(d["t_s"].to_numpy(), df["t_s"].to_numpy()):
             raise RuntimeError(f"floor budget: the {name} run's timeline differs from the "
                                "dataset's (a source that is not a pure draw?)")
-        floors[name] = _val_p90(true_fit(d, m, start=getattr(full, "start_label_", None)))
+        floors[name] = _val_p90(_refit_in_basin(full, d, m))
         if name == REMAINDER:
             quiet_df = d
     floor = _val_p90(full)
@@ -182,7 +192,7 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
 
 
 def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
-                           servo_u_rad: float = 0.0, pressure_u_Pa: float | None = None):
+                           servo_u_rad: float = 0.0, climate: dict | None = None):
     """The floor's budget of laboratory data, predicted from the instruments' specifications
     (``settings``: twin.instruments.simulated.InstrumentSettings, the defaults' instruments
     unless given) through the fitted model's sensitivities to its measured inputs
@@ -190,18 +200,20 @@ def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
     thermometers' standard uncertainty is their noise and resolution (sigma^2 + step^2 / 12),
     propagated as white noise through the model's temperature levels and rates, and per sensor
     as an offset through each lever (an upper bound: the model's smoothing averages white
-    noise); the pressure's is the barometer's where the data record it, else
-    ``pressure_u_Pa`` (default 80 Pa, the papers' unrecorded wander)."""
+    noise). The air: the barometer's (hygrometer's) noise where the data record ``p_Pa``
+    (``RH_pct``), else the wander the laboratory states (``climate``: room_climate's
+    pressure_std_Pa, pressure_time_s, vapour_std_Pa, vapour_time_s; default the library's, the
+    papers' 80 Pa over a day), over each reading's time since its session's zero."""
     from deltatwin.calibration.design.budget import thermometer_u_K, uncertainty_budget
     from deltatwin.twin.instruments.simulated import InstrumentSettings
+    from deltatwin.twin.scenario import air_wander
 
     s = settings or InstrumentSettings()
     T_u = thermometer_u_K(s)
-    if pressure_u_Pa is None:
-        pressure_u_Pa = (float(np.hypot(s.barometer_noise_Pa, s.barometer_resolution_Pa
-                                        / np.sqrt(12))) if "p_Pa" in df else 80.0)
+    air = air_wander(s, climate, "p_Pa" in df, "RH_pct" in df,
+                     fit.model_.params.reference_temperature_C)
     reading_u = float(np.hypot(s.noise_floor_m, s.resolution_m / np.sqrt(12)))
-    table = uncertainty_budget(fit, df, meta, reading_u, T_u, servo_u_rad, pressure_u_Pa,
+    table = uncertainty_budget(fit, df, meta, reading_u, T_u, servo_u_rad, air,
                                np.random.default_rng(0), per_sensor=True)
     return table[table["kind"].isin(["noise", "thermometer"])].reset_index(drop=True)
 
