@@ -200,13 +200,16 @@ def air_line(fit: PhysicsFit, air: dict) -> tuple[str, np.ndarray] | None:
     model's levers (``_air_levers``), up to the session zeros (``wander_u``); None without
     either."""
     parts, var = [], 0.0
-    for field, what in (("pressure_Pa", "pressure"), ("vapour_Pa", "water vapour")):
+    recorded = fit.measurements_.df.columns
+    for field, column, what in (("pressure_Pa", "p_Pa", "pressure"),
+                                ("vapour_Pa", "RH_pct", "water vapour")):
         std, time_s = air.get(field, (0.0, 0.0))
         if std > 0:
             u = wander_u(fit.measurements_, *_air_levers(fit, field), std, time_s)
             var = var + u ** 2
-            parts.append(f"{what} {std:.3g} Pa " + (f"wander over {time_s / 3600:.3g} h"
-                                                     if time_s > 0 else "record noise"))
+            parts.append(f"{'recorded' if column in recorded else 'unrecorded'} {what} "
+                         f"{std:.3g} Pa " + (f"wander over {time_s / 3600:.3g} h" if time_s > 0
+                                             else "white"))
     return (f"air ({', '.join(parts)})", np.sqrt(var)) if parts else None
 
 
