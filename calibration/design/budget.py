@@ -145,12 +145,14 @@ def _air_levers(fit: PhysicsFit, field: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def exponential_kernel_sums(t: np.ndarray, w: np.ndarray, time_s: float) -> np.ndarray:
-    """m_i = sum_j w_j exp(-|t_i - t_j| / time_s) for every i, in O(n) (a forward and a
-    backward recursion over the sorted times); ``time_s`` 0: white (equal times only)."""
+    """m_i = sum_j w_j exp(-|t_i - t_j| / time_s) for every i (``w``: (n,) or (n, k), each
+    column alike), in O(n) (a forward and a backward recursion over the sorted times);
+    ``time_s`` 0: white (equal times only)."""
     order = np.argsort(t, kind="stable")
     ts, ws = t[order], w[order]
     gap = np.diff(ts)
     decay = np.exp(-gap / time_s) if time_s > 0 else (gap == 0).astype(float)
+    decay = decay.reshape(-1, *([1] * (ws.ndim - 1)))
     forward, backward = ws.copy(), ws.copy()
     for k in range(1, ts.size):
         forward[k] += decay[k - 1] * forward[k - 1]
@@ -161,14 +163,37 @@ def exponential_kernel_sums(t: np.ndarray, w: np.ndarray, time_s: float) -> np.n
     return out
 
 
+def refit_map(fit: PhysicsFit) -> tuple[np.ndarray, np.ndarray] | None:
+    """(G, W), each (N,3,k): the fit's first-order refit of a change d (N,3) of the readings
+    (its identified directions and each session's zero take up what they can) leaves
+    zero_centred(d) - G @ (sum over the entries of W * d); None without identified
+    directions."""
+    meas = fit.measurements_
+    JV = np.nan_to_num((fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_)
+    if not JV.shape[2]:
+        return None
+    # the step z = -pinv(A) (the change's calibration part, each group's mean removed)
+    solve_T = np.linalg.pinv(_projected(meas, meas.cal, JV)).T
+    W, start = np.zeros_like(JV), 0
+    for g in range(len(meas.groups)):
+        m = (meas.group == g) & meas.cal[:, None]
+        if m.any():
+            x = solve_T[start:start + m.sum()]
+            W[m] = x - x.mean(axis=0)
+            start += m.sum()
+    return np.nan_to_num(zero_centred(meas, JV)), W
+
+
 def wander_u(meas, row_lever: np.ndarray, zero_lever: np.ndarray, std: float,
-             time_s: float) -> np.ndarray:
+             time_s: float, refit: tuple | None = None) -> np.ndarray:
     """(N,3) m: the standard uncertainty, up to the session zeros (``zero_centred``), of what a
     stationary Ornstein-Uhlenbeck wander of the air (``std``, correlation time ``time_s``; 0:
     white, a record's noise) puts on each reading through ``row_lever`` (its level at the
     reading) and ``zero_lever`` (at its session's zero), per unit: the exact variance of the
     linear combination under the covariance std^2 exp(-|dt| / time_s) (over a reading's time
     since its zero alone it would be std^2 2 (1 - exp(-dt / time_s)) on a constant lever).
+    ``refit`` (``refit_map``): what the fit's identified directions take up of it taken out
+    too, to first order (a slow wander looks partly like a slow drift the model fits).
     NaN where the axis was not read or its session has no calibration row."""
     t = meas.points.t_s
     kernel = (lambda dt: np.exp(-np.abs(dt) / time_s)) if time_s > 0 else (
@@ -189,8 +214,22 @@ def wander_u(meas, row_lever: np.ndarray, zero_lever: np.ndarray, std: float,
         var = (a ** 2 + db ** 2 + 2 * a * db * kernel(t[rows] - t0)
                - 2 * a * m[:-1] / n_cal - 2 * db * m[-1] / n_cal
                + a_cal @ m[:-1] / n_cal ** 2)
-        out[rows, k] = std * np.sqrt(np.maximum(var, 0.0))
-    return out
+        out[rows, k] = std ** 2 * var
+    if refit is not None:
+        # r = Z d - G c with c = W . d: Var r = Var Zd - 2 G Cov(c, Zd) + G Cov(c) G
+        G, W = refit
+        read = meas.group >= 0
+        a, b = np.where(read, row_lever, 0.0), np.where(read, zero_lever, 0.0)
+        n = a.shape[0]
+        at_times = np.zeros((t.size, W.shape[2]))
+        at_times[:n] = np.einsum("na,nak->nk", a, W)
+        np.add.at(at_times, meas.zero_row, np.einsum("na,nak->nk", b, W))
+        K = std ** 2 * exponential_kernel_sums(t, at_times, time_s)
+        cov_W = a[:, :, None] * K[:n, None, :] + b[:, :, None] * K[meas.zero_row][:, None, :]
+        cov_c = np.einsum("nak,nal->kl", W, cov_W)
+        out = (out - 2 * np.einsum("nak,nak->na", G, np.nan_to_num(zero_centred(meas, cov_W)))
+               + np.einsum("nak,kl,nal->na", G, cov_c, G))
+    return np.sqrt(np.maximum(out, 0.0))
 
 
 def air_line(fit: PhysicsFit, air: dict) -> tuple[str, np.ndarray] | None:
@@ -205,7 +244,8 @@ def air_line(fit: PhysicsFit, air: dict) -> tuple[str, np.ndarray] | None:
                                 ("vapour_Pa", "RH_pct", "water vapour")):
         std, time_s = air.get(field, (0.0, 0.0))
         if std > 0:
-            u = wander_u(fit.measurements_, *_air_levers(fit, field), std, time_s)
+            u = wander_u(fit.measurements_, *_air_levers(fit, field), std, time_s,
+                         refit_map(fit))
             var = var + u ** 2
             parts.append(f"{'recorded' if column in recorded else 'unrecorded'} {what} "
                          f"{std:.3g} Pa " + (f"wander over {time_s / 3600:.3g} h" if time_s > 0

@@ -10,6 +10,7 @@ from deltatwin.calibration.design.budget import (
     exponential_kernel_sums,
     fixed_robot,
     mixture_p90,
+    refit_map,
     uncertainty_budget,
     wander_u,
 )
@@ -113,6 +114,25 @@ def test_wander_line_is_the_exact_variance_up_to_the_session_zeros():
         W[:, :-1] -= (cal * a[rows, k])[None, :] / cal.sum()
         W[:, -1] -= b[rows, k][cal].mean()
         assert np.allclose(u[rows, k], np.sqrt(np.einsum("ij,jk,ik->i", W, K, W)), rtol=1e-8)
+    # with the fit's first-order refit taken out too: the dense r = (Z - G W^T) L p
+    G, W = refit_map(fit)
+    read = meas.group >= 0
+    ent = np.argwhere(read)                                 # (row, axis) of every reading
+    n = meas.y.shape[0]
+    L = np.zeros((len(ent), t.size))
+    L[np.arange(len(ent)), ent[:, 0]] = a[read]
+    L[np.arange(len(ent)), meas.zero_row[ent[:, 0]]] += b[read]
+    K = std ** 2 * np.exp(-np.abs(t[:, None] - t[None, :]) / time_s)
+    Z = np.zeros((len(ent), len(ent)))
+    for i, (row, k) in enumerate(ent):
+        same = (meas.group[ent[:, 0], ent[:, 1]] == meas.group[row, k])
+        Z[i, i] = 1.0
+        Z[i, same & meas.cal[ent[:, 0]]] -= 1.0 / (same & meas.cal[ent[:, 0]]).sum()
+    M = Z - G[read] @ W[read].T
+    dense = np.sqrt(np.einsum("ij,jk,ik->i", M @ L, K, M @ L))
+    refitted = wander_u(meas, a, b, std, time_s, (G, W))
+    assert n == len(meas.df) and np.allclose(refitted[read], dense, rtol=1e-6)
+    assert np.nanmean(refitted[read]) < np.nanmean(u[read])
     # a dead path's lever: the zero's level counts against the reading's
     slow, white = (wander_u(meas, a, -a, std, tau) for tau in (time_s, 0.0))
     read = meas.group >= 0
