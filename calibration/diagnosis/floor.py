@@ -14,8 +14,7 @@ above it (the quadrature difference).
 
 ``measured_floor_budget`` splits the floor per source, in nm per axis, for twin data: each
 source alone is switched on in the twin with every other made perfect (same seed: the same
-timeline and draws), the true model refitted from the complete fit's values (its basin), and
-the source's share is what its run adds in
+timeline and draws), the true model refitted, and the source's share is what its run adds in
 quadrature to the run where every instrument is perfect. That last run's floor is itself a
 line of the budget: what perfect instruments leave, the parts' temperatures the sensors do not
 see (parts without a sensor, gradients, the model's smoothing of the readings). Each source
@@ -140,15 +139,6 @@ def _by_sensor(fit: PhysicsFit, df, meta: dict, perfect_df) -> dict:
     return out
 
 
-def _refit_in_basin(full: PhysicsFit, df, meta: dict) -> PhysicsFit:
-    """The true model refitted on a run of the twin with some sources made perfect, started
-    from the complete fit's values (``full``, with its prior): the budget splits that one floor,
-    so each run must stay in the basin it was found in; a run started afresh can land in a
-    basin that extrapolates differently to validation (fit_from_starts)."""
-    return PhysicsFit(full.effects, full.params, start=full.model_.values(), prior=full.prior,
-                      noise_nm=full.noise_nm).fit(df, meta)
-
-
 def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | None = None) -> dict:
     """The achievable floor of the twin's dataset ``df`` (``scenario`` at ``scale``) split per
     source (module docstring): ``{axis: {source_nm: nm, ..., "thermal_state_nm": nm,
@@ -166,7 +156,7 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
         if not np.array_equal(d["t_s"].to_numpy(), df["t_s"].to_numpy()):
             raise RuntimeError(f"floor budget: the {name} run's timeline differs from the "
                                "dataset's (a source that is not a pure draw?)")
-        floors[name] = _val_p90(_refit_in_basin(full, d, m))
+        floors[name] = _val_p90(true_fit(d, m, start=getattr(full, "start_label_", None)))
         if name == REMAINDER:
             quiet_df = d
     floor = _val_p90(full)
