@@ -26,7 +26,10 @@ error at the tool point.
   through the index's change over each beam's dead path and displacement: an unrecorded
   wander as the laboratory states it (std and correlation time: a slow wander moves little
   between a session's zero and its readings), or a barometer's (hygrometer's) noise, white;
-  its exact variance under the wander's covariance (``wander_u``).
+  its exact variance under the wander's covariance (``wander_u``), with, besides the session
+  zeros, what the fit's identified directions take up of it on the calibration rows taken
+  out to first order (``refit_map``): a slow wander looks partly like a slow drift the model
+  fits, and where validation extrapolates that part returns amplified.
 * Thermometers per sensor (``per_sensor``): each sensor's ``T_u_K`` as an offset through its
   lever (the model's prediction with that column shifted, a first-order difference), to show
   which sensor's lever matters.
@@ -236,8 +239,8 @@ def air_line(fit: PhysicsFit, air: dict) -> tuple[str, np.ndarray] | None:
     """("air (...)", u (N,3) m): the air's pressure and water vapour as the laboratory states
     them (``air``: {"pressure_Pa": (std, correlation time s), "vapour_Pa": (...)}, as
     twin.scenario.air_wander gives; time 0 is a record's white noise) through the fitted
-    model's levers (``_air_levers``), up to the session zeros (``wander_u``); None without
-    either."""
+    model's levers (``_air_levers``), up to the session zeros and the fit's first-order refit
+    (``wander_u``, ``refit_map``); None without either."""
     parts, var = [], 0.0
     recorded = fit.measurements_.df.columns
     for field, column, what in (("pressure_Pa", "p_Pa", "pressure"),
