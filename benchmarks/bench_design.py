@@ -344,10 +344,10 @@ def budget(scale: float, rng) -> None:
     servo = next(e for e in sc.effects if e.name == "servo_settling").values["angle_std_rad"]
     readings = sc.campaign["readings"]
     b = uncertainty_budget(fit, df, meta, sc.settings.noise_floor_m / np.sqrt(readings),
-                           sc.settings.T_noise_C, float(servo), 200.0, rng)
+                           sc.settings.T_noise_C, float(servo), sc.air_wander(), rng)
     print(f"\nuncertainty budget (paper-force, scale {scale}, {len(df)} points; reading "
           f"{sc.settings.noise_floor_m * 1e9:g} nm / sqrt({readings}) readings; servo "
-          f"{servo:g} rad, pressure 200 Pa, thermometers {sc.settings.T_noise_C * 1e3:g} mK):")
+          f"{servo:g} rad, the scenario's air, thermometers {sc.settings.T_noise_C * 1e3:g} mK):")
     print(b.to_string(index=False, float_format="%.2f"))
     print(f"  combined {b.all_p90_nm.iloc[-1]:.1f} nm beside the fit's validation error "
           f"{fit.val_['all']['err_p90']:.1f} nm (90 %)")
@@ -356,7 +356,7 @@ def budget(scale: float, rng) -> None:
 def budget_mc(scale: float, campaigns: int) -> None:
     """The budget's Monte Carlo check: ``campaigns`` simulated campaigns of one robot."""
     c0, t0 = time.process_time(), time.perf_counter()
-    t = budget_monte_carlo("paper-force", BUDGET_MODEL, campaigns, scale, 2020, 200.0,
+    t = budget_monte_carlo("paper-force", BUDGET_MODEL, campaigns, scale, 2020,
                            progress=lambda i, n: print(f"  campaign {i}/{n}", file=sys.stderr))
     print(f"\nbudget vs Monte Carlo (paper-force at scale {scale}, {campaigns} campaigns of one "
           f"robot; {time.process_time() - c0:.0f} CPU s in this process, "

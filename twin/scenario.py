@@ -25,7 +25,7 @@ import pandas as pd
 from deltatwin.models.params import ParameterError, load_params
 from deltatwin.twin.campaign import Plan, force_plan, run_campaign, simulate_campaign, thermal_plan
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, make_effect
-from deltatwin.twin.instruments.optics import nominal_dead_path
+from deltatwin.twin.instruments.optics import nominal_dead_path, saturation_vapour_pressure
 from deltatwin.twin.instruments.simulated import InstrumentSettings, SimulatedLab
 from deltatwin.twin.thermal import PART_NODES
 from deltatwin.twin.world import Twin, random_streams
@@ -62,6 +62,26 @@ ERROR_SOURCES = {"interferometers": "the interferometers' noise and resolution (
                  "air": "the air's pressure and humidity: their unrecorded wander, or the "
                         "barometer's and hygrometer's noise where the lab records them",
                  "servo_settling": "where the motors' controllers settled"}
+
+
+def air_wander(settings: InstrumentSettings, climate: dict | None, barometer: bool,
+               hygrometer: bool, room_C: float = 20.0) -> dict:
+    """What a reading sees of the air against its session's zero, as the laboratory states it:
+    {"pressure_Pa": (std Pa, correlation time s), "vapour_Pa": (std Pa, time s)}. Where the
+    laboratory records it (``barometer``, ``hygrometer``) the record's noise and resolution,
+    white (time 0; the hygrometer's %RH as vapour at ``room_C``); else the room's wander
+    (room_climate's values ``climate``, its defaults for what it does not give)."""
+    from deltatwin.twin.effects.room_climate import RoomClimate
+
+    c = {p.name: p.default for p in RoomClimate.parameters} | (climate or {})
+    rounding = lambda noise, step: float(np.hypot(noise, step / np.sqrt(12)))
+    pressure = ((rounding(settings.barometer_noise_Pa, settings.barometer_resolution_Pa), 0.0)
+                if barometer else (float(c["pressure_std_Pa"]), float(c["pressure_time_s"])))
+    per_pct = float(saturation_vapour_pressure(room_C)) / 100.0
+    vapour = ((rounding(settings.hygrometer_noise_pct, settings.hygrometer_resolution_pct)
+               * per_pct, 0.0) if hygrometer
+              else (float(c["vapour_std_Pa"]), float(c["vapour_time_s"])))
+    return {"pressure_Pa": pressure, "vapour_Pa": vapour}
 
 
 class ScenarioError(ValueError):
@@ -288,6 +308,19 @@ class Scenario:
         names = {e.name for e in self.effects}
         return [s for s in ERROR_SOURCES if s not in ("air", "servo_settling") or
                 {"air": "air_refraction", "servo_settling": "servo_settling"}[s] in names]
+
+    def air_wander(self) -> dict:
+        """The air's wander a reading sees in this laboratory (``air_wander``: the barometer's
+        and hygrometer's noise where it records them, else room_climate's wander); none where
+        the air does not reach the readings (no air_refraction); without room_climate the
+        twin's air stands still at its standard values (the records' noise remains)."""
+        if "air" not in self.sources():
+            return {"pressure_Pa": (0.0, 0.0), "vapour_Pa": (0.0, 0.0)}
+        climate = next((e.values for e in self.effects if e.name == "room_climate"),
+                       {"pressure_std_Pa": 0.0, "vapour_std_Pa": 0.0})
+        s = self.settings
+        return air_wander(s, climate, s.barometer, s.hygrometer,
+                          self.params.reference_temperature_C)
 
     def with_perfect(self, sources) -> Scenario:
         """This scenario with the laboratory's error ``sources`` (keys of ERROR_SOURCES) made

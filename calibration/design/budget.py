@@ -22,11 +22,14 @@ error at the tool point.
   through the model's temperature levels *and rates* (causal fits over time): propagated by
   noise draws (GUM Supplement 1), since a constant shift of a column (a first-order lever)
   reaches the levels only and missed ~95 % of this line on the force campaign.
-* Pressure: the air's pressure at each reading ``pressure_u_Pa`` off the one at its session's
-  zero (the air_refraction effect's index change times the dead path: what an unrecorded
-  wander, or a barometer's noise, leaves; a constant offset of every reading and of the zero
-  would only scale the displacement). Not zero-centred: the wander is drawn afresh at every
-  reading, not shared by a session.
+* Air: the air's pressure (and water vapour) at each reading off the one at its session's zero,
+  through the index's change over each beam's dead path and displacement: an unrecorded
+  wander as the laboratory states it (std and correlation time: a slow wander moves little
+  between a session's zero and its readings), or a barometer's (hygrometer's) noise, white;
+  its exact variance under the wander's covariance (``wander_u``), with, besides the session
+  zeros, what the fit's identified directions take up of it on the calibration rows taken
+  out to first order (``refit_map``): a slow wander looks partly like a slow drift the model
+  fits, and where validation extrapolates that part returns amplified.
 * Thermometers per sensor (``per_sensor``): each sensor's ``T_u_K`` as an offset through its
   lever (the model's prediction with that column shifted, a first-order difference), to show
   which sensor's lever matters.
@@ -124,21 +127,137 @@ def zero_centred(meas, v: np.ndarray) -> np.ndarray:
     return out
 
 
-def _pressure_change(fit: PhysicsFit, n_readings: int, dp_Pa) -> np.ndarray:
-    """(N,3) m: the fitted model (with air_refraction) at each reading's air pressure changed
-    by ``dp_Pa(n)`` (Pa, n values) minus as recorded; the zero rows (after the readings) keep
-    theirs, so the change is the index's over each beam's dead path and displacement."""
+def _air_levers(fit: PhysicsFit, field: str) -> tuple[np.ndarray, np.ndarray]:
+    """((N,3), (N,3)) m per Pa: the fitted model's (with air_refraction) change of each reading
+    with the air's ``field`` ("pressure_Pa" or "vapour_Pa") raised at that reading, and with it
+    raised at its session's zero (first-order differences): the index change over each beam's
+    dead path and displacement, at the reading and at the zero it is counted from."""
     meas = fit.measurements_
     air = PhysicsModel(list(dict.fromkeys(fit.effects + ["air_refraction"])), fit.model_.params,
                        fit.model_.values())
     pts = meas.points
-    readings = np.arange(pts.t_s.size) < n_readings
-    moved = dataclasses.replace(pts, pressure_Pa=pts.pressure_Pa + dp_Pa(pts.t_s.size) * readings)
-    return air.predict_path(dataclasses.replace(meas, points=moved)) - air.predict_path(meas)
+    level = getattr(pts, field)
+    if level is None:       # no humidity record: the model's air has the vapour it assumes
+        level = np.full(pts.t_s.size, float(air.values()["air_refraction"]["vapour_pressure_Pa"]))
+    at_readings = np.arange(pts.t_s.size) < meas.y.shape[0]
+    predict = lambda v: air.predict_path(dataclasses.replace(
+        meas, points=dataclasses.replace(pts, **{field: v})))
+    base, step = predict(level), 100.0       # Pa: the index is linear in both to ~1e-5
+    return tuple((predict(level + step * at) - base) / step
+                 for at in (at_readings, ~at_readings))
+
+
+def exponential_kernel_sums(t: np.ndarray, w: np.ndarray, time_s: float) -> np.ndarray:
+    """m_i = sum_j w_j exp(-|t_i - t_j| / time_s) for every i (``w``: (n,) or (n, k), each
+    column alike), in O(n) (a forward and a backward recursion over the sorted times);
+    ``time_s`` 0: white (equal times only)."""
+    order = np.argsort(t, kind="stable")
+    ts, ws = t[order], w[order]
+    gap = np.diff(ts)
+    decay = np.exp(-gap / time_s) if time_s > 0 else (gap == 0).astype(float)
+    decay = decay.reshape(-1, *([1] * (ws.ndim - 1)))
+    forward, backward = ws.copy(), ws.copy()
+    for k in range(1, ts.size):
+        forward[k] += decay[k - 1] * forward[k - 1]
+    for k in range(ts.size - 2, -1, -1):
+        backward[k] += decay[k] * backward[k + 1]
+    out = np.empty_like(ws)
+    out[order] = forward + backward - ws
+    return out
+
+
+def refit_map(fit: PhysicsFit) -> tuple[np.ndarray, np.ndarray] | None:
+    """(G, W), each (N,3,k): the fit's first-order refit of a change d (N,3) of the readings
+    (its identified directions and each session's zero take up what they can) leaves
+    zero_centred(d) - G @ (sum over the entries of W * d); None without identified
+    directions."""
+    meas = fit.measurements_
+    JV = np.nan_to_num((fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_)
+    if not JV.shape[2]:
+        return None
+    # the step z = -pinv(A) (the change's calibration part, each group's mean removed)
+    solve_T = np.linalg.pinv(_projected(meas, meas.cal, JV)).T
+    W, start = np.zeros_like(JV), 0
+    for g in range(len(meas.groups)):
+        m = (meas.group == g) & meas.cal[:, None]
+        if m.any():
+            x = solve_T[start:start + m.sum()]
+            W[m] = x - x.mean(axis=0)
+            start += m.sum()
+    return np.nan_to_num(zero_centred(meas, JV)), W
+
+
+def wander_u(meas, row_lever: np.ndarray, zero_lever: np.ndarray, std: float,
+             time_s: float, refit: tuple | None = None) -> np.ndarray:
+    """(N,3) m: the standard uncertainty, up to the session zeros (``zero_centred``), of what a
+    stationary Ornstein-Uhlenbeck wander of the air (``std``, correlation time ``time_s``; 0:
+    white, a record's noise) puts on each reading through ``row_lever`` (its level at the
+    reading) and ``zero_lever`` (at its session's zero), per unit: the exact variance of the
+    linear combination under the covariance std^2 exp(-|dt| / time_s) (over a reading's time
+    since its zero alone it would be std^2 2 (1 - exp(-dt / time_s)) on a constant lever).
+    ``refit`` (``refit_map``): what the fit's identified directions take up of it taken out
+    too, to first order (a slow wander looks partly like a slow drift the model fits).
+    NaN where the axis was not read or its session has no calibration row."""
+    t = meas.points.t_s
+    kernel = (lambda dt: np.exp(-np.abs(dt) / time_s)) if time_s > 0 else (
+        lambda dt: (dt == 0).astype(float))
+    out = np.full(row_lever.shape, np.nan)
+    for g, (_, axis) in enumerate(meas.groups):
+        k = AXES.index(axis)
+        rows = np.flatnonzero(meas.group[:, k] == g)
+        cal = meas.cal[rows]
+        if not cal.any():
+            continue
+        t0 = t[meas.zero_row[rows[0]]]
+        a, b = row_lever[rows, k], zero_lever[rows, k]
+        a_cal, n_cal = np.where(cal, a, 0.0), cal.sum()
+        db = b - b[cal].mean()
+        m = exponential_kernel_sums(np.append(t[rows], t0), np.append(a_cal, 0.0), time_s)
+        # r_i = a_i p_i + b_i p_0 - mean over cal j of (a_j p_j + b_j p_0)
+        var = (a ** 2 + db ** 2 + 2 * a * db * kernel(t[rows] - t0)
+               - 2 * a * m[:-1] / n_cal - 2 * db * m[-1] / n_cal
+               + a_cal @ m[:-1] / n_cal ** 2)
+        out[rows, k] = std ** 2 * var
+    if refit is not None:
+        # r = Z d - G c with c = W . d: Var r = Var Zd - 2 G Cov(c, Zd) + G Cov(c) G
+        G, W = refit
+        read = meas.group >= 0
+        a, b = np.where(read, row_lever, 0.0), np.where(read, zero_lever, 0.0)
+        n = a.shape[0]
+        at_times = np.zeros((t.size, W.shape[2]))
+        at_times[:n] = np.einsum("na,nak->nk", a, W)
+        np.add.at(at_times, meas.zero_row, np.einsum("na,nak->nk", b, W))
+        K = std ** 2 * exponential_kernel_sums(t, at_times, time_s)
+        cov_W = a[:, :, None] * K[:n, None, :] + b[:, :, None] * K[meas.zero_row][:, None, :]
+        cov_c = np.einsum("nak,nal->kl", W, cov_W)
+        out = (out - 2 * np.einsum("nak,nak->na", G, np.nan_to_num(zero_centred(meas, cov_W)))
+               + np.einsum("nak,kl,nal->na", G, cov_c, G))
+    return np.sqrt(np.maximum(out, 0.0))
+
+
+def air_line(fit: PhysicsFit, air: dict) -> tuple[str, np.ndarray] | None:
+    """("air (...)", u (N,3) m): the air's pressure and water vapour as the laboratory states
+    them (``air``: {"pressure_Pa": (std, correlation time s), "vapour_Pa": (...)}, as
+    twin.scenario.air_wander gives; time 0 is a record's white noise) through the fitted
+    model's levers (``_air_levers``), up to the session zeros and the fit's first-order refit
+    (``wander_u``, ``refit_map``); None without either."""
+    parts, var = [], 0.0
+    recorded = fit.measurements_.df.columns
+    for field, column, what in (("pressure_Pa", "p_Pa", "pressure"),
+                                ("vapour_Pa", "RH_pct", "water vapour")):
+        std, time_s = air.get(field, (0.0, 0.0))
+        if std > 0:
+            u = wander_u(fit.measurements_, *_air_levers(fit, field), std, time_s,
+                         refit_map(fit))
+            var = var + u ** 2
+            parts.append(f"{'recorded' if column in recorded else 'unrecorded'} {what} "
+                         f"{std:.3g} Pa " + (f"wander over {time_s / 3600:.3g} h" if time_s > 0
+                                             else "white"))
+    return (f"air ({', '.join(parts)})", np.sqrt(var)) if parts else None
 
 
 def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_m: float,
-                       T_u_K: float, servo_u_rad: float, pressure_u_Pa: float,
+                       T_u_K: float, servo_u_rad: float, air: dict,
                        rng: np.random.Generator, n_probe: int = 32,
                        per_sensor: bool = False) -> pd.DataFrame:
     """The budget table: one row per source (``kind``: parameters / noise), its standard
@@ -147,8 +266,9 @@ def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_
     standard deviation of a point's reading (the mean of its repeated readings); ``T_u_K``: each
     thermometer's white noise per scan, propagated through the model's temperature levels and
     rates (its causal fits over time) with ``n_probe`` noise draws from ``rng`` (a Monte Carlo
-    propagation, GUM Supplement 1: a constant shift of a column would miss the rates). Every
-    line is taken up to the session zeros (``zero_centred``) but the pressure's. ``per_sensor``:
+    propagation, GUM Supplement 1: a constant shift of a column would miss the rates); ``air``:
+    the air's wander or records' noise (``air_line``). Every line is taken up to the session
+    zeros (``zero_centred``). ``per_sensor``:
     one thermometer row per sensor with a lever (``kind`` thermometer, first-order) besides
     their sum."""
     meas = fit.measurements_
@@ -179,9 +299,9 @@ def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_
     servo = np.sqrt(sum((_shifted(fit, df, meta, f"q{i}_rad", 1e-6) * servo_u_rad) ** 2
                         for i in (1, 2, 3)))
     noise.append(("noise", f"servo settling ({servo_u_rad:g} rad per motor)", servo))
-    moved = _pressure_change(fit, len(df), lambda n: np.full(n, pressure_u_Pa))
-    noise.append(("noise", f"{'barometer' if 'p_Pa' in df else 'unrecorded pressure'} "
-                  f"({pressure_u_Pa:g} Pa)", np.abs(moved)))
+    wander = air_line(fit, air)
+    if wander:
+        noise.append(("noise", *wander))
     combined = np.sqrt(var_all + sum(u ** 2 for _, _, u in noise))
     table = []
     total_var = float(np.nanmean(np.where(read, combined ** 2, np.nan)))
@@ -198,8 +318,7 @@ def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_
 # ---------------------------------------------------------------------------------------------
 # Monte Carlo check: many simulated campaigns, each source's error measured on the twin
 
-NOISE_SOURCES = ("interferometer reading", "thermometers", "servo settling",
-                 "unrecorded pressure")
+NOISE_SOURCES = ("interferometer reading", "thermometers", "servo settling", "air")
 
 
 def fixed_robot(sc, robot_seed: int):
@@ -238,25 +357,19 @@ def thermometer_u_K(settings) -> float:
 # the noise lines the Monte Carlo measures on the twin: the scenario's error source switched
 # perfect (twin/scenario.py ERROR_SOURCES) for each
 SWITCHED = {"interferometer reading": "interferometers", "thermometers": "thermometers",
-            "servo settling": "servo_settling"}
+            "servo settling": "servo_settling", "air": "air"}
 
 
-def _source_errors(sc, robot_seed, scale, df, meta, fit, pressure_u_Pa, rng) -> dict:
+def _source_errors(sc, robot_seed, scale, df, meta, fit) -> dict:
     """{source: (N,3) m} the tool-point error each noise source put on this campaign, up to
     the session zeros: the reading with the source as it is minus the reading without it (the
-    same seeds), for the thermometers the fitted model's prediction from the recorded
-    temperatures minus from noise-free ones, and for the unrecorded pressure the fitted model
-    (with air_refraction) at each reading's pressure off by a draw of ``pressure_u_Pa`` white
-    wander from ``rng`` (the twin's wander is a slow climate, not this line's white one).
-    NaN where an axis was not read."""
+    same seeds: for the air, the twin's own wander against air standing still), for the
+    thermometers the fitted model's prediction from the recorded temperatures minus from
+    noise-free ones. NaN where an axis was not read."""
     meas = fit.measurements_
     read = [f"{a}_nm" for a in AXES if f"{a}_nm" in df]
     out = {}
     for source in NOISE_SOURCES:
-        if source == "unrecorded pressure":
-            e = _pressure_change(fit, len(df), lambda n: pressure_u_Pa * rng.standard_normal(n))
-            out[source] = zero_centred(meas, e)
-            continue
         if SWITCHED[source] not in sc.sources():
             continue
         df2, _ = fixed_robot(sc.with_perfect([SWITCHED[source]]), robot_seed).simulate(scale)
@@ -280,7 +393,7 @@ def _quantile90(e: np.ndarray) -> float:
 
 
 def budget_monte_carlo(scenario, effects, campaigns: int, scale: float, seed: int,
-                       pressure_u_Pa: float, tolerance: float = 0.1, n_boot: int = 2000,
+                       tolerance: float = 0.1, n_boot: int = 2000,
                        progress=None) -> pd.DataFrame:
     """The budget of ``effects`` fitted to ``scenario``'s campaign (at ``scale``) beside the
     spread of each source's tool-point error over ``campaigns`` simulated campaigns of one
@@ -288,8 +401,8 @@ def budget_monte_carlo(scenario, effects, campaigns: int, scale: float, seed: in
     children of ``SeedSequence(seed)``).
 
     Per campaign: simulated, fitted, its budget computed (the reading's standard deviation the
-    scenario's noise floor over the square root of its readings per point; the thermometers'
-    and the servos' the scenario's own settings); then
+    scenario's noise floor over the square root of its readings per point; the thermometers',
+    the servos' and the air's (``Scenario.air_wander``) the scenario's own settings); then
 
     * a parameter line's error is the fitted model's prediction on the campaign's points with
       that effect's parameters as this campaign fitted them, the others at their mean over
@@ -333,13 +446,13 @@ def budget_monte_carlo(scenario, effects, campaigns: int, scale: float, seed: in
                       if e.name == "servo_settling"), 0.0)
         readings = sc.campaign.get("readings", 1) if sc.campaign["kind"] == "force" else 1
         b = uncertainty_budget(fit, df, meta, sc.settings.noise_floor_m / np.sqrt(readings),
-                               thermometer_u_K(sc.settings), servo, pressure_u_Pa, rng)
+                               thermometer_u_K(sc.settings), servo, sc.air_wander(), rng)
         read = fit.measurements_.group >= 0
         sampling = {name: _figures(np.where(read, u, np.nan), read)["all"]
                     for _, name, u in parameter_lines(fit, parameter_covariance(fit, False))}
         b["sampling_p90_nm"] = b.source.map(sampling).fillna(b.all_p90_nm)
         budgets.append(b)
-        noise.append(_source_errors(sc, seed, scale, df, meta, fit, pressure_u_Pa, rng))
+        noise.append(_source_errors(sc, seed, scale, df, meta, fit))
         thetas.append(fit.model_.theta())
         fits.append(fit)
         if progress:

@@ -182,7 +182,7 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
 
 
 def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
-                           servo_u_rad: float = 0.0, pressure_u_Pa: float | None = None):
+                           servo_u_rad: float = 0.0, climate: dict | None = None):
     """The floor's budget of laboratory data, predicted from the instruments' specifications
     (``settings``: twin.instruments.simulated.InstrumentSettings, the defaults' instruments
     unless given) through the fitted model's sensitivities to its measured inputs
@@ -190,20 +190,64 @@ def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
     thermometers' standard uncertainty is their noise and resolution (sigma^2 + step^2 / 12),
     propagated as white noise through the model's temperature levels and rates, and per sensor
     as an offset through each lever (an upper bound: the model's smoothing averages white
-    noise); the pressure's is the barometer's where the data record it, else
-    ``pressure_u_Pa`` (default 80 Pa, the papers' unrecorded wander)."""
+    noise). The air: the barometer's (hygrometer's) noise where the data record ``p_Pa``
+    (``RH_pct``), else the wander the laboratory states (``climate``: room_climate's
+    pressure_std_Pa, pressure_time_s, vapour_std_Pa, vapour_time_s; default the library's, the
+    papers' 80 Pa over a day), over each reading's time since its session's zero."""
     from deltatwin.calibration.design.budget import thermometer_u_K, uncertainty_budget
     from deltatwin.twin.instruments.simulated import InstrumentSettings
+    from deltatwin.twin.scenario import air_wander
 
     s = settings or InstrumentSettings()
     T_u = thermometer_u_K(s)
-    if pressure_u_Pa is None:
-        pressure_u_Pa = (float(np.hypot(s.barometer_noise_Pa, s.barometer_resolution_Pa
-                                        / np.sqrt(12))) if "p_Pa" in df else 80.0)
+    air = air_wander(s, climate, "p_Pa" in df, "RH_pct" in df,
+                     fit.model_.params.reference_temperature_C)
     reading_u = float(np.hypot(s.noise_floor_m, s.resolution_m / np.sqrt(12)))
-    table = uncertainty_budget(fit, df, meta, reading_u, T_u, servo_u_rad, pressure_u_Pa,
+    table = uncertainty_budget(fit, df, meta, reading_u, T_u, servo_u_rad, air,
                                np.random.default_rng(0), per_sensor=True)
     return table[table["kind"].isin(["noise", "thermometer"])].reset_index(drop=True)
+
+
+def air_line_check(scenario: str, scale: float | None, seeds) -> dict:
+    """The predicted budget's air line beside what the twin's own air does, pooled over the
+    campaigns ``seeds`` of ``scenario`` at ``scale``, 90 % over the validation rows, nm per
+    axis and pooled: {"budget": the line (calibration/design/budget.py air_line: the
+    scenario's stated wander through the refitted true model's levers), "twin": the readings
+    with the air's error alone switched on minus with every source perfect (same seed), up to
+    the session zeros, "twin_refit": the true model refitted on both runs (from the twin's
+    values), the difference of their residuals}. The wander is slow: one campaign sees one
+    path of it, so the comparison needs several."""
+    from deltatwin.calibration.design.budget import _figures, air_line, zero_centred
+    from deltatwin.twin.scenario import Scenario
+
+    lines = {"budget": [], "twin": [], "twin_refit": []}
+    for seed in seeds:
+        sc = Scenario.load(scenario, seed=seed)
+        runs = [sc.with_perfect([s for s in sc.sources() if s != "air"]),
+                sc.with_perfect(sc.sources())]
+        (air_df, air_meta), (still_df, still_meta) = (r.simulate(scale) for r in runs)
+        air_fit, still_fit = (true_fit(d, m, start="twin's values")
+                              for d, m in ((air_df, air_meta), (still_df, still_meta)))
+        meas = air_fit.measurements_
+        val = (meas.group >= 0) & meas.val[:, None]
+        readings = np.stack([(air_df[f"{a}_nm"] - still_df[f"{a}_nm"]).to_numpy() * 1e-9
+                             if f"{a}_nm" in air_df else np.full(len(air_df), np.nan)
+                             for a in AXES], axis=1)
+        lines["budget"].append(air_line(air_fit, sc.air_wander())[1])
+        lines["twin"].append(zero_centred(meas, readings))
+        lines["twin_refit"].append(air_fit.residual_ - still_fit.residual_)
+        lines.setdefault("val", []).append(val)
+    val = np.concatenate(lines.pop("val"))
+    out = {}
+    for name, per in lines.items():
+        v = np.concatenate(per)
+        if name == "budget":        # standard uncertainties: the mixture's 90 %
+            out[name] = _figures(np.where(val, v, np.nan), val)
+        else:                       # errors: their 90 % quantile
+            out[name] = {a: float(np.nanquantile(np.abs(np.where(val, v, np.nan)[:, k]), 0.9))
+                         * 1e9 for k, a in enumerate(AXES) if val[:, k].any()}
+            out[name]["all"] = float(np.nanquantile(np.abs(np.where(val, v, np.nan)), 0.9)) * 1e9
+    return out
 
 
 def record_achievable_floor(df, meta: dict, scenario=None, scale=None) -> dict:

@@ -115,3 +115,17 @@ def test_recorded_air_brings_the_true_models_floor_down(tmp_path):
     unrecorded = achievable_floor(df.drop(columns=["p_Pa", "RH_pct"]), meta)["achievable_floor_nm"]
     print("recorded", recorded, "unrecorded", unrecorded)
     assert recorded["all"] < 0.8 * unrecorded["all"]
+
+
+def test_the_air_a_reading_sees_as_the_laboratory_states_it():
+    """Scenario.air_wander: without a barometer the room's wander (room_climate's std and
+    correlation time), with one the record's noise and resolution, white; none where the air
+    does not reach the readings."""
+    sc = Scenario.load("paper-thermal")
+    assert sc.air_wander()["pressure_Pa"] == (80.0, 86400.0)
+    recorded = dataclasses.replace(sc, settings=dataclasses.replace(sc.settings, barometer=True))
+    std, time_s = recorded.air_wander()["pressure_Pa"]
+    assert time_s == 0.0 and std == np.hypot(sc.settings.barometer_noise_Pa,
+                                             sc.settings.barometer_resolution_Pa / np.sqrt(12))
+    still = dataclasses.replace(sc, effects=[e for e in sc.effects if e.name != "air_refraction"])
+    assert still.air_wander()["pressure_Pa"] == (0.0, 0.0)

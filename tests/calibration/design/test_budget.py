@@ -7,9 +7,12 @@ from scipy import stats
 
 from deltatwin.calibration.design.budget import (
     budget_monte_carlo,
+    exponential_kernel_sums,
     fixed_robot,
     mixture_p90,
+    refit_map,
     uncertainty_budget,
+    wander_u,
 )
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.twin.scenario import Scenario
@@ -26,9 +29,10 @@ def test_budget_lines_follow_their_inputs():
     sc = Scenario.load("quiet/gravity-sag")
     df, meta = sc.simulate(0.02)
     fit = PhysicsFit(["gravity_sag"], noise_nm=5.0).fit(df, meta)
-    a = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 1e-7, 100.0,
+    air = {"pressure_Pa": (100.0, 86400.0)}
+    a = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 1e-7, air,
                            np.random.default_rng(1)).set_index("source")
-    b = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 2e-7, 100.0,
+    b = uncertainty_budget(fit, df, meta, 5e-9, 0.003, 2e-7, air,
                            np.random.default_rng(1)).set_index("source")
     assert a.loc["interferometer reading", "all_p90_nm"] == pytest.approx(5 * 1.6449, rel=1e-3)
     servo_a = a.loc[[s for s in a.index if s.startswith("servo")][0], "all_p90_nm"]
@@ -61,7 +65,7 @@ def test_monte_carlo_check_of_a_well_specified_budget():
     reading line pools hundreds of readings: a tight check of its 1.645 sigma / 2; the
     parameters' spread, three draws, a loose one)."""
     t = budget_monte_carlo("quiet/magnetic-force", ["geometric_errors", "magnetic_force"], 3,
-                           0.05, 5, 200.0, n_boot=200).set_index("source")
+                           0.05, 5, n_boot=200).set_index("source")
     reading = t.loc["interferometer reading"]
     assert reading.budget_p90_nm == pytest.approx(5.0 / 2 * stats.norm.ppf(0.95), rel=1e-3)
     assert reading.agrees and abs(reading.ratio - 1) < 0.1
@@ -72,3 +76,64 @@ def test_monte_carlo_check_of_a_well_specified_budget():
         np.sqrt(stats.chi2.ppf(0.975, 2) / stats.chi2.ppf(0.025, 2)), rel=1e-9)
     assert params.agrees and params.budget_p90_nm <= params.with_prior_p90_nm
     assert t.mc_low_nm.le(t.mc_p90_nm).all() and t.mc_p90_nm.le(t.mc_high_nm).all()
+
+
+def test_exponential_kernel_sums_against_the_dense_sum():
+    rng = np.random.default_rng(3)
+    t = np.round(rng.uniform(0, 5e4, 300), -2)            # ties included
+    w = rng.standard_normal(300)
+    for time_s in (3600.0, 86400.0, 0.0):
+        K = (np.exp(-np.abs(t[:, None] - t[None, :]) / time_s) if time_s
+             else (t[:, None] == t[None, :]).astype(float))
+        assert np.allclose(exponential_kernel_sums(t, w, time_s), K @ w, rtol=1e-10, atol=1e-10)
+
+
+def test_wander_line_is_the_exact_variance_up_to_the_session_zeros():
+    """The air line's standard uncertainty per reading is the variance of the Ornstein-
+    Uhlenbeck wander's increment since the session's zero, taken up to the zero the fit refits
+    (the mean over the session's calibration rows): checked against the dense quadratic form,
+    and the wander's scale: slow against the session, it is far below a white wander's."""
+    sc = Scenario.load("paper-force")
+    df, meta = sc.simulate(0.05)
+    fit = PhysicsFit(["geometric_errors"], noise_nm=7.0).fit(df, meta)
+    meas = fit.measurements_
+    rng = np.random.default_rng(4)
+    a, b = (rng.uniform(1e-10, 3e-10, meas.y.shape) for _ in range(2))
+    std, time_s = 80.0, 86400.0
+    u = wander_u(meas, a, b, std, time_s)
+    t = meas.points.t_s
+    for g, (_, axis) in enumerate(meas.groups):
+        k = "xyz".index(axis)
+        rows = np.flatnonzero(meas.group[:, k] == g)
+        cal = meas.cal[rows]
+        times = np.append(t[rows], t[meas.zero_row[rows[0]]])
+        K = std ** 2 * np.exp(-np.abs(times[:, None] - times[None, :]) / time_s)
+        W = np.zeros((rows.size, rows.size + 1))          # r = W p: reading minus cal mean
+        W[np.arange(rows.size), np.arange(rows.size)] = a[rows, k]
+        W[:, -1] = b[rows, k]
+        W[:, :-1] -= (cal * a[rows, k])[None, :] / cal.sum()
+        W[:, -1] -= b[rows, k][cal].mean()
+        assert np.allclose(u[rows, k], np.sqrt(np.einsum("ij,jk,ik->i", W, K, W)), rtol=1e-8)
+    # with the fit's first-order refit taken out too: the dense r = (Z - G W^T) L p
+    G, W = refit_map(fit)
+    read = meas.group >= 0
+    ent = np.argwhere(read)                                 # (row, axis) of every reading
+    n = meas.y.shape[0]
+    L = np.zeros((len(ent), t.size))
+    L[np.arange(len(ent)), ent[:, 0]] = a[read]
+    L[np.arange(len(ent)), meas.zero_row[ent[:, 0]]] += b[read]
+    K = std ** 2 * np.exp(-np.abs(t[:, None] - t[None, :]) / time_s)
+    Z = np.zeros((len(ent), len(ent)))
+    for i, (row, k) in enumerate(ent):
+        same = (meas.group[ent[:, 0], ent[:, 1]] == meas.group[row, k])
+        Z[i, i] = 1.0
+        Z[i, same & meas.cal[ent[:, 0]]] -= 1.0 / (same & meas.cal[ent[:, 0]]).sum()
+    M = Z - G[read] @ W[read].T
+    dense = np.sqrt(np.einsum("ij,jk,ik->i", M @ L, K, M @ L))
+    refitted = wander_u(meas, a, b, std, time_s, (G, W))
+    assert n == len(meas.df) and np.allclose(refitted[read], dense, rtol=1e-6)
+    assert np.nanmean(refitted[read]) < np.nanmean(u[read])
+    # a dead path's lever: the zero's level counts against the reading's
+    slow, white = (wander_u(meas, a, -a, std, tau) for tau in (time_s, 0.0))
+    read = meas.group >= 0
+    assert np.nanmean(slow[read]) < 0.3 * np.nanmean(white[read])
