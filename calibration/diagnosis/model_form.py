@@ -26,8 +26,8 @@ from scipy import special
 
 from deltatwin.calibration.diagnosis.attribution import (
     Residual,
+    Term,
     laboratory_variables,
-    scan_together,
 )
 from deltatwin.calibration.diagnosis.term_form import (
     ALPHA,
@@ -143,6 +143,71 @@ class _Joint:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
 
 
+class JointFrame:
+    """attribution.py's frame on a fitted physics model: a term's columns on every reading axis
+    with coefficients of its own (or per axis already: a load's response), fitted with the
+    model's identified directions re-adjusted (``_Joint``), so a variable is credited with what
+    the model's parameters cannot take of it (the geometry soaks up the part of a backlash that
+    follows the motor coordinate, the temperatures a drift in time). ``target``: the residual
+    of the model one linear step further (``Residual``), whose scans the terms use."""
+
+    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
+        self.joint = _Joint(fit, Jm, JS, r0)
+        meas = fit.measurements_
+        self.target = Residual.of(meas.df, self.joint.before, meas.cal, meas.val)
+        self.axes = [k for k, _, _ in self.target.axes]
+        self.n_axes = len(self.axes)
+        self.shape = meas.y.shape
+
+    def block(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
+        X = term.columns
+        if X.ndim == 2:
+            X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+            C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
+            for i, k in enumerate(self.axes):
+                C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
+        else:
+            C = np.nan_to_num(X)
+        return self.joint.columns(C)
+
+    def n_val(self) -> dict:
+        return {k: int(np.sum(self.joint.axis_of == k)) for k in self.axes}
+
+    def fit(self, blocks: list) -> dict:
+        """As attribution.AxisFrame.fit."""
+        r, joint = self.joint.r, self.joint
+        if blocks:
+            X = np.hstack([P for P, _ in blocks])
+            norm = np.linalg.norm(X, axis=0)
+            norm[norm == 0] = 1.0
+            coef, _, rank, _ = np.linalg.lstsq(X / norm, r, rcond=None)
+            coef = coef / norm
+            e = r - X @ coef
+            val = joint.axis_power(joint.b - np.hstack([D for _, D in blocks]) @ coef)
+        else:
+            e, rank, val = r, 0, joint.axis_power(joint.b)
+        return {"rss_cal": float(e @ e), "rank": int(rank),
+                "dof": r.size - joint.Qm.shape[1] - int(rank) - joint.n_groups,
+                "val_power": float(val.sum()), "val_by_axis": {k: float(val[k]) for k in self.axes}}
+
+
+def load_terms(candidates: list[Candidate], shape: tuple) -> list[Term]:
+    """attribution.py's terms of the force from ``load_candidates``: one per power and
+    direction of the load, its response on each reading axis with a coefficient of its own (as
+    the form fits it)."""
+    groups = {}
+    for cand in candidates:
+        if cand.kind == "load":
+            groups.setdefault((cand.power, cand.extra["direction"]), []).append(cand)
+    terms = []
+    for (power, direction), cands in groups.items():
+        C = np.zeros(shape + (len(cands),))
+        for i, cand in enumerate(cands):
+            C[:, cand.axis, i] = cand.columns[:, 0]
+        terms.append(Term(cand.variable, f"load I^{power} along {direction}", C))
+    return terms
+
+
 def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
              limit_of) -> list[int]:
     """Forward selection over ``blocks`` [(P, D, scanned)]: the block that lowers the
@@ -182,30 +247,30 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
 
 def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float = ALPHA,
                min_share: float = MIN_SHARE, max_terms: int = MAX_TERMS,
-               variables: list | None = None, scan_with: Residual | None = None):
+               variables: list | None = None, frame: JointFrame | None = None,
+               loads: list | None = None):
     """The missing term's form on a fitted physics model (module docstring). ``Jm`` (n, k_m):
     the model's identified directions on the calibration readings (session means out), ``JS``
     (N,3,k_m) the same directions on every row, ``r0`` (n,) the model's calibration residual
     (session means out). ``variables``: ``laboratory_variables`` of the fit's rows when already
-    made; ``scan_with``: another residual of the same rows (the model's own, for attribution)
-    whose periodograms are made in the same pass as this one's (attribution.scan_together).
+    made; ``frame``: the ``JointFrame`` of the same (made here if None); ``loads``: its
+    ``load_candidates`` when already made.
 
     Returns (form, G, explained): the form as term_form.sparse_form's ([{axis, terms,
     explained_fraction, val_rms_nm, val_rms_after_nm}], relative to the residual the model's
     directions leave), the selected columns G (N,3,p) and the fraction of the validation
     residual power they explain together."""
     meas = fit.measurements_
-    joint = _Joint(fit, Jm, JS, r0)
+    frame = JointFrame(fit, Jm, JS, r0) if frame is None else frame
+    joint, target = frame.joint, frame.target
     p0_axes = joint.axis_power(joint.b)
     p0 = float(p0_axes.sum())
-    target = Residual.of(meas.df, joint.before, meas.cal, meas.val)
     empty = [], np.zeros(meas.y.shape + (0,)), 0.0
     if p0 <= 0 or not target.axes:
         return empty
     variables = laboratory_variables(meas.df) if variables is None else variables
-    if scan_with is not None:
-        scan_together(variables, [target, scan_with])
-    candidates = candidate_library(variables, target) + load_candidates(fit)
+    candidates = candidate_library(variables, target) + (load_candidates(fit) if loads is None
+                                                         else loads)
     axes = [k for k, _, _ in target.axes]
     pairs = []                        # (candidate, axis, C (N,3,c), P, D)
     for cand in candidates:
