@@ -24,7 +24,9 @@ response, like the residual itself: a tilt follows whatever disturbs the platfor
 motor's backlash), so a rotation's term is tried only once no term of the variables the
 laboratory sets or records as conditions qualifies. Each selected variable is then credited
 with what it explains beyond the others: the validation power that returns when its terms
-alone are dropped from the joint fit. This is what ranks a large, non-polynomial perturbation
+alone are dropped from the joint fit (a condition's beyond the other conditions, a rotation's
+beyond every term: a rotation that reads the tilt a force makes takes no credit from the
+force). This is what ranks a large, non-polynomial perturbation
 (a periodic encoder error) above a small smooth one a cubic fits well, and what keeps time from
 being credited with a temperature's work (or the reverse) when the room climbs and both rise
 together.
@@ -529,13 +531,19 @@ def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
     if not chosen:
         return out
     full = frame.fit([blocks[j] for j in chosen])
+    # a condition is credited beyond the other conditions, a response beyond every term: a
+    # rotation that reads the tilt a force makes takes no credit from the force
+    conditions = [j for j in chosen if terms[j].variable not in responses]
+    of_conditions = frame.fit([blocks[j] for j in conditions])
     ranked = []
     for name in dict.fromkeys(terms[j].variable for j in chosen):
-        own = [j for j in chosen if terms[j].variable == name]
-        without = frame.fit([blocks[j] for j in chosen if j not in own])
-        unique = max(without["val_power"] - full["val_power"], 0.0)
+        peers = chosen if name in responses else conditions
+        reference = full if name in responses else of_conditions
+        own = [j for j in peers if terms[j].variable == name]
+        without = frame.fit([blocks[j] for j in peers if j not in own])
+        unique = max(without["val_power"] - reference["val_power"], 0.0)
         by_axis = {AXES[k]: float(np.sqrt(max(without["val_by_axis"][k]
-                                              - full["val_by_axis"][k], 0.0)
+                                              - reference["val_by_axis"][k], 0.0)
                                           / max(n_val[k], 1)) * 1e9) for k in n_val}
         ranked.append({"variable": name, "explained_nm": float(np.sqrt(unique / n_all) * 1e9),
                        "explained_fraction": unique / p0, "by_axis_nm": by_axis,
