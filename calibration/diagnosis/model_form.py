@@ -17,7 +17,9 @@ reading axis) pair is a column; the model's identified directions are always in 
 is significant on the calibration rows (partial F test, a scanned period or moment counted as
 a parameter, Bonferroni over the pairs) and lowers the validation residual power (zeros
 re-estimated on the calibration rows, the model's directions re-adjusted) by at least
-``MIN_SHARE`` of it; at most ``MAX_TERMS`` per axis.
+``MIN_SHARE`` of it; at most ``MAX_TERMS`` per axis. The rotations' candidates are tried only
+once no other qualifies (readings of the platform's response, attribution.py: an effect
+written from a rotation reading removes nothing of the load or backlash that tilts it).
 """
 from __future__ import annotations
 
@@ -209,11 +211,13 @@ def load_terms(candidates: list[Candidate], shape: tuple) -> list[Term]:
 
 
 def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
-             limit_of) -> list[int]:
+             limit_of, deferred: frozenset = frozenset()) -> list[int]:
     """Forward selection over ``blocks`` [(P, D, scanned)]: the block that lowers the
     calibration residual most joins while it is significant (partial F test, the scanned
     parameters counted, Bonferroni over the blocks) and lowers the validation power by
-    ``min_share`` of it; ``limit_of(chosen, i)``: False when block i may not join any more."""
+    ``min_share`` of it; ``limit_of(chosen, i)``: False when block i may not join any more;
+    the ``deferred`` blocks (a rotation's: a reading of the platform's response, as in
+    attribution.py) are tried only once no other block qualifies."""
     r, n = joint.r, joint.r.size
     p0 = float(joint.axis_power(joint.b).sum())
     limit = alpha / max(len(blocks), 1)
@@ -222,7 +226,7 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
     while True:
         best = None
         for i, (P, _, scanned) in enumerate(blocks):
-            if i in chosen or not limit_of(chosen, i):
+            if i in chosen or i in deferred or not limit_of(chosen, i):
                 continue
             Pn = _orthonormal(P - basis @ (basis.T @ P))
             if not Pn.shape[1]:
@@ -232,14 +236,18 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
             df2 = n - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1] - joint.n_groups
             if df2 > 0 and gain < rss and (best is None or gain > best[1]):
                 best = (i, gain, Pn, kk, df2)
+        if best is not None:
+            i, gain, Pn, kk, df2 = best
+            trial = chosen + [i]
+            vp = float(joint.fit([blocks[j][0] for j in trial],
+                                 [blocks[j][1] for j in trial])[1].sum())
+            if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) >= limit
+                    or val_power - vp < min_share * p0):
+                best = None
         if best is None:
-            break
-        i, gain, Pn, kk, df2 = best
-        trial = chosen + [i]
-        vp = float(joint.fit([blocks[j][0] for j in trial], [blocks[j][1] for j in trial])[1]
-                   .sum())
-        if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) >= limit
-                or val_power - vp < min_share * p0):
+            if deferred:           # no condition qualifies: the rotations may
+                deferred = frozenset()
+                continue
             break
         chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
     return chosen
@@ -283,8 +291,10 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
             if np.linalg.norm(P) > 0:
                 pairs.append((cand, k, C, P, D))
     per_axis = lambda chosen, i: sum(pairs[j][1] == pairs[i][1] for j in chosen) < max_terms
+    responses = {v.name for v in variables if v.response}
     chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
-                      per_axis)
+                      per_axis, frozenset(i for i, pair in enumerate(pairs)
+                                          if pair[0].variable in responses))
     if not chosen:
         return empty
     fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])
