@@ -3,22 +3,33 @@
 The variables are the ones a laboratory thinks in (``laboratory_variables``): time, each
 temperature and its rate, the motor coordinates, the Cartesian position, the force and the coil
 currents, the autocollimators' rotations, the direction of each motor's last move, the session.
-Each variable is a *family* of regressors (``family_columns``): a cubic polynomial of the
-standardised variable; for a coordinate or time also the sine and cosine at the peak of the
-residual's periodogram against it (``scipy.signal.lombscargle``: irregular sampling), and for
-time the best single step (an event: a mirror knocked, a laser relocked); for the session a
-per-session drift in time (its offset is the session's zero, already removed).
+Each variable has a few *terms* (``variable_terms``): the first, second and third power of the
+standardised variable, each a term of its own; for a coordinate or time also the sine and cosine
+at the peak of the residual's periodogram against it (``scipy.signal.lombscargle``: irregular
+sampling), and for time the best single step (an event: a mirror knocked, a laser relocked); for
+the session a per-session drift in time (its offset is the session's zero, already removed); on
+a physics model the force also has the model's own response to a load growing with the coils'
+current (model_form.py). A term joins on its own: a step in time is not dragged down by a cubic
+that extrapolates wildly into a validation period that follows the calibration in time.
 
-Attribution is joint, by validation: group forward selection over the families fits the residual
-on the calibration rows (each session-axis zero re-estimated there, as in the fit) and keeps
-adding the family that lowers the *validation* residual power most, while the addition is
+Attribution is joint, by validation: forward selection over the terms fits the residual on the
+calibration rows (each session-axis zero re-estimated there, as in the fit; on a physics model
+with the model's own identified directions re-adjusted too, model_form.py: a term the fitted
+parameters partly absorbed is judged with them free, as the researcher's effect will be) and
+keeps adding the term that lowers the *validation* residual power most, while the addition is
 significant on the calibration rows (partial F test, the scanned period or step time counted as
-a parameter, Bonferroni over the families tried) and explains at least ``MIN_SHARE`` of the
-validation residual power. Each selected variable is then credited with what it explains beyond
-the others: the validation power that returns when it alone is dropped from the joint fit. This
-is what ranks a large, non-polynomial perturbation (a periodic encoder error) above a small
-smooth one a cubic fits well, and what keeps time from being credited with a temperature's
-work (or the reverse) when the room climbs and both rise together.
+a parameter, Bonferroni over the terms tried) and explains at least ``MIN_SHARE`` of the
+validation residual power. The autocollimators' rotations are readings of the platform's
+response, like the residual itself: a tilt follows whatever disturbs the platform (a force, a
+motor's backlash), so a rotation's term is tried only once no term of the variables the
+laboratory sets or records as conditions qualifies. Each selected variable is then credited
+with what it explains beyond the others: the validation power that returns when its terms
+alone are dropped from the joint fit (a condition's beyond the other conditions, a rotation's
+beyond every term: a rotation that reads the tilt a force makes takes no credit from the
+force). This is what ranks a large, non-polynomial perturbation
+(a periodic encoder error) above a small smooth one a cubic fits well, and what keeps time from
+being credited with a temperature's work (or the reverse) when the room climbs and both rise
+together.
 
 Units: residuals in m inside, reported in nm (``explained_nm``: the rms over the validation
 readings of the part the variable alone explains).
@@ -26,7 +37,7 @@ readings of the part the variable alone explains).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -43,7 +54,7 @@ log = logging.getLogger(__name__)
 
 ALPHA = 1e-3          # significance of an added family (before Bonferroni)
 MIN_SHARE = 0.02      # an added family explains at least this share of the validation power
-MAX_FAMILIES = 6
+MAX_TERMS = 8
 OVERSAMPLING = 3      # periodogram frequencies per 1 / range
 SCANNED = {"sine": 1, "step": 1}   # parameters chosen by a scan (period, step time)
 
@@ -54,6 +65,7 @@ class Variable:
     name: str
     values: np.ndarray
     kind: str        # "time", "coordinate", "smooth", "sign", "session"
+    response: bool = False   # a reading of the platform's response (a rotation), not a condition
 
 
 def _rates(t: np.ndarray, session: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -92,9 +104,12 @@ def laboratory_variables(df: pd.DataFrame) -> list[Variable]:
         if ok.all():
             rows, _ = move_directions(t, q, session)
             out += [Variable(f"dir_q{i + 1}", rows[:, i], "sign") for i in range(3)]
-    for c in ("F_N", "coil1_A", "coil2_A", "coil3_A") + tuple(f"{a}_arcsec" for a in AC_CHANNELS):
+    for c in ("F_N", "coil1_A", "coil2_A", "coil3_A"):
         if c in df:
             out.append(Variable(c, df[c].to_numpy(dtype=np.float64), "smooth"))
+    for c in (f"{a}_arcsec" for a in AC_CHANNELS):
+        if c in df:
+            out.append(Variable(c, df[c].to_numpy(dtype=np.float64), "smooth", response=True))
     if len(set(session)) > 1:
         out.append(Variable("session", session, "session"))
     return _distinct([v for v in out if v.kind == "session" or np.nanstd(v.values) > 0])
@@ -352,26 +367,72 @@ def best_step(t: np.ndarray, target: Residual, fixed: np.ndarray | None = None) 
     return float(taus[np.argmax(total)]) if total.size else None
 
 
-def family_columns(var: Variable, target: Residual) -> tuple[np.ndarray, int, dict]:
-    """The regressors of one variable (N,p), the number of scanned parameters, and how they
-    were built ({"period": ..., "step_s": ...})."""
+@dataclass(frozen=True)
+class Term:
+    """One function of a variable tried by the attribution: ``columns`` (N,p) SI, fitted on
+    every reading axis with coefficients of its own, or (N,3,p) already per reading axis (a
+    load's response); ``scanned``: its parameters chosen by a scan (period, step time); ``info``:
+    how it was built ({"period": ...} or {"step_s": ...})."""
+    variable: str
+    kind: str
+    columns: np.ndarray
+    scanned: int = 0
+    info: dict = field(default_factory=dict)
+
+
+def variable_terms(var: Variable, target: Residual) -> list[Term]:
+    """The terms of one variable (module docstring), periods and step moments scanned on
+    ``target``."""
     v = var.values
     if var.kind == "session":
         t = target.time
-        names = list(dict.fromkeys(v))
-        cols = np.column_stack([np.where(v == s, t - t[v == s].mean(), 0.0) for s in names])
-        return cols / 3600.0, 0, {}
+        cols = np.column_stack([np.where(v == s, t - t[v == s].mean(), 0.0)
+                                for s in dict.fromkeys(v)])
+        return [Term(var.name, "drift", cols / 3600.0)]
     if var.kind == "sign":
-        return v[:, None].astype(np.float64), 0, {}
-    poly = _poly(var, target)
+        return [Term(var.name, "sign", v[:, None].astype(np.float64))]
+    x = _standard(v, target.cal)
+    terms = [Term(var.name, f"power {k}", (x ** k)[:, None]) for k in (1, 2, 3)]
     info = scans(var, target)
-    extra = []
     if "period" in info:
-        extra += [np.sin(2 * np.pi * v / info["period"]), np.cos(2 * np.pi * v / info["period"])]
+        phase = 2 * np.pi * v / info["period"]
+        terms.append(Term(var.name, "sine", np.column_stack([np.sin(phase), np.cos(phase)]),
+                          SCANNED["sine"], {"period": info["period"]}))
     if "step_s" in info:
-        extra.append((v > info["step_s"]).astype(np.float64))
-    scanned = SCANNED["sine"] * ("period" in info) + SCANNED["step"] * ("step_s" in info)
-    return np.column_stack([poly] + extra) if extra else poly, scanned, info
+        terms.append(Term(var.name, "step", (v > info["step_s"]).astype(np.float64)[:, None],
+                          SCANNED["step"], {"step_s": info["step_s"]}))
+    return terms
+
+
+class AxisFrame:
+    """Terms fitted to a residual (``Residual``) on each of its axes by least squares on the
+    calibration rows, each (session, axis) zero re-estimated there: the attribution's frame when
+    there is no physics model to re-adjust (a stepwise DGM's residual)."""
+
+    def __init__(self, target: Residual):
+        self.target = target
+        self.n_axes = len(target.axes)
+
+    def block(self, term: Term) -> np.ndarray:
+        X = term.columns
+        if X.ndim != 2:
+            raise ValueError(f"term {term.variable} {term.kind}: per-axis columns need a "
+                             "physics model's frame (model_form.JointFrame)")
+        return np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+
+    def n_val(self) -> dict:
+        return {k: int(self.target.val[rows].sum()) for k, rows, _ in self.target.axes}
+
+    def fit(self, blocks: list) -> dict:
+        """{rss_cal, rank, dof (calibration residual's degrees of freedom), val_power,
+        val_by_axis {axis: power}} of the blocks fitted together."""
+        X = np.column_stack(blocks) if blocks else np.zeros((self.target.res.shape[0], 0))
+        per_axis, total = self.target.fit(X)
+        return {"rss_cal": total["rss_cal"], "rank": total["rank"],
+                "dof": total["n_cal"] - total["rank"] - self.n_axes,
+                "val_power": total["val_power"],
+                "val_by_axis": {k: float(np.sum(e[self.target.val[rows]] ** 2))
+                                for k, rows, _, _, e in per_axis}}
 
 
 def _poly(var: Variable, target: Residual) -> np.ndarray:
@@ -413,71 +474,82 @@ def scan_together(variables: list[Variable], targets: list[Residual]) -> None:
 
 
 def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
-              min_share: float = MIN_SHARE, variables: list[Variable] | None = None) -> dict:
+              min_share: float = MIN_SHARE, variables: list[Variable] | None = None,
+              frame=None, extra_terms: tuple = ()) -> dict:
     """Rank the laboratory variables by the validation residual power each explains beyond the
     others (module docstring). ``target``: the residual of the rows of ``df``
-    (``Residual.of``); ``variables``: ``laboratory_variables(df)`` when already made.
+    (``Residual.of``); ``variables``: ``laboratory_variables(df)`` when already made;
+    ``frame``: where the terms are fitted (default ``AxisFrame(target)``; on a physics model
+    model_form.JointFrame, the model's directions re-adjusted); ``extra_terms``: terms beyond
+    the variables' own (a load's response through the model, model_form.load_terms).
 
     Returns {"variables": [{variable, explained_nm, explained_fraction, by_axis_nm, p_value,
-    columns}, ...] strongest first, "val_rms_nm", "explained_fraction" (all selected
+    terms, columns}, ...] strongest first, "val_rms_nm", "explained_fraction" (all selected
     together), "tried"}."""
     variables = laboratory_variables(df) if variables is None else variables
-    p0 = target.val_power()
-    n_val = max(target.n_val(), 1)
-    out = {"val_rms_nm": float(np.sqrt(p0 / n_val) * 1e9), "variables": [],
+    frame = AxisFrame(target) if frame is None else frame
+    start = frame.fit([])
+    p0 = start["val_power"]
+    n_val = frame.n_val()
+    n_all = max(sum(n_val.values()), 1)
+    out = {"val_rms_nm": float(np.sqrt(p0 / n_all) * 1e9), "variables": [],
            "explained_fraction": 0.0, "tried": [v.name for v in variables]}
-    if not target.axes or p0 <= 0:
+    if not frame.n_axes or p0 <= 0:
         return out
-    families = {}
-    for var in variables:
-        X, scanned, info = family_columns(var, target)
-        ok = np.all(np.isfinite(X), axis=1)
-        X = np.where(ok[:, None], X, 0.0)    # a row without the variable adds nothing
-        families[var.name] = (X, scanned, info)
-    chosen: list[str] = []
-    design = lambda names: (np.column_stack([families[n][0] for n in names]) if names
-                            else np.zeros((len(df), 0)))
-    _, current = target.fit(design(chosen))
+    terms = [t for var in variables for t in variable_terms(var, target)] + list(extra_terms)
+    blocks = [frame.block(t) for t in terms]
+    responses = {v.name for v in variables if v.response}
+    chosen: list[int] = []
     p_values = {}
-    limit = alpha / max(len(families), 1)
-    while len(chosen) < MAX_FAMILIES:
+    current = start
+    limit = alpha / max(len(terms), 1)
+    conditions_only = bool(responses)
+    while len(chosen) < MAX_TERMS:
         best = None
-        for name in families:
-            if name in chosen:
+        for i, term in enumerate(terms):
+            if i in chosen or (conditions_only and term.variable in responses):
                 continue
-            _, after = target.fit(design(chosen + [name]))
-            k = after["rank"] - current["rank"] + families[name][1] * len(target.axes)
-            df2 = after["n_cal"] - after["rank"] - len(target.axes)
-            if k <= 0 or df2 <= 0 or after["rss_cal"] >= current["rss_cal"]:
-                continue
-            F = ((current["rss_cal"] - after["rss_cal"]) / k) / (after["rss_cal"] / df2)
-            p = float(special.fdtrc(k, df2, F))
+            after = frame.fit([blocks[j] for j in chosen + [i]])
             gain = current["val_power"] - after["val_power"]
-            if p < limit and gain >= min_share * p0 and (best is None or gain > best[1]):
-                best = (name, gain, p, after)
+            if best is not None and gain <= best[1]:
+                continue
+            k = after["rank"] - current["rank"] + term.scanned * frame.n_axes
+            if k <= 0 or after["dof"] <= 0 or after["rss_cal"] >= current["rss_cal"]:
+                continue
+            F = ((current["rss_cal"] - after["rss_cal"]) / k) / (after["rss_cal"] / after["dof"])
+            p = float(special.fdtrc(k, after["dof"], F))
+            if p < limit and gain >= min_share * p0:
+                best = (i, gain, p, after)
         if best is None:
+            if conditions_only:        # no condition explains more: the rotations may
+                conditions_only = False
+                continue
             break
         chosen.append(best[0])
         p_values[best[0]] = best[2]
         current = best[3]
     if not chosen:
         return out
-    full_axes, full = target.fit(design(chosen))
+    full = frame.fit([blocks[j] for j in chosen])
+    # a condition is credited beyond the other conditions, a response beyond every term: a
+    # rotation that reads the tilt a force makes takes no credit from the force
+    conditions = [j for j in chosen if terms[j].variable not in responses]
+    of_conditions = frame.fit([blocks[j] for j in conditions])
     ranked = []
-    for name in chosen:
-        others = [c for c in chosen if c != name]
-        without_axes, without = target.fit(design(others))
-        unique = max(without["val_power"] - full["val_power"], 0.0)
-        by_axis = {}
-        for (k, rows, _, _, e_full), (_, _, _, _, e_wo) in zip(full_axes, without_axes):
-            v = target.val[rows]
-            by_axis[AXES[k]] = float(np.sqrt(max(np.sum(e_wo[v] ** 2) - np.sum(e_full[v] ** 2),
-                                                 0.0) / max(v.sum(), 1)) * 1e9)
-        info = families[name][2]
-        ranked.append({"variable": name, "explained_nm": float(np.sqrt(unique / n_val) * 1e9),
+    for name in dict.fromkeys(terms[j].variable for j in chosen):
+        peers = chosen if name in responses else conditions
+        reference = full if name in responses else of_conditions
+        own = [j for j in peers if terms[j].variable == name]
+        without = frame.fit([blocks[j] for j in peers if j not in own])
+        unique = max(without["val_power"] - reference["val_power"], 0.0)
+        by_axis = {AXES[k]: float(np.sqrt(max(without["val_by_axis"][k]
+                                              - reference["val_by_axis"][k], 0.0)
+                                          / max(n_val[k], 1)) * 1e9) for k in n_val}
+        ranked.append({"variable": name, "explained_nm": float(np.sqrt(unique / n_all) * 1e9),
                        "explained_fraction": unique / p0, "by_axis_nm": by_axis,
-                       "p_value": p_values[name],
-                       "columns": {k: float(v) for k, v in info.items()}})
+                       "p_value": min(p_values[j] for j in own),
+                       "terms": [terms[j].kind for j in own],
+                       "columns": {k: float(v) for j in own for k, v in terms[j].info.items()}})
     ranked.sort(key=lambda r: -r["explained_nm"])
     out["variables"] = ranked
     out["explained_fraction"] = 1.0 - full["val_power"] / p0

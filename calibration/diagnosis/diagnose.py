@@ -55,7 +55,12 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolation_message,
 )
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
-from deltatwin.calibration.diagnosis.model_form import joint_form
+from deltatwin.calibration.diagnosis.model_form import (
+    JointFrame,
+    joint_form,
+    load_candidates,
+    load_terms,
+)
 from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
@@ -324,15 +329,18 @@ def _validation_p(before: np.ndarray, after: np.ndarray, val: np.ndarray) -> flo
 
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
                         form: bool | list = True, target: Residual | None = None,
-                        variables: list | None = None) -> dict:
+                        variables: list | None = None, frame=None,
+                        extra_terms: tuple = ()) -> dict:
     """What the residual (N,3) m still depends on: the laboratory variables ranked by the
     validation power each explains beyond the others (attribution.py) and, with ``form``, the
     proposed form of the missing term (term_form.py; a list: the form computed already, on a
     physics model jointly with its directions, model_form.py); with the message that says
     both. ``target`` (``Residual.of`` the same) and ``variables`` (``laboratory_variables(df)``):
-    when already made (their scans too)."""
+    when already made (their scans too); ``frame`` and ``extra_terms``: where the attribution
+    fits and its terms beyond the variables' (on a physics model: model_form.JointFrame, the
+    load responses)."""
     target = target or Residual.of(df, res, cal, val)
-    att = attribute(df, target, variables=variables)
+    att = attribute(df, target, variables=variables, frame=frame, extra_terms=extra_terms)
     out = {"depends_on": att["variables"], "explained_fraction": att["explained_fraction"],
            "val_rms_nm": att["val_rms_nm"]}
     if isinstance(form, list):
@@ -371,11 +379,13 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     # the missing term's form fitted jointly with the model's directions: what a library
     # candidate must beat to be claimed, and the form proposed when none is
     JS = fit.jacobian_ * fit.model_.scales @ fit.identified_directions_
-    # the model's residual, whose dependence is reported below: its periodograms are made in
-    # the same pass as the joint form's (the same rows, one pass instead of two)
+    # the frame both the form and the attribution fit in (the model's directions re-adjusted,
+    # attribution.py): the scans, the load responses and the projections made once
     variables = laboratory_variables(meas.df)
-    own = Residual.of(meas.df, fit.residual_, cal, meas.val)
-    form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, scan_with=own)
+    frame = JointFrame(fit, Jm, JS, r0)
+    loads = load_candidates(fit)
+    form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, frame=frame,
+                                            loads=loads)
     generic = (_projected(meas, cal, G), generic_explained, r0)
     ranking = []
     for name in candidates:
@@ -414,8 +424,9 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
                             "message": extrapolation_message(extrapolated)}
     best = next((c for c in ranking if c["significant"]), None)
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
-                                     form=form if best is None else False, target=own,
-                                     variables=variables)
+                                     form=form if best is None else False,
+                                     target=frame.target, variables=variables, frame=frame,
+                                     extra_terms=load_terms(loads, meas.y.shape))
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]

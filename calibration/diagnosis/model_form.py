@@ -17,7 +17,9 @@ reading axis) pair is a column; the model's identified directions are always in 
 is significant on the calibration rows (partial F test, a scanned period or moment counted as
 a parameter, Bonferroni over the pairs) and lowers the validation residual power (zeros
 re-estimated on the calibration rows, the model's directions re-adjusted) by at least
-``MIN_SHARE`` of it; at most ``MAX_TERMS`` per axis.
+``MIN_SHARE`` of it; at most ``MAX_TERMS`` per axis. The rotations' candidates are tried only
+once no other qualifies (readings of the platform's response, attribution.py: an effect
+written from a rotation reading removes nothing of the load or backlash that tilts it).
 """
 from __future__ import annotations
 
@@ -26,8 +28,8 @@ from scipy import special
 
 from deltatwin.calibration.diagnosis.attribution import (
     Residual,
+    Term,
     laboratory_variables,
-    scan_together,
 )
 from deltatwin.calibration.diagnosis.term_form import (
     ALPHA,
@@ -143,12 +145,79 @@ class _Joint:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
 
 
+class JointFrame:
+    """attribution.py's frame on a fitted physics model: a term's columns on every reading axis
+    with coefficients of its own (or per axis already: a load's response), fitted with the
+    model's identified directions re-adjusted (``_Joint``), so a variable is credited with what
+    the model's parameters cannot take of it (the geometry soaks up the part of a backlash that
+    follows the motor coordinate, the temperatures a drift in time). ``target``: the residual
+    of the model one linear step further (``Residual``), whose scans the terms use."""
+
+    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
+        self.joint = _Joint(fit, Jm, JS, r0)
+        meas = fit.measurements_
+        self.target = Residual.of(meas.df, self.joint.before, meas.cal, meas.val)
+        self.axes = [k for k, _, _ in self.target.axes]
+        self.n_axes = len(self.axes)
+        self.shape = meas.y.shape
+
+    def block(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
+        X = term.columns
+        if X.ndim == 2:
+            X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+            C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
+            for i, k in enumerate(self.axes):
+                C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
+        else:
+            C = np.nan_to_num(X)
+        return self.joint.columns(C)
+
+    def n_val(self) -> dict:
+        return {k: int(np.sum(self.joint.axis_of == k)) for k in self.axes}
+
+    def fit(self, blocks: list) -> dict:
+        """As attribution.AxisFrame.fit."""
+        r, joint = self.joint.r, self.joint
+        if blocks:
+            X = np.hstack([P for P, _ in blocks])
+            norm = np.linalg.norm(X, axis=0)
+            norm[norm == 0] = 1.0
+            coef, _, rank, _ = np.linalg.lstsq(X / norm, r, rcond=None)
+            coef = coef / norm
+            e = r - X @ coef
+            val = joint.axis_power(joint.b - np.hstack([D for _, D in blocks]) @ coef)
+        else:
+            e, rank, val = r, 0, joint.axis_power(joint.b)
+        return {"rss_cal": float(e @ e), "rank": int(rank),
+                "dof": r.size - joint.Qm.shape[1] - int(rank) - joint.n_groups,
+                "val_power": float(val.sum()), "val_by_axis": {k: float(val[k]) for k in self.axes}}
+
+
+def load_terms(candidates: list[Candidate], shape: tuple) -> list[Term]:
+    """attribution.py's terms of the force from ``load_candidates``: one per power and
+    direction of the load, its response on each reading axis with a coefficient of its own (as
+    the form fits it)."""
+    groups = {}
+    for cand in candidates:
+        if cand.kind == "load":
+            groups.setdefault((cand.power, cand.extra["direction"]), []).append(cand)
+    terms = []
+    for (power, direction), cands in groups.items():
+        C = np.zeros(shape + (len(cands),))
+        for i, cand in enumerate(cands):
+            C[:, cand.axis, i] = cand.columns[:, 0]
+        terms.append(Term(cand.variable, f"load I^{power} along {direction}", C))
+    return terms
+
+
 def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
-             limit_of) -> list[int]:
+             limit_of, deferred: frozenset = frozenset()) -> list[int]:
     """Forward selection over ``blocks`` [(P, D, scanned)]: the block that lowers the
     calibration residual most joins while it is significant (partial F test, the scanned
     parameters counted, Bonferroni over the blocks) and lowers the validation power by
-    ``min_share`` of it; ``limit_of(chosen, i)``: False when block i may not join any more."""
+    ``min_share`` of it; ``limit_of(chosen, i)``: False when block i may not join any more;
+    the ``deferred`` blocks (a rotation's: a reading of the platform's response, as in
+    attribution.py) are tried only once no other block qualifies."""
     r, n = joint.r, joint.r.size
     p0 = float(joint.axis_power(joint.b).sum())
     limit = alpha / max(len(blocks), 1)
@@ -157,7 +226,7 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
     while True:
         best = None
         for i, (P, _, scanned) in enumerate(blocks):
-            if i in chosen or not limit_of(chosen, i):
+            if i in chosen or i in deferred or not limit_of(chosen, i):
                 continue
             Pn = _orthonormal(P - basis @ (basis.T @ P))
             if not Pn.shape[1]:
@@ -167,14 +236,18 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
             df2 = n - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1] - joint.n_groups
             if df2 > 0 and gain < rss and (best is None or gain > best[1]):
                 best = (i, gain, Pn, kk, df2)
+        if best is not None:
+            i, gain, Pn, kk, df2 = best
+            trial = chosen + [i]
+            vp = float(joint.fit([blocks[j][0] for j in trial],
+                                 [blocks[j][1] for j in trial])[1].sum())
+            if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) >= limit
+                    or val_power - vp < min_share * p0):
+                best = None
         if best is None:
-            break
-        i, gain, Pn, kk, df2 = best
-        trial = chosen + [i]
-        vp = float(joint.fit([blocks[j][0] for j in trial], [blocks[j][1] for j in trial])[1]
-                   .sum())
-        if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) >= limit
-                or val_power - vp < min_share * p0):
+            if deferred:           # no condition qualifies: the rotations may
+                deferred = frozenset()
+                continue
             break
         chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
     return chosen
@@ -182,30 +255,30 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
 
 def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float = ALPHA,
                min_share: float = MIN_SHARE, max_terms: int = MAX_TERMS,
-               variables: list | None = None, scan_with: Residual | None = None):
+               variables: list | None = None, frame: JointFrame | None = None,
+               loads: list | None = None):
     """The missing term's form on a fitted physics model (module docstring). ``Jm`` (n, k_m):
     the model's identified directions on the calibration readings (session means out), ``JS``
     (N,3,k_m) the same directions on every row, ``r0`` (n,) the model's calibration residual
     (session means out). ``variables``: ``laboratory_variables`` of the fit's rows when already
-    made; ``scan_with``: another residual of the same rows (the model's own, for attribution)
-    whose periodograms are made in the same pass as this one's (attribution.scan_together).
+    made; ``frame``: the ``JointFrame`` of the same (made here if None); ``loads``: its
+    ``load_candidates`` when already made.
 
     Returns (form, G, explained): the form as term_form.sparse_form's ([{axis, terms,
     explained_fraction, val_rms_nm, val_rms_after_nm}], relative to the residual the model's
     directions leave), the selected columns G (N,3,p) and the fraction of the validation
     residual power they explain together."""
     meas = fit.measurements_
-    joint = _Joint(fit, Jm, JS, r0)
+    frame = JointFrame(fit, Jm, JS, r0) if frame is None else frame
+    joint, target = frame.joint, frame.target
     p0_axes = joint.axis_power(joint.b)
     p0 = float(p0_axes.sum())
-    target = Residual.of(meas.df, joint.before, meas.cal, meas.val)
     empty = [], np.zeros(meas.y.shape + (0,)), 0.0
     if p0 <= 0 or not target.axes:
         return empty
     variables = laboratory_variables(meas.df) if variables is None else variables
-    if scan_with is not None:
-        scan_together(variables, [target, scan_with])
-    candidates = candidate_library(variables, target) + load_candidates(fit)
+    candidates = candidate_library(variables, target) + (load_candidates(fit) if loads is None
+                                                         else loads)
     axes = [k for k, _, _ in target.axes]
     pairs = []                        # (candidate, axis, C (N,3,c), P, D)
     for cand in candidates:
@@ -218,8 +291,10 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
             if np.linalg.norm(P) > 0:
                 pairs.append((cand, k, C, P, D))
     per_axis = lambda chosen, i: sum(pairs[j][1] == pairs[i][1] for j in chosen) < max_terms
+    responses = {v.name for v in variables if v.response}
     chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
-                      per_axis)
+                      per_axis, frozenset(i for i, pair in enumerate(pairs)
+                                          if pair[0].variable in responses))
     if not chosen:
         return empty
     fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])

@@ -140,6 +140,47 @@ def test_noise_is_attributed_to_nothing():
     assert 2490 <= step["moment_s"] <= 2510
 
 
+def _campaign_in_time(rng, n=500):
+    """A campaign whose validation rows all follow its calibration rows in time (the papers'
+    grids): random poses, a force in steps, a thermometer."""
+    import pandas as pd
+
+    q = rng.uniform(-0.06, 0.06, (n, 3))
+    t = np.arange(n) * 10.0
+    df = pd.DataFrame({"t_s": t, "session": "s", "q1_rad": q[:, 0], "q2_rad": q[:, 1],
+                       "q3_rad": q[:, 2], "T_base_C": 20 + 1e-3 * rng.standard_normal(n),
+                       "F_N": rng.choice([0.0, 0.5, 1.0, 1.5, 2.0], n)})
+    return df, t < 0.7 * t[-1]
+
+
+def test_a_step_is_named_when_validation_follows_calibration_in_time():
+    # a cubic in time fitted to a step extrapolates wildly into the later validation rows: the
+    # step must be tried on its own
+    rng = np.random.default_rng(8)
+    df, cal = _campaign_in_time(rng)
+    res = 5e-9 * rng.standard_normal((len(df), 3))
+    res[:, 0] += 40e-9 * (df["t_s"].to_numpy() > 1300.0)
+    named = attribute(df, Residual.of(df, res, cal, ~cal))["variables"]
+    assert named and named[0]["variable"] == "t_s" and named[0]["terms"] == ["step"], named
+    assert abs(named[0]["columns"]["step_s"] - 1300.0) <= 10.0, named
+
+
+def test_a_rotation_that_reads_the_response_is_named_after_the_force():
+    # a load deflects the platform more where it is softer: no function of the force alone
+    # reproduces it, the autocollimator reads the same tilt; the force (the condition) is named
+    # first, the rotation (a response, like the residual) only for what it adds
+    rng = np.random.default_rng(9)
+    df, cal = _campaign_in_time(rng)
+    F, q1 = df["F_N"].to_numpy(), df["q1_rad"].to_numpy()
+    response = F ** 2 * (1.0 + 8.0 * q1)
+    df["ac1_ry_arcsec"] = 0.5 * response + 0.01 * rng.standard_normal(len(df))
+    res = 5e-9 * rng.standard_normal((len(df), 3))
+    res[:, 0] += 10e-9 * response
+    target = Residual.of(df, res, cal, ~cal)
+    named = [v["variable"] for v in attribute(df, target)["variables"]]
+    assert named and named[0] == "F_N", named
+
+
 def test_periodogram_is_scipys_lombscargle():
     from scipy import signal
 
