@@ -153,11 +153,12 @@ class Residual:
 
     def demeaned(self, X: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Columns X (N,p) on ``rows`` minus their calibration mean within each session."""
-        Xr = X[rows].copy()
+        Xr = X[rows]
         s, c = self.session[rows], self.cal[rows]
         for g in set(s):
             m = s == g
-            Xr[m] -= X[rows][m & c].mean(axis=0) if np.any(m & c) else 0.0
+            # the sessions' rows are disjoint: this one's are still as in X
+            Xr[m] -= Xr[m & c].mean(axis=0) if np.any(m & c) else 0.0
         return Xr
 
     def fit(self, X: np.ndarray):

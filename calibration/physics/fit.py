@@ -2,6 +2,7 @@
 a trust-region least-squares fit on the identified directions, with the identifiability report."""
 from __future__ import annotations
 
+import copy
 import logging
 import math
 
@@ -432,11 +433,14 @@ def calibration_cost(fit: PhysicsFit) -> float:
 
 
 def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None = None,
-                    **options) -> PhysicsFit:
+                    made=(), **options) -> PhysicsFit:
     """Fit ``effects`` from each of ``starts`` ({label: PhysicsFit keyword arguments, e.g.
     ``start`` and ``prior``}) and return the fit of lowest calibration cost, with
-    ``start_label_`` (which start it came from) and ``start_costs_`` ({label: calibration
-    rms, nm}).
+    ``start_label_`` (which start it came from), ``start_costs_`` ({label: calibration
+    rms, nm}) and ``start_fits_`` ({label: the fit from that start}). ``made``: fits already
+    made on the rows of ``df`` (another call's ``start_fits_`` values): a start whose fit is
+    among them (the same effects, robot, starting values, prior and options) is taken from
+    there instead of being fitted again (a copy: its labels are this call's).
 
     A model whose thermometer terms multiply its expansion coefficients (sensor_contact's leak
     scales every part's temperature excursion by 1 + leak / glue, a product with every CTE)
@@ -447,9 +451,12 @@ def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None =
     has and keeping the lowest cost can. The choice uses the calibration rows only."""
     if not starts:
         raise FitError("fit_from_starts: no start given")
-    best, costs, meas = None, {}, None
+    best, costs, fits, meas = None, {}, {}, None
     for label, kwargs in starts.items():
-        fit = PhysicsFit(effects, **{**options, **kwargs}).fit(df, meta, meas=meas)
+        fit = PhysicsFit(effects, **{**options, **kwargs})
+        done = next((f for f in made if _same_problem(f, fit)), None)
+        fit = copy.copy(done) if done else fit.fit(df, meta, meas=meas)
+        fits[label] = fit
         meas = fit.measurements_
         cost = calibration_cost(fit)
         costs[label] = float(np.sqrt(cost / max(np.sum(np.isfinite(
@@ -457,8 +464,20 @@ def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None =
         if best is None or cost < best[0]:
             best = (cost, label, fit)
     _, label, fit = best
-    fit.start_label_, fit.start_costs_ = label, costs
+    fit.start_label_, fit.start_costs_, fit.start_fits_ = label, costs, fits
     return fit
+
+
+def _same_problem(a: PhysicsFit, b: PhysicsFit) -> bool:
+    """Whether fits ``a`` and ``b`` (of the same rows) solve the same problem: the same
+    effects, robot, starting values, prior and options, so the same solver path."""
+    def values(fit, start):
+        return PhysicsModel(fit.effects, fit.params, start).values()
+    return (a.effects == b.effects and a.params is b.params and a.known_ == b.known_
+            and (a.noise_nm, a.identifiable_ratio, a.max_evaluations)
+            == (b.noise_nm, b.identifiable_ratio, b.max_evaluations)
+            and values(a, a.start) == values(b, b.start)
+            and values(a, a.prior) == values(b, b.prior))
 
 
 def _axis_p90(fig: dict) -> dict:

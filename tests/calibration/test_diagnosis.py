@@ -12,7 +12,7 @@ import pytest
 
 from deltatwin.calibration.diagnosis.diagnose import diagnose, effect_ladder
 from deltatwin.calibration.errors import FitError
-from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 from deltatwin.twin.effects import Effect, Parameter
@@ -172,6 +172,29 @@ def test_a_saved_converged_model_is_kept_in_the_directions_it_was_fitted_in(tmp_
     with pytest.raises(FitError, match="orthonormal"):
         PhysicsFit(effects, start=fit.model_.values()).fit(
             df, meta, keep_converged_start=True, start_directions=2 * saved_directions(doc))
+
+
+def test_a_start_already_fitted_is_reused_not_refitted(monkeypatch):
+    """fit_from_starts(made=...): a start whose problem (effects, starting values, prior,
+    options) another call already solved on the same rows is taken from there (the demo's
+    floor and last rung); any difference is fitted."""
+    sc = Scenario.load("hidden/gravity-sag")
+    df, meta = sc.simulate(sc.reduced_scale)
+    first = fit_from_starts(["gravity_sag"], {"library": {}}, df, meta)
+    calls = []
+    fit = PhysicsFit.fit
+    monkeypatch.setattr(PhysicsFit, "fit", lambda self, *a, **k: calls.append(self.start)
+                        or fit(self, *a, **k))
+    moved = {"gravity_sag": {"load_factor": 0.5}}
+    second = fit_from_starts(["gravity_sag"], {"priors": {}, "moved": {"start": moved},
+                                               "noisier": {"noise_nm": 6.0}}, df, meta,
+                             made=list(first.start_fits_.values()))
+    assert calls == [moved, None]                     # "priors" was not fitted again
+    reused = second.start_fits_["priors"]
+    np.testing.assert_array_equal(reused.theta_, first.theta_)
+    # a copy: labelling the second call's best leaves the first call's fit as it was
+    assert reused is not first and first.start_label_ == "library"
+    assert set(second.start_costs_) == {"priors", "moved", "noisier"}
 
 
 def test_bad_input_is_named(tmp_path):
