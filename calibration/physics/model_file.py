@@ -102,7 +102,8 @@ def saved_directions(doc: dict) -> np.ndarray | None:
     ident = doc.get("identification")
     if ident is None:
         return None
-    return np.array(ident["directions"], dtype=float).reshape(-1, len(ident["parameters"])).T
+    return np.array(ident["directions"], dtype=float).reshape(
+        len(ident["directions"]), len(ident["parameters"])).T
 
 
 def _check_identification(path: Path, doc: dict, model: PhysicsModel) -> None:

@@ -121,6 +121,18 @@ def test_fitted_model_file_round_trips(tmp_path):
     # the fitted load factor is the hidden scenario's
     truth = next(e for e in meta["truth"]["effects"] if e["name"] == "gravity_sag")
     assert abs(model.theta()[0] - truth["parameters"]["load_factor"]["value"]) < 0.1
+    # the identified directions, edited (the checksum line removed), are refused by name
+    text = "\n".join(line for line in path.read_text().splitlines()
+                     if not line.startswith("content_sha256"))
+    for bad, match in ((text.replace('"gravity_sag.load_factor"', '"load_factor"'),
+                        r"\[identification\] parameters"),
+                       (text.replace("directions = [", "directions = [[0.5, 1.0], "),
+                        r"\[identification\] directions must be a list"),
+                       (text.replace("directions = [", "directions = [[0.0], "),
+                        r"\[identification\] directions must be orthonormal")):
+        path.write_text(bad)
+        with pytest.raises(FitError, match=match):
+            load_fitted(path)
 
 
 def test_a_saved_converged_model_is_kept_in_the_directions_it_was_fitted_in(tmp_path,
