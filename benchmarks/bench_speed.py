@@ -90,7 +90,7 @@ def full_loop(df, meta, repeats: int) -> None:
 
     def diagnose_fitted():
         kept = PhysicsFit(list(SEVEN), start=fit.model_.values()).fit(
-            df, meta, keep_converged_start=True)
+            df, meta, keep_converged_start=True, start_directions=fit.identified_directions_)
         return kept, diagnose(kept)
     w_diag, c_diag, (kept, diagnosis) = timed(diagnose_fitted, repeats)
     model = PhysicsModel(SEVEN, values=fit.model_.values())

@@ -450,11 +450,14 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
 
 
 def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DATA",
-                  max_added: int = 3, progress=None, known: dict | None = None, **fit_options):
+                  max_added: int = 3, progress=None, known: dict | None = None, made=(),
+                  **fit_options):
     """The loop a researcher runs: fit the baseline, diagnose, add the significant effect the
     diagnosis names, refit, until none is significant (or ``max_added`` were added).
     ``known``: the laboratory's constants ({effect: {parameter: value}}), given to every fit
-    and to the candidates of every diagnosis.
+    and to the candidates of every diagnosis. ``made``: fits already made on these rows (the
+    achievable floor's: the complete model from the library's starting values is also the
+    last rung's first start), reused instead of refitted (``fit_from_starts``).
 
     Returns (ladder, diagnoses, fits): one ladder row per model ({model, effects, added,
     n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm,
@@ -474,7 +477,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
         starts = {"priors": {"start": known}}
         if fits:
             starts["previous fit"] = {"start": {**fits[-1].model_.values(), **(known or {})}}
-        fit = fit_from_starts(effects, starts, df, meta, **fit_options)
+        fit = fit_from_starts(effects, starts, df, meta, made=made, **fit_options)
         fits.append(fit)
         ladder.append({"model": "baseline" if round_ == 0 else f"+ {effects[-1]}",
                        "effects": list(effects), "added": None if round_ == 0 else effects[-1],

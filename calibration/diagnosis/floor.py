@@ -250,9 +250,10 @@ def air_line_check(scenario: str, scale: float | None, seeds) -> dict:
     return out
 
 
-def record_achievable_floor(df, meta: dict, scenario=None, scale=None) -> dict:
+def record_achievable_floor(df, meta: dict, scenario=None, scale=None) -> tuple[dict, PhysicsFit]:
     """Put the achievable floor, its budget and its fit's effects and status into the dataset's
-    truth (``meta["truth"]``); returns the floor (nm by axis and pooled). With the twin's
+    truth (``meta["truth"]``); returns the floor (nm by axis and pooled) and its fit (the other
+    starts' fits in its ``start_fits_``, for a later fit of the same model to reuse). With the twin's
     ``scenario`` (and the ``scale`` it ran at) the budget is measured per source
     (``measured_floor_budget``), else it is the interferometers' share and the rest."""
     fit = true_fit(df, meta)
@@ -262,7 +263,7 @@ def record_achievable_floor(df, meta: dict, scenario=None, scale=None) -> dict:
                                         measured_floor_budget(scenario, scale, df, meta, fit))
     meta["truth"]["achievable_floor_fit"] = {"effects": floor["effects"],
                                              "status": floor["status"]}
-    return floor["achievable_floor_nm"]
+    return floor["achievable_floor_nm"], fit
 
 
 def budget_lines(budget: dict | None) -> list[str]:

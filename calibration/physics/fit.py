@@ -2,6 +2,7 @@
 a trust-region least-squares fit on the identified directions, with the identifiability report."""
 from __future__ import annotations
 
+import copy
 import logging
 import math
 
@@ -79,13 +80,22 @@ class PhysicsFit:
         PhysicsModel(self.effects, params, self.start)   # validate names and values once
 
     def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
-            where: str = "data", keep_converged_start: bool = False):
+            where: str = "data", keep_converged_start: bool = False,
+            start_directions: np.ndarray | None = None):
         """Fit to the calibration rows of ``df`` (``where`` names the data in errors).
         ``keep_converged_start``: a start that is already converged on these data (a fitted
         model diagnosed on its own data: the Gauss-Newton step left from it moves the
         parameters by less than STEP_SIGMA of their uncertainty) is kept as it is, with its
         Jacobian, instead of being refined by the solver (which would only confirm it, at a
-        few Jacobians' cost)."""
+        few Jacobians' cost). ``start_directions`` ((p, k), a fitted model's
+        ``identified_directions_``, saved in its file): the directions the start was fitted
+        in. Convergence is judged in them, as the fit that made the start judged it: the
+        directions identified at the fitted values differ from those identified at the fit's
+        own start (the same threshold, other singular vectors), and in them a converged fit
+        can have a step of a few tenths of an uncertainty left along directions it held. A
+        kept start keeps these directions; one that is not converged is refined in the
+        directions identified here (a start fitted to other data is not converged on these:
+        their noise alone moves the optimum by ~sqrt(k) uncertainties)."""
         model = PhysicsModel(self.effects, self.params, self.start)
         meas = meas or measurements(df, meta, model.params, where)
         check_sensors(model.names, meas, where)
@@ -144,8 +154,18 @@ class PhysicsFit:
         self.solver_message_ = "nothing to fit: no identified direction"
         Jz0 = -_projected(meas, cal, J0 * S) @ V * NM
         r0 = _projected(meas, cal, meas.y - A0) * NM
-        keep_start = keep_converged_start and k and _remaining_step_sigma(Jz0, r0, dof) \
-            <= STEP_SIGMA
+        if keep_converged_start and start_directions is not None:
+            V_start = _checked_directions(start_directions, p)
+            k_start = V_start.shape[1]
+            keep_start = k_start and _remaining_step_sigma(
+                -_projected(meas, cal, J0 * S) @ V_start * NM, r0,
+                max(n_res - k_start - len(meas.groups), 1)) <= STEP_SIGMA
+            if keep_start:
+                V = V_start
+                s, Vt, keep = _directions_report(Js, V)
+        else:
+            keep_start = keep_converged_start and k and _remaining_step_sigma(Jz0, r0, dof) \
+                <= STEP_SIGMA
         theta, J, A = theta0, J0, A0
         if keep_start:
             self.solver_message_ = "the start is converged on these data: kept"
@@ -164,6 +184,7 @@ class PhysicsFit:
         model.set_theta(theta)          # the solver's last evaluation may have been a trial
         r = _projected(meas, cal, meas.y - A)
         Jz = -_projected(meas, cal, J * S) @ V
+        dof = max(n_res - V.shape[1] - len(meas.groups), 1)
         self.remaining_step_sigma_ = _remaining_step_sigma(Jz, r, dof)
         change = self.remaining_step_sigma_ * float(np.linalg.norm(r)) / np.sqrt(dof)
         self.converged_ = bool(self.remaining_step_sigma_ <= STEP_SIGMA)
@@ -343,6 +364,34 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     return z, J, A, message
 
 
+def _checked_directions(directions, p: int) -> np.ndarray:
+    """``directions`` (p, k) as a float array, refused unless it has one row per parameter and
+    orthonormal columns (a fitted model's saved directions: the SVD's, exact to round-off)."""
+    V = np.asarray(directions, dtype=float)
+    if V.ndim != 2 or V.shape[0] != p or not np.all(np.isfinite(V)):
+        raise FitError(f"start_directions: shape {V.shape}, expected {p} finite rows (one per "
+                       "parameter) by the identified directions")
+    if np.max(np.abs(V.T @ V - np.eye(V.shape[1])), initial=0.0) > 1e-9:
+        raise FitError("start_directions: the identified directions are not orthonormal")
+    return V
+
+
+def _directions_report(Js: np.ndarray, V: np.ndarray):
+    """(s, Vt, keep) for the identifiability report of a fit held to the directions ``V``
+    (p, k; orthonormal) rather than those the SVD of ``Js`` identifies: V's singular values in
+    ``Js`` and, for the directions outside them, the SVD of ``Js`` on V's orthogonal
+    complement; sorted by singular value, ``keep`` marking V's."""
+    p, k = V.shape
+    s_in = np.linalg.svd(Js @ V, compute_uv=False)
+    complement = np.linalg.qr(V, mode="complete")[0][:, k:]               # (p, p - k)
+    _, s_out, Wt = np.linalg.svd(Js @ complement, full_matrices=False)
+    s = np.concatenate([s_in, s_out])
+    Vt = np.vstack([V.T, Wt @ complement.T])
+    keep = np.arange(p) < k
+    order = np.argsort(-s, kind="stable")
+    return s[order], Vt[order], keep[order]
+
+
 def _trust_region_step(Jz: np.ndarray, r: np.ndarray, radius: float) -> np.ndarray:
     """The step dz minimising |r + Jz dz| with |dz| <= ``radius`` (fit scales): the
     Gauss-Newton step when it is that short, else the Levenberg-Marquardt step
@@ -384,11 +433,14 @@ def calibration_cost(fit: PhysicsFit) -> float:
 
 
 def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None = None,
-                    **options) -> PhysicsFit:
+                    made=(), **options) -> PhysicsFit:
     """Fit ``effects`` from each of ``starts`` ({label: PhysicsFit keyword arguments, e.g.
     ``start`` and ``prior``}) and return the fit of lowest calibration cost, with
-    ``start_label_`` (which start it came from) and ``start_costs_`` ({label: calibration
-    rms, nm}).
+    ``start_label_`` (which start it came from), ``start_costs_`` ({label: calibration
+    rms, nm}) and ``start_fits_`` ({label: the fit from that start}). ``made``: fits already
+    made on the rows of ``df`` (another call's ``start_fits_`` values): a start whose fit is
+    among them (the same effects, robot, starting values, prior and options) is taken from
+    there instead of being fitted again (a copy: its labels are this call's).
 
     A model whose thermometer terms multiply its expansion coefficients (sensor_contact's leak
     scales every part's temperature excursion by 1 + leak / glue, a product with every CTE)
@@ -399,9 +451,12 @@ def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None =
     has and keeping the lowest cost can. The choice uses the calibration rows only."""
     if not starts:
         raise FitError("fit_from_starts: no start given")
-    best, costs, meas = None, {}, None
+    best, costs, fits, meas = None, {}, {}, None
     for label, kwargs in starts.items():
-        fit = PhysicsFit(effects, **{**options, **kwargs}).fit(df, meta, meas=meas)
+        fit = PhysicsFit(effects, **{**options, **kwargs})
+        done = next((f for f in made if _same_problem(f, fit)), None)
+        fit = copy.copy(done) if done else fit.fit(df, meta, meas=meas)
+        fits[label] = fit
         meas = fit.measurements_
         cost = calibration_cost(fit)
         costs[label] = float(np.sqrt(cost / max(np.sum(np.isfinite(
@@ -409,8 +464,20 @@ def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None =
         if best is None or cost < best[0]:
             best = (cost, label, fit)
     _, label, fit = best
-    fit.start_label_, fit.start_costs_ = label, costs
+    fit.start_label_, fit.start_costs_, fit.start_fits_ = label, costs, fits
     return fit
+
+
+def _same_problem(a: PhysicsFit, b: PhysicsFit) -> bool:
+    """Whether fits ``a`` and ``b`` (of the same rows) solve the same problem: the same
+    effects, robot, starting values, prior and options, so the same solver path."""
+    def values(fit, start):
+        return PhysicsModel(fit.effects, fit.params, start).values()
+    return (a.effects == b.effects and a.params is b.params and a.known_ == b.known_
+            and (a.noise_nm, a.identifiable_ratio, a.max_evaluations)
+            == (b.noise_nm, b.identifiable_ratio, b.max_evaluations)
+            and values(a, a.start) == values(b, b.start)
+            and values(a, a.prior) == values(b, b.prior))
 
 
 def _axis_p90(fig: dict) -> dict:

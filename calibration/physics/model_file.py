@@ -5,6 +5,8 @@ import math
 import tomllib
 from pathlib import Path
 
+import numpy as np
+
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, _or_nan
 from deltatwin.calibration.physics.model import PhysicsModel
@@ -29,7 +31,12 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
                    "n_parameters": fit.model_.n_free,
                    "n_identified_directions": fit.identifiability_["n_identified_directions"],
                    "not_identifiable": fit.identifiability_["not_identifiable"]},
-           "effects": fit.model_.values()}
+           "effects": fit.model_.values(),
+           # the directions the fit determined (its parameters' combinations, in fit scales):
+           # a diagnosis judges on them whether the values are converged on the data, as the
+           # fit judged it (the directions identified at the fitted values are not the same)
+           "identification": {"parameters": fit.model_.labels,
+                              "directions": fit.identified_directions_.T.tolist()}}
     if fit.known_:
         # the laboratory's known constants of effects outside the model (--set): a diagnosis
         # gives them to the candidates it adds
@@ -85,7 +92,39 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
                              where=f"{path} [effects]")
     except EffectError as exc:
         raise FitError(str(exc)) from exc
+    _check_identification(path, doc, model)
     return model, doc
+
+
+def saved_directions(doc: dict) -> np.ndarray | None:
+    """The fit's identified directions (p, k) from a file ``load_fitted`` read, None if the
+    file has none (written before they were saved, or hand-written)."""
+    ident = doc.get("identification")
+    if ident is None:
+        return None
+    return np.array(ident["directions"], dtype=float).reshape(
+        len(ident["directions"]), len(ident["parameters"])).T
+
+
+def _check_identification(path: Path, doc: dict, model: PhysicsModel) -> None:
+    """[identification]: the model's parameters in its order, and directions over them."""
+    ident = doc.get("identification")
+    if ident is None:
+        return
+    if not isinstance(ident, dict) or ident.get("parameters") != model.labels:
+        raise FitError(f"{path}: [identification] parameters must list the model's "
+                       f"{model.n_free} free parameters in its order")
+    rows = ident.get("directions")
+    if not isinstance(rows, list) or not all(
+            isinstance(row, list) and len(row) == model.n_free
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                    for x in row) for row in rows):
+        raise FitError(f"{path}: [identification] directions must be a list of directions, each "
+                       f"{model.n_free} finite numbers (one per parameter)")
+    V = saved_directions(doc)
+    if np.max(np.abs(V.T @ V - np.eye(V.shape[1])), initial=0.0) > 1e-9:
+        raise FitError(f"{path}: [identification] directions must be orthonormal (as the fit "
+                       "wrote them)")
 
 
 def _check_layout(path: Path, doc: dict) -> None:
@@ -96,7 +135,7 @@ def _check_layout(path: Path, doc: dict) -> None:
     effects = doc["model"]["effects"]
     if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
         fail("[model] effects", "a list of effect names")
-    for key in ("effects", "fit", "known"):
+    for key in ("effects", "fit", "known", "identification"):
         if key in doc and not isinstance(doc[key], dict):
             fail(f"[{key}]", "a table")
     for name, table in doc.get("effects", {}).items():

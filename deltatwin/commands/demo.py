@@ -70,17 +70,20 @@ def run(args) -> int:
     if args.measured_budget:
         say("refitting the twin's complete model: the achievable floor, and once per source of "
             "it (that source alone in the twin, the others perfect): its budget")
-        achievable = record_achievable_floor(df, meta, sc, scale)
+        achievable, floor_fit = record_achievable_floor(df, meta, sc, scale)
     else:
         say("refitting the twin's complete model: the achievable floor")
-        achievable = record_achievable_floor(df, meta)
+        achievable, floor_fit = record_achievable_floor(df, meta)
     write_dataset(df, meta, data)
     say(f"{len(df)} rows -> {data}; noise floor (interferometers) "
         + ", ".join(f"{k} {v:.1f}" for k, v in floor.items()) + " nm; achievable floor (the "
         "complete model, reading its conditions through the lab's other instruments) "
         + ", ".join(f"{k} {v:.1f}" for k, v in achievable.items()) + " nm")
+    # the floor's fits of the complete model: the last rung's fit from the library's starting
+    # values is one of them (the same problem on the same rows), not made twice
     ladder, diagnoses, fits = effect_ladder(df, meta, sc.hidden["baseline"], data=str(data),
-                                            progress=say, known=sc.hidden.get("known"))
+                                            progress=say, known=sc.hidden.get("known"),
+                                            made=list(floor_fit.start_fits_.values()))
     for k, (row, fit) in enumerate(zip(ladder, fits)):
         atomic_write_text(out / f"model{k}.toml", fitted_toml(fit, str(data)))
         d = diagnoses[k]

@@ -104,7 +104,7 @@ def run_fit(args) -> int:
 def run_diagnose(args) -> int:
     from deltatwin.calibration.diagnosis.diagnose import diagnose
     from deltatwin.calibration.physics.fit import PhysicsFit
-    from deltatwin.calibration.physics.model_file import load_fitted
+    from deltatwin.calibration.physics.model_file import load_fitted, saved_directions
     from deltatwin.twin.dataset import read_dataset
 
     df, meta = read_dataset(args.data)
@@ -112,11 +112,13 @@ def run_diagnose(args) -> int:
         return _diagnose_stepwise(args, df, meta)
     model, doc = load_fitted(args.model)
     # the file's values on this dataset (its zeros are new): kept when they are converged here
-    # (the model was fitted on these data: one Jacobian), else refined on its calibration rows
+    # in the directions the fit determined (the model was fitted on these data: one
+    # Jacobian), else refined on its calibration rows
     fit = PhysicsFit(model.names, start={**doc.get("known", {}), **model.values()},
                      noise_nm=float(doc["model"].get("noise_nm", 5.0)),
                      progress=not args.json).fit(df, meta, where=str(args.data),
-                                                 keep_converged_start=True)
+                                                 keep_converged_start=True,
+                                                 start_directions=saved_directions(doc))
     d = diagnose(fit, str(args.data))
     if args.json:
         print(strict_json(d))

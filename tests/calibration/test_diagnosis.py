@@ -12,7 +12,8 @@ import pytest
 
 from deltatwin.calibration.diagnosis.diagnose import diagnose, effect_ladder
 from deltatwin.calibration.errors import FitError
-from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
+from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 from deltatwin.twin.effects import Effect, Parameter
 from deltatwin.twin.scenario import SCENARIO_DIR, Scenario, ScenarioError
@@ -120,6 +121,92 @@ def test_fitted_model_file_round_trips(tmp_path):
     # the fitted load factor is the hidden scenario's
     truth = next(e for e in meta["truth"]["effects"] if e["name"] == "gravity_sag")
     assert abs(model.theta()[0] - truth["parameters"]["load_factor"]["value"]) < 0.1
+    # the identified directions, edited (the checksum line removed), are refused by name
+    text = "\n".join(line for line in path.read_text().splitlines()
+                     if not line.startswith("content_sha256"))
+    for bad, match in ((text.replace('"gravity_sag.load_factor"', '"load_factor"'),
+                        r"\[identification\] parameters"),
+                       (text.replace("directions = [", "directions = [[0.5, 1.0], "),
+                        r"\[identification\] directions must be a list"),
+                       (text.replace("directions = [", "directions = [[0.0], "),
+                        r"\[identification\] directions must be orthonormal")):
+        path.write_text(bad)
+        with pytest.raises(FitError, match=match):
+            load_fitted(path)
+
+
+def test_a_saved_converged_model_is_kept_in_the_directions_it_was_fitted_in(tmp_path,
+                                                                              monkeypatch):
+    """fit, save, ``deltatwin diagnose``: the file's values are kept with one Jacobian and
+    diagnosed as the fit would be. On this case the directions identified at the fitted values
+    (not the fit's, which were identified at its start) leave a step above the convergence limit:
+    judged in them, the model was refitted on reloading (issue 21)."""
+    from deltatwin.calibration.diagnosis import diagnose as diagnose_module
+    from deltatwin.calibration.physics.model_file import saved_directions
+    from deltatwin.cli import main
+    from deltatwin.twin.dataset import write_dataset
+
+    sc = Scenario.load("quiet/magnetic-force")
+    df, meta = sc.simulate(sc.reduced_scale)
+    effects = ["geometric_errors", "magnetic_force"]
+    fit = PhysicsFit(effects).fit(df, meta)
+    assert fit.converged_
+    data, path = tmp_path / "data.parquet", tmp_path / "fitted.toml"
+    write_dataset(df, meta, data)
+    path.write_text(fitted_toml(fit, str(data)))
+    model, doc = load_fitted(path)
+    np.testing.assert_array_equal(saved_directions(doc), fit.identified_directions_)
+    seen = []
+    monkeypatch.setattr(diagnose_module, "diagnose",
+                        lambda f, data: seen.append(f) or diagnose(f, data))
+    assert main(["diagnose", str(data), "--model", str(path), "--json"]) == 0
+    (kept,) = seen
+    assert "kept" in kept.solver_message_ and kept.n_jacobians_ == 1
+    assert kept.n_evaluations_ == kept.model_.n_free + 1
+    np.testing.assert_array_equal(kept.theta_, fit.theta_)
+    np.testing.assert_array_equal(kept.identified_directions_, fit.identified_directions_)
+    assert kept.identifiability_["n_identified_directions"] == \
+        fit.identifiability_["n_identified_directions"]
+    ours, theirs = diagnose(kept), diagnose(fit)
+    assert [c["effect"] for c in ours["ranking"]] == [c["effect"] for c in theirs["ranking"]]
+    for a, b in zip(ours["ranking"], theirs["ranking"]):
+        np.testing.assert_allclose([a["explained_fraction"], a["val_err90_after_nm"]],
+                                   [b["explained_fraction"], b["val_err90_after_nm"]],
+                                   rtol=1e-6)
+    # values moved by a few uncertainties along the fitted directions are refined, not kept
+    u = np.array([q["uncertainty"] for q in fit.parameters_])
+    moved = PhysicsModel(effects, values=fit.model_.values())
+    moved.set_theta(fit.model_.theta() + 3 * u)
+    refined = PhysicsFit(effects, start=moved.values()).fit(
+        df, meta, keep_converged_start=True, start_directions=saved_directions(doc))
+    assert "kept" not in refined.solver_message_ and refined.n_jacobians_ > 1
+    assert refined.converged_
+    with pytest.raises(FitError, match="orthonormal"):
+        PhysicsFit(effects, start=fit.model_.values()).fit(
+            df, meta, keep_converged_start=True, start_directions=2 * saved_directions(doc))
+
+
+def test_a_start_already_fitted_is_reused_not_refitted(monkeypatch):
+    """fit_from_starts(made=...): a start whose problem (effects, starting values, prior,
+    options) another call already solved on the same rows is taken from there (the demo's
+    floor and last rung); any difference is fitted."""
+    sc = Scenario.load("hidden/gravity-sag")
+    df, meta = sc.simulate(sc.reduced_scale)
+    first = fit_from_starts(["gravity_sag"], {"library": {}}, df, meta)
+    calls = []
+    fit = PhysicsFit.fit
+    monkeypatch.setattr(PhysicsFit, "fit", lambda self, *a, **k: calls.append(self.start)
+                        or fit(self, *a, **k))
+    moved = {"gravity_sag": {"load_factor": 0.5}}
+    second = fit_from_starts(["gravity_sag"], {"priors": {}, "moved": {"start": moved},
+                                               "noisier": {"noise_nm": 6.0}}, df, meta,
+                             made=list(first.start_fits_.values()))
+    assert calls == [moved, None]                     # "priors" was not fitted again
+    reused = second.start_fits_["priors"]
+    np.testing.assert_array_equal(reused.theta_, first.theta_)
+    # a copy: labelling the second call's best leaves the first call's fit as it was
+    assert reused is not first and first.start_label_ == "library"
+    assert set(second.start_costs_) == {"priors", "moved", "noisier"}
 
 
 def test_bad_input_is_named(tmp_path):

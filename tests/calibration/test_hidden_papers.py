@@ -19,7 +19,7 @@ SINGLE = sorted(n for n, spec in HIDDEN_SCENARIOS.items() if len(spec[2]) == 1)
 def test_hidden_effect_is_named_or_reported_absorbed_and_adding_it_reaches_the_floor(name):
     sc = Scenario.load(f"hidden/{name}")
     df, meta = sc.simulate(sc.reduced_scale)
-    floor = record_achievable_floor(df, meta)["all"]
+    floor = record_achievable_floor(df, meta)[0]["all"]
     known = sc.hidden.get("known")
     hidden = sc.hidden["effects"][0]
     base = PhysicsFit(sc.hidden["baseline"], start=known).fit(df, meta)

@@ -203,7 +203,7 @@ def test_periodogram_of_several_series_on_their_union_is_each_ones():
     inside = np.stack([rng.uniform(size=300) < f for f in (1.0, 0.7, 0.4)], axis=1)
     Y = rng.standard_normal((300, 3))
     w = 0.5 + 0.1 * np.arange(2000)
-    both = periodogram(xu, Y, 0.5, 0.1, 2000, chunk=4096, mask=inside)
+    both = periodogram(xu, Y, 0.5, 0.1, 2000, mask=inside)
     for j in range(3):
         x, y = xu[inside[:, j]], Y[inside[:, j], j]
         np.testing.assert_allclose(both[:, j], signal.lombscargle(x, y, w), rtol=1e-8,
