@@ -13,6 +13,7 @@ from deltatwin.calibration.diagnosis.floor import achievable_floor, true_model
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.cases import generate_cases
+from deltatwin.twin.effects import LIBRARY
 from deltatwin.twin.scenario import Scenario
 
 BASELINE = ["geometric_errors", "thermal_expansion", "sensor_contact"]
@@ -222,3 +223,37 @@ def test_a_candidate_the_calibration_rows_barely_see_is_claimed_when_validation_
     assert at_floor["gap_closed"] == 0 and not at_floor["significant"]
     useless = diagnosis._verdict(*args, change + noise, change + noise, val, floor_nm)
     assert not useless["significant"]
+
+
+def test_a_candidate_weaker_than_its_starting_values_is_found_at_its_strength(loop_drift):
+    """The candidate's starting values fix its signature, not its size: loop drift started at
+    3x the twin's coefficients (the data hold the library's) is still claimed, its strength
+    (the start's change, scaled, in the directions the other columns leave) fitted well below
+    the start's."""
+    default = {p.name: p.default for p in LIBRARY["loop_drift"].parameters}
+    strong = {p: 3 * default[p] for p in ("table_cte_per_K", "frame_cte_per_K",
+                                            "support_cte_per_K")}
+    fit = PhysicsFit(BASELINE, max_evaluations=3, start={"loop_drift": strong}).fit(*loop_drift)
+    d = diagnosis.diagnose(fit)
+    row = next(c for c in d["ranking"] if c["effect"] == "loop_drift")
+    assert d["missing_effect"] == "loop_drift" and row["significant"], row
+    assert row["strength"] < 0.5, row["strength"]
+    assert row["explained_fraction"] > 0.5, row
+
+
+def test_nothing_is_claimed_from_a_model_at_the_achievable_floor():
+    """A change that explains over 10 % of the validation residual, calibration p far below
+    ALPHA, is claimed without a floor; with the model within 1.1x the achievable floor it is
+    the floor's own error and is not."""
+    rng = np.random.default_rng(23)
+    t = np.linspace(0, 1, 300)
+    shape = np.column_stack([t ** 2, 0.3 * t, np.sin(2 * t)])
+    change = shape / np.sqrt(np.mean(shape ** 2)) * 0.4e-8
+    noise = rng.standard_normal((300, 3)) * 1e-8
+    val = np.ones(300, bool)
+    floor_nm = diagnosis.figures_nm(noise, val)["all"]["err_p90"]
+    args = (3100.0, 2990.0, 1, 3000, 2990)
+    free = diagnosis._verdict(*args, change + noise, noise, val, None)
+    assert free["explained_fraction"] > 0.1 and free["p_value"] < 1e-6 and free["significant"]
+    assert diagnosis.figures_nm(change + noise, val)["all"]["err_p90"] <= 1.1 * floor_nm
+    assert not diagnosis._verdict(*args, change + noise, noise, val, floor_nm)["significant"]
