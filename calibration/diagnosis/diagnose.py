@@ -103,43 +103,29 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     cal = meas.cal
     r = _projected(meas, cal, meas.y - A)              # residual with the candidate on
     Pc = _projected(meas, cal, Jc)
-    P0 = _projected(meas, cal, delta0)
-    absorbed = _absorbed(fit, Qm, Pc, P0)
-    determined = (fit.noise_nm * 1e-9) / fit.identifiable_ratio
+    absorbed = _absorbed(fit, Qm, Pc, _projected(meas, cal, delta0))
     # the candidate's directions beyond the model's own, that the data determine
     if Jm.shape[1]:
         Pc = Pc - Qm @ (Qm.T @ Pc)
     k_c = 0
     if Pc.shape[1]:
         _, s, Vt = np.linalg.svd(Pc, full_matrices=False)
-        keep = s > determined
+        keep = s > (fit.noise_nm * 1e-9) / fit.identifiable_ratio
         k_c = int(keep.sum())
         Vc = Vt[keep].T
     X = np.hstack([Jm, _projected(meas, cal, Jc) @ Vc]) if k_c else Jm
-    # The starting values fix the candidate's signature, not its size: its strength (the
-    # change at its starting values, scaled) is one more direction when the data determine it
-    # beyond the directions above, so the baseline (strength 0) lies inside the alternative.
-    # Held at the library's strength, the directions the data do not determine impose the
-    # prior's size: loop drift at a third of it, its third CTE combination held at 3x the
-    # truth, made the calibration worse (BIC +356) though the complete model reaches the floor.
-    strength = bool(np.linalg.norm(P0 - _span_part(X, P0)) > determined)
-    if strength:
-        X = np.hstack([X, P0[:, None]])
-    k = k_c + strength
     coef = np.linalg.lstsq(X, r, rcond=None)[0] if X.shape[1] else np.zeros(0)
     rss1 = float(np.sum((r - X @ coef) ** 2))
     # the same change on every row (the model's own columns re-adjust too)
     full = [fit.jacobian_ * fit.model_.scales @ fit.identified_directions_] if k_m else []
     if k_c:
         full.append(Jc @ Vc)
-    if strength:
-        full.append(delta0[:, :, None])
     change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
     after = _val_after(meas, fit, change)
-    verdict = _verdict(rss0, rss1, k, n, max(n - k_m - k - len(meas.groups), 1),
+    verdict = _verdict(rss0, rss1, k_c, n, max(n - k_m - k_c - len(meas.groups), 1),
                        before, after, meas.val, floor_all_nm)
     if generic is not None:
-        verdict.update(_beyond_generic(r, X[:, k_m:], Jm, generic, k, n, len(meas.groups),
+        verdict.update(_beyond_generic(r, X[:, k_m:], Jm, generic, k_c, n, len(meas.groups),
                                        verdict["explained_fraction"]))
         # only a candidate that would be claimed can be a correlate of the missing term, and
         # not one the validation rows confirm closing GAP_CLOSED of the gap to the floor: a
@@ -154,20 +140,13 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],
             "val_err90_after_nm": fig["all"]["err_p90"],
             "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
-            "new_directions": k_c,
-            "strength": 1.0 + float(coef[-1]) if strength else None,
-            "p_value": verdict["p_value"],
+            "new_directions": k_c, "p_value": verdict["p_value"],
             "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
             "p_validation": verdict["p_validation"], "p_combined": verdict["p_combined"],
             "significant": verdict["significant"],
             **{k: verdict[k] for k in ("generic_explained_fraction", "p_beyond_generic",
                                        "matched_by_generic") if k in verdict},
             **absorbed}
-
-
-def _span_part(X: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The part of ``v`` in the span of the columns of X (least squares)."""
-    return X @ np.linalg.lstsq(X, v, rcond=None)[0] if X.shape[1] else np.zeros_like(v)
 
 
 def _rss(X: np.ndarray, r: np.ndarray) -> float:
@@ -280,9 +259,9 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
     decision: p < ALPHA, the BIC falls, and the candidate either explains MIN_EXPLAINED of the
     validation residual or closes GAP_CLOSED of the gap to the floor, and the model is not
     already within AT_FLOOR of the floor (no gap to close: the floor's own error is not
-    fitted); or it closes GAP_CLOSED
-    of the gap and the calibration and validation tests combined (``p_combined``, Fisher's
-    method on ``p_value`` and ``p_validation``, ``_validation_p``) give p < ALPHA."""
+    fitted); or it closes GAP_CLOSED of the gap and the calibration and validation tests
+    combined (``p_combined``, Fisher's method on ``p_value`` and ``p_validation``,
+    ``_validation_p``) give p < ALPHA."""
     rows = val[:, None] & np.isfinite(before)
     p_before, p_after = float(np.sum(before[rows] ** 2)), float(np.sum(after[rows] ** 2))
     df1 = max(k, 1)        # k = 0: a candidate's fixed change at its starting values
@@ -302,8 +281,8 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
         if not at_floor:
             gap_closed = (e_before - e_after) / (e_before - floor_all_nm)
     # a model within AT_FLOOR of the floor has nothing left a library effect could add: what a
-    # candidate explains there is the floor's own error (on a null case at the floor, air
-    # refraction at 4.7x its starting strength explained 14 % of the unrecorded pressure's)
+    # candidate explains there is the floor's own error (thermometers, unrecorded pressure: a
+    # candidate whose strength was left free explained 14 % of a null case's at its floor)
     useful = (explained >= MIN_EXPLAINED or gap_closed >= GAP_CLOSED) and not at_floor
     p_val = _validation_p(before, after, val)
     # the validation rows are a second, independent test of the same change (fitted on the
@@ -422,8 +401,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
             # says so in its row; the others are still ranked
             ranking.append({"effect": name, "failed": str(exc), "explained_fraction": math.nan,
                             "val_err90_after_nm": math.nan, "val_err90_after_by_axis_nm": {},
-                            "new_directions": 0, "strength": None, "p_value": math.nan,
-                            "delta_bic": math.nan,
+                            "new_directions": 0, "p_value": math.nan, "delta_bic": math.nan,
                             "gap_closed": math.nan, "p_validation": math.nan,
                             "p_combined": math.nan, "significant": False,
                             "absorbed_fraction": math.nan,
