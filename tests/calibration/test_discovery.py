@@ -222,3 +222,21 @@ def test_a_candidate_the_calibration_rows_barely_see_is_claimed_when_validation_
     assert at_floor["gap_closed"] == 0 and not at_floor["significant"]
     useless = diagnosis._verdict(*args, change + noise, change + noise, val, floor_nm)
     assert not useless["significant"]
+
+
+def test_nothing_is_claimed_from_a_model_at_the_achievable_floor():
+    """A change that explains over 10 % of the validation residual, calibration p far below
+    ALPHA, is claimed without a floor; with the model within 1.1x the achievable floor it is
+    the floor's own error and is not."""
+    rng = np.random.default_rng(23)
+    t = np.linspace(0, 1, 300)
+    shape = np.column_stack([t ** 2, 0.3 * t, np.sin(2 * t)])
+    change = shape / np.sqrt(np.mean(shape ** 2)) * 0.4e-8
+    noise = rng.standard_normal((300, 3)) * 1e-8
+    val = np.ones(300, bool)
+    floor_nm = diagnosis.figures_nm(noise, val)["all"]["err_p90"]
+    args = (3100.0, 2990.0, 1, 3000, 2990)
+    free = diagnosis._verdict(*args, change + noise, noise, val, None)
+    assert free["explained_fraction"] > 0.1 and free["p_value"] < 1e-6 and free["significant"]
+    assert diagnosis.figures_nm(change + noise, val)["all"]["err_p90"] <= 1.1 * floor_nm
+    assert not diagnosis._verdict(*args, change + noise, noise, val, floor_nm)["significant"]
