@@ -240,6 +240,10 @@ def main(argv=None) -> int:
                     help=f"home settles averaged in each session's zero (default "
                          f"{ZERO_SETTLES}, as `deltatwin compensate`; 1: the papers' zero)")
     args = ap.parse_args(argv)
+    # the threads as the command line sets them, before the first fit: an unconverged fit's
+    # path depends on BLAS's summation order, so every scenario fits under the same setting
+    from deltatwin.threads import set_threads
+    set_threads()
     t_start = time.perf_counter()
     verdicts = []
     with tempfile.TemporaryDirectory() as tmp:
