@@ -564,6 +564,10 @@ def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
                        "p_value": min(p_values[j] for j in own),
                        "terms": [terms[j].kind for j in own],
                        "columns": {k: float(v) for j in own for k, v in terms[j].info.items()}})
+    # a variable is named for what it explains beyond the others, by the same share that let
+    # its terms join: below it, the credit left is the residual's noise (at the noise floor, a
+    # fraction of a nanometre that a rounding can bring or take away)
+    ranked = [r for r in ranked if r["explained_fraction"] >= min_share]
     ranked.sort(key=lambda r: -r["explained_nm"])
     out["variables"] = ranked
     out["explained_fraction"] = 1.0 - full["val_power"] / p0

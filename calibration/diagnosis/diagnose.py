@@ -434,10 +434,8 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     out["extrapolation"] = {"variables": extrapolated,
                             "message": extrapolation_message(extrapolated)}
     best = next((c for c in ranking if c["significant"]), None)
-    # at the floor nothing is missing (the complete model reaches no lower): what the residual
-    # still depends on is listed, but no term is proposed for the researcher to write
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
-                                     form=form if best is None and not out["at_floor"] else False,
+                                     form=form if best is None else False,
                                      target=frame.target, variables=variables, frame=frame,
                                      extra_terms=load_terms(loads, meas.y.shape))
     if best:

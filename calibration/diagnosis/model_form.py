@@ -312,6 +312,8 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
             terms.append(term)
         terms.sort(key=lambda t: -t["explained_fraction"])
         n_val = max(int(np.sum(joint.axis_of == k)), 1)
+        if 1.0 - p_full[k] / p0_axes[k] < min_share:
+            continue        # the joint fit left this axis' terms less than a joining term's share
         form.append({"axis": AXES[k], "terms": terms,
                      "explained_fraction": 1.0 - p_full[k] / p0_axes[k],
                      "val_rms_nm": float(np.sqrt(p0_axes[k] / n_val) * 1e9),

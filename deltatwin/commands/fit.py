@@ -144,13 +144,12 @@ def run_diagnose(args) -> int:
         print(f"\nmissing effect: {d['missing_effect']}; add it with:\n  {d['next_command']}")
     else:
         print("\nno library effect explains the residual significantly")
-        _print_unexplained(d["unexplained"], d["at_floor"])
+        _print_unexplained(d["unexplained"])
     return 0
 
 
-def _print_unexplained(u: dict, at_floor: bool | None = None) -> None:
-    """What the residual still depends on and the proposed form, one line each; ``at_floor``:
-    the model is within the floor (its dependences are then not a missing term)."""
+def _print_unexplained(u: dict) -> None:
+    """What the residual still depends on and the proposed form, one line each."""
     if not u["depends_on"]:
         print("the residual does not depend on any recorded variable (noise-like)")
         return
@@ -159,9 +158,6 @@ def _print_unexplained(u: dict, at_floor: bool | None = None) -> None:
     for v in u["depends_on"]:
         axes = ", ".join(f"{a} {x:.1f}" for a, x in v["by_axis_nm"].items())
         print(f"  {v['variable']:<24} {v['explained_nm']:6.1f} nm  ({axes} nm)")
-    if at_floor:
-        print("the model is at the floor: these dependences are part of the floor's own error "
-              "(no term to add)")
     if u.get("form"):
         print("proposed form of the missing term (share of the validation residual explained):")
         for f in u["form"]:
