@@ -241,14 +241,14 @@ def air_line(fit: PhysicsFit, air: dict) -> tuple[str, np.ndarray] | None:
     twin.scenario.air_wander gives; time 0 is a record's white noise) through the fitted
     model's levers (``_air_levers``), up to the session zeros and the fit's first-order refit
     (``wander_u``, ``refit_map``); None without either."""
-    parts, var = [], 0.0
+    parts, var, refit = [], 0.0, None
     recorded = fit.measurements_.df.columns
     for field, column, what in (("pressure_Pa", "p_Pa", "pressure"),
                                 ("vapour_Pa", "RH_pct", "water vapour")):
         std, time_s = air.get(field, (0.0, 0.0))
         if std > 0:
-            u = wander_u(fit.measurements_, *_air_levers(fit, field), std, time_s,
-                         refit_map(fit))
+            refit = refit_map(fit) if refit is None else refit     # the same for every field
+            u = wander_u(fit.measurements_, *_air_levers(fit, field), std, time_s, refit)
             var = var + u ** 2
             parts.append(f"{'recorded' if column in recorded else 'unrecorded'} {what} "
                          f"{std:.3g} Pa " + (f"wander over {time_s / 3600:.3g} h" if time_s > 0

@@ -548,7 +548,8 @@ def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
     # a condition is credited beyond the other conditions, a response beyond every term: a
     # rotation that reads the tilt a force makes takes no credit from the force
     conditions = [j for j in chosen if terms[j].variable not in responses]
-    of_conditions = frame.fit([blocks[j] for j in conditions])
+    of_conditions = (full if len(conditions) == len(chosen)
+                     else frame.fit([blocks[j] for j in conditions]))
     ranked = []
     for name in dict.fromkeys(terms[j].variable for j in chosen):
         peers = chosen if name in responses else conditions

@@ -152,20 +152,17 @@ class PhysicsFit:
         n_res = int(np.sum((meas.group >= 0) & cal[:, None]))
         dof = max(n_res - k - len(meas.groups), 1)
         self.solver_message_ = "nothing to fit: no identified direction"
-        Jz0 = -_projected(meas, cal, J0 * S) @ V * NM
+        P0 = _projected(meas, cal, J0 * S)
+        Jz0 = -P0 @ V * NM
         r0 = _projected(meas, cal, meas.y - A0) * NM
-        if keep_converged_start and start_directions is not None:
-            V_start = _checked_directions(start_directions, p)
-            k_start = V_start.shape[1]
-            keep_start = k_start and _remaining_step_sigma(
-                -_projected(meas, cal, J0 * S) @ V_start * NM, r0,
-                max(n_res - k_start - len(meas.groups), 1)) <= STEP_SIGMA
-            if keep_start:
-                V = V_start
-                s, Vt, keep = _directions_report(Js, V)
-        else:
-            keep_start = keep_converged_start and k and _remaining_step_sigma(Jz0, r0, dof) \
-                <= STEP_SIGMA
+        # convergence of the start is judged in the directions it was fitted in, when given
+        V_test = V if start_directions is None else _checked_directions(start_directions, p)
+        keep_start = keep_converged_start and V_test.shape[1] and _remaining_step_sigma(
+            -P0 @ V_test * NM, r0, max(n_res - V_test.shape[1] - len(meas.groups), 1)) \
+            <= STEP_SIGMA
+        if keep_start and V_test is not V:
+            V = V_test
+            s, Vt, keep = _directions_report(Js, V)
         theta, J, A = theta0, J0, A0
         if keep_start:
             self.solver_message_ = "the start is converged on these data: kept"

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from deltatwin.calibration.errors import FitError
-from deltatwin.calibration.physics.fit import PhysicsFit, _or_nan
+from deltatwin.calibration.physics.fit import PhysicsFit, _checked_directions, _or_nan
 from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.files import CONTENT_SHA256, content_damage, content_sha256, toml_text
 from deltatwin.twin.effects import EffectError, effect_class
@@ -121,10 +121,11 @@ def _check_identification(path: Path, doc: dict, model: PhysicsModel) -> None:
                     for x in row) for row in rows):
         raise FitError(f"{path}: [identification] directions must be a list of directions, each "
                        f"{model.n_free} finite numbers (one per parameter)")
-    V = saved_directions(doc)
-    if np.max(np.abs(V.T @ V - np.eye(V.shape[1])), initial=0.0) > 1e-9:
+    try:
+        _checked_directions(saved_directions(doc), model.n_free)
+    except FitError:
         raise FitError(f"{path}: [identification] directions must be orthonormal (as the fit "
-                       "wrote them)")
+                       "wrote them)") from None
 
 
 def _check_layout(path: Path, doc: dict) -> None:
