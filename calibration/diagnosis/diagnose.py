@@ -123,26 +123,23 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     full = [fit.jacobian_ * fit.model_.scales @ fit.identified_directions_] if k_m else []
     if k_c:
         full.append(Jc @ Vc)
-    strength, r, X, full = _free_strength(fit, X, r, delta0, _projected(meas, cal, delta0),
-                                          full)
-    k = k_c + (strength is not None)
     coef = np.linalg.lstsq(X, r, rcond=None)[0] if X.shape[1] else np.zeros(0)
     rss1 = float(np.sum((r - X @ coef) ** 2))
-    if strength is not None:
-        strength = 1.0 + float(coef[-1])
-        if strength < 0:
-            # a strength is not negative (a CTE, a weight, a fraction of the path): at its
-            # bound the effect is off, and only its determined directions remain
-            strength, r, X, full = 0.0, r + _projected(meas, cal, delta0), X[:, :-1], full[:-1]
-            delta0, k = 0.0 * delta0, k_c
-            coef = np.linalg.lstsq(X, r, rcond=None)[0] if X.shape[1] else np.zeros(0)
-            rss1 = float(np.sum((r - X @ coef) ** 2))
+    held = _held_at(fit, X, _projected(meas, cal, delta0))
+    if held:
+        # the candidate off along what its determined directions leave (r + its start's change:
+        # the model's own residual), kept if the calibration rows prefer it to the start
+        r_off = r + _projected(meas, cal, delta0)
+        coef_off = np.linalg.lstsq(X, r_off, rcond=None)[0] if X.shape[1] else np.zeros(0)
+        rss_off = float(np.sum((r_off - X @ coef_off) ** 2))
+        if rss_off < rss1:
+            held, r, coef, rss1, delta0 = "off", r_off, coef_off, rss_off, 0.0 * delta0
     change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
     after = _val_after(meas, fit, change)
-    verdict = _verdict(rss0, rss1, k, n, max(n - k_m - k - len(meas.groups), 1),
+    verdict = _verdict(rss0, rss1, k_c, n, max(n - k_m - k_c - len(meas.groups), 1),
                        before, after, meas.val, floor_all_nm)
     if generic is not None:
-        verdict.update(_beyond_generic(r, X[:, k_m:], Jm, generic, k, n, len(meas.groups),
+        verdict.update(_beyond_generic(r, X[:, k_m:], Jm, generic, k_c, n, len(meas.groups),
                                        verdict["explained_fraction"]))
         # only a candidate that would be claimed can be a correlate of the missing term, and
         # not one the validation rows confirm closing GAP_CLOSED of the gap to the floor: a
@@ -157,7 +154,7 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],
             "val_err90_after_nm": fig["all"]["err_p90"],
             "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
-            "new_directions": k_c, "strength": strength, "p_value": verdict["p_value"],
+            "new_directions": k_c, "held_at": held, "p_value": verdict["p_value"],
             "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
             "p_validation": verdict["p_validation"], "p_combined": verdict["p_combined"],
             "significant": verdict["significant"],
@@ -166,27 +163,25 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
             **absorbed}
 
 
-def _free_strength(fit: PhysicsFit, X: np.ndarray, r: np.ndarray, delta0: np.ndarray,
-                   d0: np.ndarray, full: list):
-    """A candidate's strength left free when its change at the starting values (``delta0``,
-    (N,3); ``d0`` the same on the calibration readings, session means out) reaches beyond the
-    columns ``X`` (the model's directions and the candidate's determined ones) by more than
-    the fit's identifiability rule resolves (noise / identifiable_ratio): the library's
-    strength is a starting value, not a known constant, and a combination of the candidate's
-    parameters the data do not determine one typical size at a time can still lie several
-    typical sizes from the truth along the start (loop drift at a third of the library's
+def _held_at(fit: PhysicsFit, X: np.ndarray, d0: np.ndarray) -> str | None:
+    """Where a candidate's change at its starting values (``d0``, calibration readings,
+    session means out) reaches beyond the columns ``X`` (the model's directions and the
+    candidate's determined ones) by more than the fit's identifiability rule resolves
+    (noise / identifiable_ratio), what the candidate is held at along the rest matters: the
+    library's start is a guess, not a known constant (loop drift at a third of the library's
     CTEs: its third combination, held at the start, made the calibration worse, p = 1, BIC
-    +356). The change scaled, as one more column (its coefficient: the strength - 1), so
-    that the model without the candidate is nested in the alternative.
-
-    Returns (None, r, X, full) unchanged when the start lies within the columns' span, else
-    (1.0, r, X + the column, full + delta0 as a last (N,3,1) column)."""
+    +356; at three times, it explained too little to be told from a correlate). The data
+    cannot fit that rest (a free strength makes any candidate a free coefficient: air
+    refraction was then claimed on null cases), so it is held at one of its two natural
+    values, the start or the effect off, whichever the calibration rows prefer: no direction
+    is added. Returns "start" (the caller switches to "off" if the calibration rows prefer
+    it) or None when the start lies within the columns' span (both are the same)."""
     if not np.any(d0):
-        return None, r, X, full
+        return None
     beyond = d0 - (X @ np.linalg.lstsq(X, d0, rcond=None)[0] if X.shape[1] else 0.0)
     if np.linalg.norm(beyond) <= (fit.noise_nm * 1e-9) / fit.identifiable_ratio:
-        return None, r, X, full
-    return 1.0, r, np.hstack([X, d0[:, None]]), full + [delta0[:, :, None]]
+        return None
+    return "start"
 
 
 def _rss(X: np.ndarray, r: np.ndarray) -> float:
@@ -446,7 +441,8 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
             # says so in its row; the others are still ranked
             ranking.append({"effect": name, "failed": str(exc), "explained_fraction": math.nan,
                             "val_err90_after_nm": math.nan, "val_err90_after_by_axis_nm": {},
-                            "new_directions": 0, "strength": None, "p_value": math.nan, "delta_bic": math.nan,
+                            "new_directions": 0, "held_at": None,
+                            "p_value": math.nan, "delta_bic": math.nan,
                             "gap_closed": math.nan, "p_validation": math.nan,
                             "p_combined": math.nan, "significant": False,
                             "absorbed_fraction": math.nan,
