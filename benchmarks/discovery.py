@@ -87,7 +87,9 @@ def score(case, floor: dict, ladder: list, diagnoses: list, rows: int) -> dict:
             "baseline_nm": ladder[0]["val_err90_nm"], "final_nm": final,
             "added": [r["added"] for r in ladder[1:]], "named_first": rounds,
             "absorbed_reported": absorbed, "wrong": wrong, "separability": seen,
-            "false_claim": not hidden and len(ladder) > 1,
+            # a named effect is a claim, kept or not (the ladder keeps only refits that lower
+            # the validation error)
+            "false_claim": not hidden and any(d["missing_effect"] for d in diagnoses),
             "at_floor": final <= AT_FLOOR * floor["achievable_floor_nm"]["all"]}
 
 

@@ -501,7 +501,13 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     achievable floor's: the complete model from the library's starting values is also the
     last rung's first start), reused instead of refitted (``fit_from_starts``).
 
-    Returns (ladder, diagnoses, fits): one ladder row per model ({model, effects, added,
+    An effect is kept only if its refit lowers the validation error: a refit that predicts
+    the validation rows worse than the model without the effect (its parameters taking
+    values the calibration rows barely constrain, and the validation conditions outside
+    theirs) ends the loop at the previous model, the rejected refit recorded in that model's
+    diagnosis (``refit_rejected``, ``_rejected_refit``).
+
+    Returns (ladder, diagnoses, fits): one ladder row per model kept ({model, effects, added,
     n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm,
     achievable_floor_nm, fit_status, fit_start: the start its fit was kept from}), the
     diagnosis of every model, and the fits."""
@@ -520,6 +526,9 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
         if fits:
             starts["previous fit"] = {"start": {**fits[-1].model_.values(), **(known or {})}}
         fit = fit_from_starts(effects, starts, df, meta, made=made, **fit_options)
+        if fits and fit.val_["all"]["err_p90"] > fits[-1].val_["all"]["err_p90"]:
+            diagnoses[-1]["refit_rejected"] = _rejected_refit(fit, fits[-1], diagnoses[-1])
+            break
         fits.append(fit)
         ladder.append({"model": "baseline" if round_ == 0 else f"+ {effects[-1]}",
                        "effects": list(effects), "added": None if round_ == 0 else effects[-1],
@@ -538,6 +547,21 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             break
         effects = effects + [d["missing_effect"]]
     return ladder, diagnoses, fits
+
+
+def _rejected_refit(refit: PhysicsFit, previous: PhysicsFit, diagnosis: dict) -> dict:
+    """What the ladder says of an effect it named but did not keep (its refit raised the
+    validation error 90 %, nm): the two errors and, in words, the variables whose validation
+    values leave the calibration range (``diagnosis["extrapolation"]``)."""
+    added = refit.effects[-1]
+    before, after = previous.val_["all"]["err_p90"], refit.val_["all"]["err_p90"]
+    out_of_range = diagnosis.get("extrapolation", {}).get("variables") or []
+    return {"effect": added, "val_err90_nm": after, "val_err90_before_nm": before,
+            "message": (f"{added} was named, but the model refitted with it predicts the "
+                        f"validation rows worse ({before:.1f} -> {after:.1f} nm): not kept"
+                        + (f"; the validation conditions leave the calibration range "
+                           f"({', '.join(v['variable'] for v in out_of_range)}): a campaign "
+                           "that covers them would tell" if out_of_range else ""))}
 
 
 def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "DATA") -> dict:
