@@ -83,6 +83,9 @@ GAP_CLOSED = 0.5   # or a candidate closes half the gap between the model and th
 # a candidate explaining less than this share of what generic functions of the laboratory
 # variables explain, and nothing beyond them, is a correlate of the missing term, not it
 GENERIC_SHARE = 0.5
+# a candidate's verdict when what its determined directions leave of its start is held off
+HELD_OFF = (" (its parameter combinations the data do not determine held at zero: the "
+            "calibration rows prefer that to the library's starting values)")
 
 
 def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
@@ -272,10 +275,11 @@ def _in_words(c: dict, effects: list) -> str:
         return (f"{c['effect']}: significant on the validation rows, closes "
                 f"{100 * c['gap_closed']:.0f} % of the gap to the floor (calibration p = "
                 f"{c['p_value']:.2g}, with validation p = {c['p_combined']:.2g}): the "
-                "calibration rows alone barely vary what it depends on")
+                "calibration rows alone barely vary what it depends on"
+                + HELD_OFF * (c.get("held_at") == "off"))
     if c["significant"]:
         return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
-                "the validation residual")
+                "the validation residual" + HELD_OFF * (c.get("held_at") == "off"))
     if c["absorbed_fraction"] >= ABSORBED:
         return (f"{c['effect']}: {100 * c['absorbed_fraction']:.0f} % of its signature is "
                 f"absorbed by {c['absorbed_by'] or '+'.join(effects)} on this campaign: its "
