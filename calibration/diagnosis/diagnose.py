@@ -84,8 +84,8 @@ GAP_CLOSED = 0.5   # or a candidate closes half the gap between the model and th
 # variables explain, and nothing beyond them, is a correlate of the missing term, not it
 GENERIC_SHARE = 0.5
 # a candidate's verdict when what its determined directions leave of its start is held off
-HELD_OFF = (" (its parameter combinations the data do not determine held at zero: the "
-            "calibration rows prefer that to the library's starting values)")
+HELD_OFF = (" (its parameter combinations the data do not determine held at zero, not at "
+            "the library's starting values)")
 
 
 def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
@@ -126,17 +126,40 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     full = [fit.jacobian_ * fit.model_.scales @ fit.identified_directions_] if k_m else []
     if k_c:
         full.append(Jc @ Vc)
+    # the candidate at its start and, where what its determined directions leave of the start
+    # matters (``_held_at``), switched off along it: the verdict of the two that is
+    # significant (the lower BIC if both or neither) is the candidate's
+    held = _held_at(fit, X, _projected(meas, cal, delta0))
+    tried = [(held, r, delta0)]
+    if held:
+        tried.append(("off", r + _projected(meas, cal, delta0), 0.0 * delta0))
+    held, verdict, after = min(
+        (_refit_verdict(fit, X, full, h, r_h, d_h, rss0, n, k_m, k_c, before, floor_all_nm,
+                        Jm, generic) for h, r_h, d_h in tried),
+        key=lambda v: (not v[1]["significant"], v[1]["delta_bic"]))
+    fig = figures_nm(after, meas.val)
+    return {"effect": name, "explained_fraction": verdict["explained_fraction"],
+            "val_err90_after_nm": fig["all"]["err_p90"],
+            "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
+            "new_directions": k_c, "held_at": held, "p_value": verdict["p_value"],
+            "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
+            "p_validation": verdict["p_validation"], "p_combined": verdict["p_combined"],
+            "significant": verdict["significant"],
+            **{k: verdict[k] for k in ("generic_explained_fraction", "p_beyond_generic",
+                                       "matched_by_generic") if k in verdict},
+            **absorbed}
+
+
+def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
+                   r: np.ndarray, delta0: np.ndarray, rss0: float, n: int, k_m: int, k_c: int,
+                   before: np.ndarray, floor_all_nm: float | None, Jm: np.ndarray,
+                   generic: tuple | None):
+    """A candidate's verdict with its change at ``delta0`` (N,3) and its determined directions
+    and the model's (``X`` on the calibration readings, ``full`` on every row) refitted to
+    ``r`` (the calibration residual with ``delta0`` on): (held, verdict, residual after)."""
+    meas = fit.measurements_
     coef = np.linalg.lstsq(X, r, rcond=None)[0] if X.shape[1] else np.zeros(0)
     rss1 = float(np.sum((r - X @ coef) ** 2))
-    held = _held_at(fit, X, _projected(meas, cal, delta0))
-    if held:
-        # the candidate off along what its determined directions leave (r + its start's change:
-        # the model's own residual), kept if the calibration rows prefer it to the start
-        r_off = r + _projected(meas, cal, delta0)
-        coef_off = np.linalg.lstsq(X, r_off, rcond=None)[0] if X.shape[1] else np.zeros(0)
-        rss_off = float(np.sum((r_off - X @ coef_off) ** 2))
-        if rss_off < rss1:
-            held, r, coef, rss1, delta0 = "off", r_off, coef_off, rss_off, 0.0 * delta0
     change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
     after = _val_after(meas, fit, change)
     verdict = _verdict(rss0, rss1, k_c, n, max(n - k_m - k_c - len(meas.groups), 1),
@@ -153,17 +176,7 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
         confirmed = verdict["gap_closed"] >= GAP_CLOSED and verdict["p_combined"] < ALPHA
         verdict["matched_by_generic"] &= verdict["significant"] and not confirmed
         verdict["significant"] &= not verdict["matched_by_generic"]
-    fig = figures_nm(after, meas.val)
-    return {"effect": name, "explained_fraction": verdict["explained_fraction"],
-            "val_err90_after_nm": fig["all"]["err_p90"],
-            "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
-            "new_directions": k_c, "held_at": held, "p_value": verdict["p_value"],
-            "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
-            "p_validation": verdict["p_validation"], "p_combined": verdict["p_combined"],
-            "significant": verdict["significant"],
-            **{k: verdict[k] for k in ("generic_explained_fraction", "p_beyond_generic",
-                                       "matched_by_generic") if k in verdict},
-            **absorbed}
+    return held, verdict, after
 
 
 def _held_at(fit: PhysicsFit, X: np.ndarray, d0: np.ndarray) -> str | None:
@@ -176,9 +189,10 @@ def _held_at(fit: PhysicsFit, X: np.ndarray, d0: np.ndarray) -> str | None:
     +356; at three times, it explained too little to be told from a correlate). The data
     cannot fit that rest (a free strength makes any candidate a free coefficient: air
     refraction was then claimed on null cases), so it is held at one of its two natural
-    values, the start or the effect off, whichever the calibration rows prefer: no direction
-    is added. Returns "start" (the caller switches to "off" if the calibration rows prefer
-    it) or None when the start lies within the columns' span (both are the same)."""
+    values, the start or the effect off, each tried (the caller keeps the significant
+    verdict, else the lower BIC: a force plan's calibration grid rejected loop drift's start
+    that the validation rows confirmed, p_combined < ALPHA): no direction is added. Returns
+    "start" or None when the start lies within the columns' span (both are the same)."""
     if not np.any(d0):
         return None
     beyond = d0 - (X @ np.linalg.lstsq(X, d0, rcond=None)[0] if X.shape[1] else 0.0)
