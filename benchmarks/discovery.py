@@ -18,7 +18,8 @@ additions). Prints per case and then the issue's scores against its targets:
   their signature in it): reported as absorbed (or found significant: not reported as absent),
   target >= 90 %;
 * final validation error within 1.1x the achievable floor, target >= 90 % of the cases;
-* null cases (nothing hidden): no effect claimed, target 0 false claims;
+* null cases (nothing hidden): no effect named (kept by the ladder or not: it keeps only
+  an effect whose refit lowers the validation error), target 0 false claims;
 * the full-scale paper-thermal fit + diagnose (its baseline with the frame arm), target <= 60 s
   (wall; the CPU time and load average are printed beside it: the machine is shared).
 
