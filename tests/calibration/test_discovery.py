@@ -285,3 +285,21 @@ def test_the_ladder_keeps_an_effect_only_if_its_refit_predicts_validation_better
     ladder, _, _ = diagnosis.effect_ladder(pd.DataFrame(), None, ["geometric_errors"],
                                            max_added=1)
     assert [r["val_err90_nm"] for r in ladder] == [45.0, 30.0]
+
+
+def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor():
+    """Generic functions of the laboratory variables also fit the floor's own error: a
+    candidate adding nothing beyond them, explaining 18 % where they explain 41 %, is a
+    correlate without a floor, but not when only 32 % of the validation power lies above the
+    achievable floor (13.1 nm against 10.84)."""
+    rng = np.random.default_rng(5)
+    G = rng.standard_normal((400, 3))
+    r = G @ np.array([1.0, -0.5, 0.2]) + 0.1 * rng.standard_normal(400)
+    Xc, Jm = G[:, :1], np.zeros((400, 0))
+    above = diagnosis._above_floor_share(13.1, 10.84)
+    assert above == pytest.approx(1 - (10.84 / 13.1) ** 2) and 0.3 < above < 0.33
+    assert diagnosis._above_floor_share(10.0, 10.84) == diagnosis._above_floor_share(10, None) == 1
+    without = diagnosis._beyond_generic(r, Xc, Jm, (G, 0.41, r, 1.0), 1, 400, 1, 0.18)
+    assert without["p_beyond_generic"] >= diagnosis.ALPHA and without["matched_by_generic"]
+    with_floor = diagnosis._beyond_generic(r, Xc, Jm, (G, 0.41, r, above), 1, 400, 1, 0.18)
+    assert not with_floor["matched_by_generic"]
