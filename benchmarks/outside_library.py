@@ -42,6 +42,7 @@ scores are printed for each set.
     python benchmarks/outside_library.py                       # fixed + 8 generated (seed 16)
     python benchmarks/outside_library.py --cases '' --generated 10 --seed 7   # held-back seed
     python benchmarks/outside_library.py --cases periodic-encoder,backlash --generated 0
+    python benchmarks/outside_library.py --cases '' --generated 12 --seed 99 --only g09
 """
 from __future__ import annotations
 
@@ -132,6 +133,9 @@ def main(argv=None) -> int:
     ap.add_argument("--generated", type=int, default=8,
                     help="number of cases generated from --seed (default 8)")
     ap.add_argument("--seed", type=int, default=16, help="seed of the generated cases")
+    ap.add_argument("--only", default="",
+                    help="comma-separated prefixes of the generated cases to run (e.g. g05,g09; "
+                         "default all): rerun a few of a seed's cases, drawn as in the full set")
     args = ap.parse_args(argv)
     names = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = [c for c in names if c not in every]
@@ -141,6 +145,9 @@ def main(argv=None) -> int:
         ap.error(f"--generated {args.generated}: must be >= 0")
     fixed = {n: (every[n], PORTAL_SCALE if n in PORTAL_CASES else None) for n in names}
     generated = generate_cases(np.random.default_rng(args.seed), args.generated)
+    only = [c.strip() for c in args.only.split(",") if c.strip()]
+    if only:
+        generated = {n: c for n, c in generated.items() if any(n.startswith(o) for o in only)}
     t_all = time.perf_counter()
     results = {}
     with tempfile.TemporaryDirectory() as work:
