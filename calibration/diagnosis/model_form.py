@@ -197,6 +197,17 @@ def load_terms(candidates: list[Candidate]) -> list[Term]:
             for c in candidates if c.kind == "load"]
 
 
+def _on_every_axis(cand: Candidate) -> bool:
+    """Whether a candidate is tried on every reading axis at once (coefficients of its own per
+    axis): an error in where a motor sits (the direction of its last move: a backlash; a sine
+    of its angle: an encoder's periodic error) moves the platform, so the kinematics show it on
+    every axis; fitted on one axis at a time, another function can take its place on a weaker
+    axis (a motor's coordinate that follows its moves on a grid) and the effect written from
+    the form misses it there."""
+    return cand.kind == "sign" or (cand.kind == "sine" and cand.variable.startswith("q")
+                                   and cand.variable.endswith("_rad"))
+
+
 def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
              limit_of, deferred: frozenset = frozenset()) -> list[int]:
     """Forward selection over ``blocks`` [(P, D, scanned)]: the block that lowers the
@@ -294,20 +305,28 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     candidates = candidate_library(variables, target) + (load_candidates(fit) if loads is None
                                                          else loads)
     axes = [k for k, _, _ in target.axes]
-    pairs = []          # (candidate, axis (None: every axis, shared coefficients), C, P, D)
+    # the blocks the selection tries: (candidate, {reading axis: its coefficients' slice}, C
+    # (N,3,p), P, D); a function fitted on one axis, on every axis with coefficients of its own
+    # (a motor's error) or on every axis with shared ones (a load's response)
+    pairs = []
     for cand in candidates:
-        for k in ([None] if cand.columns.ndim == 3 else axes):
-            if k is None:
-                C = np.nan_to_num(cand.columns)
-            else:
-                C = np.zeros(meas.y.shape + (cand.columns.shape[1],))
-                C[:, k] = np.nan_to_num(cand.columns)
+        c = cand.columns.shape[-1]
+        if cand.columns.ndim == 3:
+            layouts = [({k: slice(0, c) for k in axes}, np.nan_to_num(cand.columns))]
+        else:
+            layouts = []
+            for group in ([axes] if _on_every_axis(cand) else [[k] for k in axes]):
+                C = np.zeros(meas.y.shape + (c * len(group),))
+                for i, k in enumerate(group):
+                    C[:, k, i * c:(i + 1) * c] = np.nan_to_num(cand.columns)
+                layouts.append(({k: slice(i * c, (i + 1) * c) for i, k in enumerate(group)}, C))
+        for layout, C in layouts:
             P, D = joint.columns(C)
             if np.linalg.norm(P) > 0:
-                pairs.append((cand, k, C, P, D))
-    on = lambda j, k: pairs[j][1] in (None, k)
+                pairs.append((cand, layout, C, P, D))
+    on = lambda j, k: k in pairs[j][1]
     per_axis = lambda chosen, i: all(sum(on(j, k) for j in chosen) < max_terms
-                                     for k in axes if on(i, k))
+                                     for k in pairs[i][1])
     responses = {v.name for v in variables if v.response}
     chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
                       per_axis, frozenset(i for i, pair in enumerate(pairs)
@@ -320,20 +339,18 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     shares = {}         # (term, axis): the share of the axis' power the term alone explains
     for j in chosen:
         without = fit_of([m for m in chosen if m != j])[1]
-        for k in axes:
-            if on(j, k):
-                shares[j, k] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
-    # a term on every axis is listed on the axes where it explains at least a joining term's
+        for k in pairs[j][1]:
+            shares[j, k] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
+    # a term on several axes is listed on those where it explains at least a joining term's
     # share, and on its strongest
     listed = {(j, k) for (j, k), share in shares.items()
-              if pairs[j][1] is not None or share >= min_share
-              or share == max(v for (m, _), v in shares.items() if m == j)}
+              if share >= min_share or share == max(v for (m, _), v in shares.items() if m == j)}
     form = []
     for k in axes:
         terms = []
         for j, c in zip(chosen, per_term):
             if (j, k) in listed:
-                term = pairs[j][0].describe(c)
+                term = pairs[j][0].describe(c[pairs[j][1][k]])
                 term["explained_fraction"] = shares[j, k]
                 terms.append(term)
         if not terms:
