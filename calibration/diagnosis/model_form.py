@@ -8,18 +8,25 @@ the platform more where the structure is softer, and tilts it too, so no polynom
 force (or the force times the position) reproduces it. The load candidates are the model's own
 response: the derivative of the readings with respect to a force f (N) along world x, y or z
 applied as ``f * (I / 1 A)^k`` (I the coils' mean current, k = 1, 2, 3) at the fitted
-parameters, through the model's statics (the path of a library effect's wrench). A researcher's
-effect written from one is a ``wrench`` hook (deltatwin effect new --from).
+parameters, through the model's statics (the path of a library effect's wrench): one term per
+power and direction, its response on all three reading axes with one coefficient, the force
+(the compliance divides it between the axes). A researcher's effect written from one is a
+``wrench`` hook (deltatwin effect new --from).
 
-``joint_form`` is term_form's forward selection on the stacked readings: each (candidate,
-reading axis) pair is a column; the model's identified directions are always in the fit
-(Frisch-Waugh: the columns and the residual are taken orthogonal to them); a pair joins while it
-is significant on the calibration rows (partial F test, a scanned period or moment counted as
-a parameter, Bonferroni over the pairs) and lowers the validation residual power (zeros
-re-estimated on the calibration rows, the model's directions re-adjusted) by at least
-``MIN_SHARE`` of it; at most ``MAX_TERMS`` per axis. The rotations' candidates are tried only
-once no other qualifies (readings of the platform's response, attribution.py: an effect
-written from a rotation reading removes nothing of the load or backlash that tilts it).
+``joint_form`` is term_form's forward selection on the stacked readings. Each block it tries is
+a candidate on one reading axis; or on every axis at once with coefficients of its own per axis,
+for an error in where a motor sits (the direction of its last move, a sine of its angle: the
+kinematics show it on every axis); or a load's response with its shared coefficient. The
+model's identified directions are always in the fit (Frisch-Waugh: the columns and the
+residual are taken orthogonal to them); a block joins while it is significant on the
+calibration rows (partial F test, a scanned period or moment counted as a parameter,
+Bonferroni over the blocks) and lowers the validation residual power (zeros re-estimated on the
+calibration rows, the model's directions re-adjusted) by at least ``MIN_SHARE`` of it; at most
+``MAX_TERMS`` per axis. Then a backward pass: a block that no longer passes that test given the
+blocks that joined after it leaves (a step in time that followed a backlash's pattern of moves
+until the direction's offset joined). The rotations' candidates are tried only once no other
+qualifies (readings of the platform's response, attribution.py: an effect written from a
+rotation reading removes nothing of the load or backlash that tilts it).
 """
 from __future__ import annotations
 
