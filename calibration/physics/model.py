@@ -222,14 +222,18 @@ class PhysicsModel:
     def free_by_stage(self) -> dict[str, np.ndarray]:
         """Masks over theta by the first stage a parameter changes: ``robot`` (the geometry),
         ``temperatures`` (the part temperatures), or ``load_optics`` (the kinematics can be
-        re-used)."""
-        out = {k: np.zeros(self.n_free, bool) for k in ("robot", "temperatures", "load_optics")}
+        re-used); and ``part_scales``, the ``temperatures`` parameters that change nothing but
+        the part temperatures the geometry is scaled by (a CTE factor: not what the sensors
+        read, nor where the motors sit)."""
+        out = {k: np.zeros(self.n_free, bool)
+               for k in ("robot", "temperatures", "load_optics", "part_scales")}
         for f in self.free:
             stages = self.classes[f.effect].model_stages()
             key = ("temperatures" if {"sensed_parts", "part_temperatures", "motor_angles"}
                    & set(stages) else
                    "robot" if "robot" in stages else "load_optics")
             out[key][f.sl] = True
+            out["part_scales"][f.sl] = stages == ("part_temperatures",)
         return out
 
     # -- evaluation ---------------------------------------------------------------------------
@@ -356,13 +360,19 @@ class PhysicsModel:
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
         gradient, response = self._pose_gradients(meas, stage, truth)
-        if np.any(wanted & ~by["robot"] & ~by["load_optics"]):
+        scaling = wanted & by["part_scales"]
+        if scaling.any():
+            at = np.searchsorted(moving, np.flatnonzero(scaling))
+            d_residuals[:, :, at], direct = self._part_scale_derivatives(
+                meas, theta, stage, truth, gradient, np.flatnonzero(scaling))
+            J[:, :, scaling] = self._counted(meas, direct, n_comp, derivative=True)
+        if np.any(wanted & ~by["robot"] & ~by["load_optics"] & ~by["part_scales"]):
             # theta's rod equations (~0 at the solved pose) and readings: the third
             # difference that lets a nearly linear column keep three evaluations
             pts = self._stage_points(meas, stage)
             at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
                         A)
-        for j in np.flatnonzero(wanted & ~by["robot"]):
+        for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"]):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
                                                       response, n_comp, A)
@@ -451,6 +461,53 @@ class PhysicsModel:
         if "optics" in stages:
             column += d[-1]
         return column
+
+    def _part_scale_derivatives(self, meas, theta, stage: Stage, truth: Truth, gradient,
+                                cols) -> tuple[np.ndarray, np.ndarray]:
+        """For parameters ``cols`` that change only the part temperatures the geometry is
+        scaled by: the rod equations' derivative at the fixed pose (N + S, 6, k) and the paths'
+        at the fixed deflected pose (N + S, 3, k), analytic in the parts' thermal factors.
+        Every joint array of a part is its factor s times the robot's (build_geometry), so a
+        parameter moving log s by g moves the platform hinges R P0, the base joints B, the
+        arm vectors A - B and the rod lengths L by g times themselves: with the rod P - A,
+        d f / 2 = (P - A) . (R P0 g_platform - B g_base - (A - B) g_arm) - L^2 g_rod, and the
+        mirror cube (R times the cube offset, g_platform) moves the paths through their
+        gradient in the deflected position. Only g is differenced, with the stencils of
+        ``richardson_derivative`` on the factors alone (a CTE factor's are linear in it)."""
+        pts = self._stage_points(meas, stage)
+        n = pts.t_s.shape[0]
+        shapes = ((n,), (n, 3), (n, 3, 2), (n,))          # base, arms, rods, platform
+
+        def factors(offset=0.0, j=None):
+            th = theta.copy()
+            if j is not None:
+                th[j] += offset
+            self.set_theta(th)
+            scales = part_scales(stage.params, geometry_temperatures(self.effects, pts) or None)
+            return (np.concatenate([np.broadcast_to(s, shape).reshape(n, -1)
+                                    for s, shape in zip(scales, shapes)], axis=1),)
+
+        s = factors()
+        g = np.stack([richardson_derivative(lambda o, j=j: factors(o, j), self.scales[j],
+                                            at_zero=s)[0] for j in cols], axis=-1) / s[0][..., None]
+        self.set_theta(theta)
+        g_base, g_arm, g_rod, g_plat = (g[:, 0], g[:, 1:4], g[:, 4:10].reshape(n, 3, 2, -1),
+                                        g[:, 10])
+        geom = stage.geom
+        rod, w = rod_vectors(geom, motor_positions(self.effects, pts), stage.kin)
+        B, L, cube = ((geom.B, geom.L, geom.cube_offset) if geom.batched else
+                      (geom.B[None], geom.L[None], geom.cube_offset[None]))   # (1|N, ...)
+        B = B[:, :, None, :]
+        arm = stage.kin.p[:, None, None, :] + w - rod - B             # A - B, (N, 3, 2, 3)
+        rod_dot = lambda v: rod[..., 0] * v[..., 0] + rod[..., 1] * v[..., 1] \
+            + rod[..., 2] * v[..., 2]
+        d_rods = 2 * (rod_dot(w)[..., None] * g_plat[:, None, None]
+                      - rod_dot(np.broadcast_to(B, rod.shape))[..., None] * g_base[:, None, None]
+                      - rod_dot(arm)[..., None] * g_arm[:, :, None]
+                      - (L ** 2)[..., None] * g_rod)
+        cube = np.einsum("nij,nj->ni", truth.pose.R, np.broadcast_to(cube, (n, 3)))  # world
+        direct = np.einsum("nai,ni->na", gradient[:, :, :3], cube)[..., None] * g_plat[:, None]
+        return d_rods.reshape(n, 6, -1), direct
 
     def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps):
         """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
