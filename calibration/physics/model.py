@@ -303,9 +303,9 @@ class PhysicsModel:
         the data show it (cosine corrected or not): (N, 3, ...) from paths (N + S, 3, ...).
         ``derivative``: paths are derivatives, so the correction's constant term drops out."""
         n = meas.n
-        d = path[:n] - path[meas.zero_row]
+        counted = path[:n] - path[meas.zero_row]
         f = meas.cos_scale / n_comp[:n]
-        counted = d * f.reshape(f.shape + (1,) * (d.ndim - 2))
+        counted *= f.reshape(f.shape + (1,) * (counted.ndim - 2))   # in place: (N, 3, p) is big
         return counted if derivative else counted + meas.cos_offset
 
     def _observe(self, meas: Measurements, stage, wrench: np.ndarray | None = None) -> np.ndarray:
@@ -397,8 +397,11 @@ class PhysicsModel:
             # the chain rule per point: the paths' derivative through the kinematic pose
             # (adjoint: three right-hand sides, not one per parameter) and the home
             out = pose_derivative(stage.geom, q, stage.kin, d_residuals, through=d_kin)
-            J[:, :, moving] += self._counted(meas, out + d_home_path @ d_home, n_comp,
-                                             derivative=True)
+            out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)   # one product
+            # the columns as a slice when they are one range (a view, not a gather and scatter)
+            at = (slice(moving[0], moving[-1] + 1) if moving[-1] - moving[0] + 1 == moving.size
+                  else moving)
+            J[:, :, at] += self._counted(meas, out, n_comp, derivative=True)
         return A, J
 
     def _pose_gradients(self, meas: Measurements, stage: Stage,
