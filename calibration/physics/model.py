@@ -16,11 +16,11 @@ from deltatwin.models import batched
 from deltatwin.models.geometry import build_geometry, part_scales
 from deltatwin.models.kinematics import (
     Pose,
-    elbow_points,
     forward,
     pose_derivative,
     rod_residuals,
     rod_vectors,
+    rotate_about_axis,
 )
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, effect_spec, make_effect
@@ -543,10 +543,28 @@ class PhysicsModel:
                         np.zeros((len(geoms), 3)), check=False).p
         diff = []
         for i, j in enumerate(cols):
-            sides = [(g.B, elbow_points(g, g.theta(qu)) - g.B[None, :, None, :], g.P0, g.L,
-                      home) for g, home in zip(geoms[2 * i:2 * i + 2], homes[2 * i:2 * i + 2])]
+            sides = [(g.B, g.P0, g.L, home)
+                     for g, home in zip(geoms[2 * i:2 * i + 2], homes[2 * i:2 * i + 2])]
             diff.append([(a - b) / (2 * steps[j]) for a, b in zip(*sides)])
-        dB, d_arm, dP0, dL, d_home = (np.stack(x, axis=-1) for x in zip(*diff))
+        dB, dP0, dL, d_home = (np.stack(x, axis=-1) for x in zip(*diff))
+        # the arms (B -> elbow hinge, rotated by the arm angles of the distinct motor
+        # coordinates): only the parameters that change an arm's axis, vector or zero angle
+        # move them (a joint or rod error does not: zero), all stepped robots in one rotation
+        arm_arrays = ("axis", "arm_vec", "theta_zero")
+        turning = np.array([not all(np.array_equal(getattr(geoms[2 * i], f),
+                                                   getattr(geoms[2 * i + 1], f))
+                                    for f in arm_arrays) for i in range(cols.size)], bool)
+        d_arm = np.zeros((qu.shape[0], 3, 2, 3, cols.size))
+        if turning.any():
+            moved = [g for i in np.flatnonzero(turning) for g in geoms[2 * i:2 * i + 2]]
+            axis, arm_vec, theta_zero = (np.stack([getattr(g, f) for g in moved])
+                                         for f in arm_arrays)
+            arms = rotate_about_axis(axis[:, None, :, None, :],
+                                     (qu[None] + theta_zero[:, None])[..., None],
+                                     arm_vec[:, None])             # (2 k', M, 3, 2, 3)
+            step = 2 * steps[cols[turning]]
+            d_arm[..., turning] = np.moveaxis((arms[0::2] - arms[1::2])
+                                              / step[:, None, None, None, None], 0, -1)
         rod, _ = rod_vectors(stage.geom, q, stage.kin)                  # (N + S, 3, 2, 3)
         n, k = q.shape[0], cols.size
         # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL, each
