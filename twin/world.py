@@ -358,9 +358,13 @@ def deflected_pose(kin: Pose, y: np.ndarray) -> Pose:
     return Pose(kin.p + y[:, :3], np.ascontiguousarray(R.transpose(2, 0, 1)))
 
 
-def instrument_optics(effects: list[Effect], pts: Points, cube_home: np.ndarray) -> Optics:
-    """The effects' optics (heads, beams, fold mirror, air indices) at the points."""
-    optics = Optics.nominal(cube_home, pts.t_s.shape[0], n_nominal=1.0)
+def instrument_optics(effects: list[Effect], pts: Points, cube_home: np.ndarray,
+                      start: Optics | None = None) -> Optics:
+    """The effects' optics (heads, beams, fold mirror, air indices) at the points, on the
+    nominal instruments aligned on ``cube_home`` or on a copy of ``start`` (the optics earlier
+    effects made: a model's derivative in one effect's parameter re-uses them)."""
+    optics = (Optics.nominal(cube_home, pts.t_s.shape[0], n_nominal=1.0) if start is None
+              else start.copy())
     for e in effects:
         e.optics(pts, optics)
     return optics

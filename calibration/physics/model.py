@@ -24,7 +24,13 @@ from deltatwin.models.kinematics import (
 )
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, effect_spec, make_effect
-from deltatwin.twin.instruments.optics import AXES, optical_path, optical_path_pose_gradient
+from deltatwin.twin.instruments.optics import (
+    AXES,
+    Optics,
+    double_pass_reading,
+    optical_path,
+    optical_path_pose_gradient,
+)
 from deltatwin.twin.world import (
     Truth,
     deflection,
@@ -296,6 +302,41 @@ class PhysicsModel:
                           for a in AXES], axis=1),
                 np.stack([optics.n_comp[a] for a in AXES], axis=1))
 
+    def _optics_at(self, meas: Measurements, stage: Stage, truth: Truth) -> dict:
+        """What a step of one optics effect's parameter re-uses (``_stepped_optics_paths``):
+        per effect, the optics the effects before it make at the stage (they do not change),
+        and the geometric reading h cos(alpha) per axis at the deflected pose."""
+        pts = self._stage_points(meas, stage)
+        optics = Optics.nominal(stage.cube_home, pts.t_s.shape[0], n_nominal=1.0)
+        before = {}
+        for e in self.effects:
+            before[e.name] = optics
+            optics = instrument_optics([e], pts, stage.cube_home, start=optics)
+        size = stage.params.mirror_cube_size_m
+        return {"before": before,
+                "reading": {a: double_pass_reading(truth.pose, stage.geom.cube_offset, size, a,
+                                                   *truth.optics.beam(a)) for a in AXES}}
+
+    def _stepped_optics_paths(self, meas: Measurements, stage: Stage, truth: Truth, effect,
+                              optics_at: dict) -> tuple[np.ndarray, np.ndarray]:
+        """``_optics_paths`` at the deflected pose after a step of a parameter of ``effect``:
+        only that effect and those after it are applied, on the optics the ones before it make
+        (``optics_at``), and a beam whose head, direction (and fold mirror) the step left as
+        they were keeps its geometric reading (an index parameter: only n changes). Equal to
+        ``_optics_paths`` bit for bit."""
+        pts = self._stage_points(meas, stage)
+        optics = instrument_optics(self.effects[self.names.index(effect.name):], pts,
+                                   stage.cube_home, start=optics_at["before"][effect.name])
+        at_theta, size = truth.optics, stage.params.mirror_cube_size_m
+        paths = []
+        for a in AXES:
+            same_beam = (np.array_equal(optics.head[a], at_theta.head[a])
+                         and np.array_equal(optics.direction[a], at_theta.direction[a])
+                         and (a != "z" or np.array_equal(optics.fold, at_theta.fold)))
+            paths.append(optics.n_air[a] * optics_at["reading"][a] if same_beam else
+                         optical_path(truth.pose, stage.geom.cube_offset, size, optics, a))
+        return np.stack(paths, axis=1), np.stack([optics.n_comp[a] for a in AXES], axis=1)
+
     @staticmethod
     def _counted(meas: Measurements, path: np.ndarray, n_comp: np.ndarray,
                  derivative: bool = False) -> np.ndarray:
@@ -372,10 +413,12 @@ class PhysicsModel:
             pts = self._stage_points(meas, stage)
             at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
                         A)
+        optics_at = self._optics_at(meas, stage, truth) if np.any(wanted & by["load_optics"]) \
+            else None
         for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"]):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
-                                                      response, n_comp, A)
+                                                      response, n_comp, A, optics_at)
                 continue
 
             def evaluate(offset, j=j):
@@ -424,11 +467,12 @@ class PhysicsModel:
 
     def _load_optics_column(self, meas: Measurements, theta, j: int, effect, stage: Stage,
                             truth: Truth, response: np.ndarray, n_comp: np.ndarray,
-                            A: np.ndarray) -> np.ndarray:
+                            A: np.ndarray, optics_at: dict) -> np.ndarray:
         """(N,3) the readings' derivative in the load or optics parameter ``j`` of ``effect``:
         its wrench's derivative through the compliance (``response``: the paths' derivative
         in the wrench) plus its optics' derivative at the deflected pose. Each is a difference
-        of that effect's wrench, or of the optics alone, never of a whole load stage."""
+        of that effect's wrench, or of the optics alone (``_stepped_optics_paths``, from
+        ``optics_at``), never of a whole load stage."""
         stages = self.classes[effect.name].model_stages()
         pts = self._stage_points(meas, stage)
         n_rows = pts.t_s.shape[0]
@@ -443,7 +487,8 @@ class PhysicsModel:
                 w = effect.wrench(pts)
                 out.append(np.zeros((n_rows, 6)) if w is None else w)
             if "optics" in stages:
-                out.append(self._counted(meas, *self._optics_paths(meas, stage, truth.pose)))
+                out.append(self._counted(meas, *self._stepped_optics_paths(
+                    meas, stage, truth, effect, optics_at)))
             return tuple(out)
 
         at_zero = []                          # theta's: the effect's wrench, the readings A
