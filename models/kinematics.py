@@ -254,7 +254,7 @@ def pose_derivative(geom: Geometry, q, pose: Pose, d_residuals: np.ndarray,
     if through is None:
         return -np.linalg.solve(J, d_residuals)
     adjoint = np.linalg.solve(J.transpose(0, 2, 1), through.transpose(0, 2, 1))   # (N,6,a)
-    return -np.einsum("nia,nik->nak", adjoint, d_residuals)
+    return -(adjoint.transpose(0, 2, 1) @ d_residuals)     # matmul: einsum's loop is ~7x slower
 
 
 def _ideal_chain_angles(geom: Geometry, p: np.ndarray) -> np.ndarray:

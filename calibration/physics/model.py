@@ -112,6 +112,15 @@ def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
     return estimates[-1]
 
 
+def _as_slice(index: np.ndarray):
+    """Sorted column indices as a slice when they are one range: assigning an (N, ..., k)
+    block through a slice is a strided copy, through an index array or a mask a gather and
+    scatter ~30x slower."""
+    if index.size and index[-1] - index[0] + 1 == index.size:
+        return slice(int(index[0]), int(index[-1]) + 1)
+    return index
+
+
 class Stage(NamedTuple):
     """What the load and optics are evaluated on: robot parameters, the geometry at the points,
     their kinematic pose, the robot's home (where the instruments were aligned), the cube's
@@ -394,19 +403,19 @@ class PhysicsModel:
         d_home = np.zeros((3, moving.size))
         robot = wanted & by["robot"]
         if robot.any():
-            d_residuals[:, :, np.isin(moving, np.flatnonzero(robot))], \
-                d_home[:, np.isin(moving, np.flatnonzero(robot))] = \
-                self._robot_derivatives(meas, theta, stage, np.flatnonzero(robot),
-                                        GEOMETRY_STEP * self.scales)
+            at = _as_slice(np.searchsorted(moving, np.flatnonzero(robot)))
+            d_residuals[:, :, at], d_home[:, at] = self._robot_derivatives(
+                meas, theta, stage, np.flatnonzero(robot), GEOMETRY_STEP * self.scales)
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
         gradient, response = self._pose_gradients(meas, stage, truth)
         scaling = wanted & by["part_scales"]
         if scaling.any():
-            at = np.searchsorted(moving, np.flatnonzero(scaling))
+            at = _as_slice(np.searchsorted(moving, np.flatnonzero(scaling)))
             d_residuals[:, :, at], direct = self._part_scale_derivatives(
                 meas, theta, stage, truth, gradient, np.flatnonzero(scaling))
-            J[:, :, scaling] = self._counted(meas, direct, n_comp, derivative=True)
+            J[:, :, _as_slice(np.flatnonzero(scaling))] = self._counted(meas, direct, n_comp,
+                                                                        derivative=True)
         if np.any(wanted & ~by["robot"] & ~by["load_optics"] & ~by["part_scales"]):
             # theta's rod equations (~0 at the solved pose) and readings: the third
             # difference that lets a nearly linear column keep three evaluations
@@ -441,10 +450,7 @@ class PhysicsModel:
             # (adjoint: three right-hand sides, not one per parameter) and the home
             out = pose_derivative(stage.geom, q, stage.kin, d_residuals, through=d_kin)
             out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)   # one product
-            # the columns as a slice when they are one range (a view, not a gather and scatter)
-            at = (slice(moving[0], moving[-1] + 1) if moving[-1] - moving[0] + 1 == moving.size
-                  else moving)
-            J[:, :, at] += self._counted(meas, out, n_comp, derivative=True)
+            J[:, :, _as_slice(moving)] += self._counted(meas, out, n_comp, derivative=True)
         return A, J
 
     def _pose_gradients(self, meas: Measurements, stage: Stage,
@@ -462,8 +468,8 @@ class PhysicsModel:
         y = deflection(preload, C, truth.wrench)
         turn = batched.left_jacobian(y[:, 3:].T)                       # (3, 3, N + S)
         d_path_d_y = np.concatenate(
-            [gradient[:, :, :3], np.einsum("nai,ijn->naj", gradient[:, :, 3:], turn)], axis=2)
-        return gradient, np.einsum("nai,nij->naj", d_path_d_y, C)
+            [gradient[:, :, :3], gradient[:, :, 3:] @ turn.transpose(2, 0, 1)], axis=2)
+        return gradient, d_path_d_y @ C
 
     def _load_optics_column(self, meas: Measurements, theta, j: int, effect, stage: Stage,
                             truth: Truth, response: np.ndarray, n_comp: np.ndarray,
@@ -624,7 +630,8 @@ class PhysicsModel:
         # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
         # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
         point_terms = np.concatenate(
-            [np.einsum("nisc,ncb->nisb", rod, stage.kin.R) * s_plat[..., None, None, None],
+            [(rod.reshape(n, 6, 3) @ stage.kin.R).reshape(n, 3, 2, 3)
+             * s_plat[..., None, None, None],
              -rod * s_base[..., None, None, None],
              -np.broadcast_to(stage.geom.L * s_rod, (n, 3, 2))[..., None]], axis=-1)
         joint_terms = np.concatenate([dP0, np.broadcast_to(dB[:, None], (3, 2, 3, k)),
@@ -650,7 +657,7 @@ class PhysicsModel:
         y = deflection(preload, C, truth.wrench)
         turn = batched.rotation_matrices(y[:, 3:].T)                   # (3, 3, N + S)
         d_kin = np.concatenate([gradient[:, :, :3],
-                                np.einsum("nai,ijn->naj", gradient[:, :, 3:], turn)], axis=2)
+                                gradient[:, :, 3:] @ turn.transpose(2, 0, 1)], axis=2)
         d_home_path = np.zeros(d_kin.shape[:2] + (3,))
         loads = [e for e in self.effects if "wrench" in self.classes[e.name].model_stages()]
         pts = self._stage_points(meas, stage)
