@@ -33,7 +33,6 @@ from deltatwin.twin.instruments.optics import (
 )
 from deltatwin.twin.world import (
     Truth,
-    deflection,
     geometry_temperatures,
     instrument_optics,
     kinematic_pose,
@@ -464,9 +463,8 @@ class PhysicsModel:
         gradient = np.stack([optical_path_pose_gradient(truth.pose, stage.geom.cube_offset,
                                                         size, truth.optics, a) for a in AXES],
                             axis=1)
-        preload, C = meas.statics(self.params)
-        y = deflection(preload, C, truth.wrench)
-        turn = batched.left_jacobian(y[:, 3:].T)                       # (3, 3, N + S)
+        _, C = meas.statics(self.params)
+        turn = batched.left_jacobian(truth.deflection[:, 3:].T)        # (3, 3, N + S)
         d_path_d_y = np.concatenate(
             [gradient[:, :, :3], gradient[:, :, 3:] @ turn.transpose(2, 0, 1)], axis=2)
         return gradient, d_path_d_y @ C
@@ -653,9 +651,7 @@ class PhysicsModel:
         coils). The wrench's and the instruments' derivatives are central differences of
         those stages alone."""
         kin = stage.kin
-        preload, C = meas.statics(self.params)
-        y = deflection(preload, C, truth.wrench)
-        turn = batched.rotation_matrices(y[:, 3:].T)                   # (3, 3, N + S)
+        turn = batched.rotation_matrices(truth.deflection[:, 3:].T)    # (3, 3, N + S)
         d_kin = np.concatenate([gradient[:, :, :3],
                                 gradient[:, :, 3:] @ turn.transpose(2, 0, 1)], axis=2)
         d_home_path = np.zeros(d_kin.shape[:2] + (3,))
