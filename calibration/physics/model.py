@@ -17,7 +17,7 @@ from deltatwin.models.geometry import build_geometry, part_scales
 from deltatwin.models.kinematics import (
     Pose,
     forward,
-    pose_derivative,
+    pose_adjoint,
     rod_residuals,
     rod_vectors,
     rotate_about_axis,
@@ -397,22 +397,21 @@ class PhysicsModel:
         by = self.free_by_stage()
         wanted = np.ones(theta.size, bool) if columns is None else np.asarray(columns, bool)
         pts, q = meas.points, meas.points.q
-        moving = np.flatnonzero(wanted & ~by["load_optics"])
-        d_residuals = np.zeros((q.shape[0], 6, moving.size))   # rod equations at the fixed pose
-        d_home = np.zeros((3, moving.size))
+        # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
+        # derivative at the fixed pose (N + S, 6, k), the home's (3, k) or None: it stays)
+        moving = []
         robot = wanted & by["robot"]
         if robot.any():
-            at = _as_slice(np.searchsorted(moving, np.flatnonzero(robot)))
-            d_residuals[:, :, at], d_home[:, at] = self._robot_derivatives(
-                meas, theta, stage, np.flatnonzero(robot), GEOMETRY_STEP * self.scales)
+            moving.append((np.flatnonzero(robot), *self._robot_derivatives(
+                meas, theta, stage, np.flatnonzero(robot), GEOMETRY_STEP * self.scales)))
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
         gradient, response = self._pose_gradients(meas, stage, truth)
         scaling = wanted & by["part_scales"]
         if scaling.any():
-            at = _as_slice(np.searchsorted(moving, np.flatnonzero(scaling)))
-            d_residuals[:, :, at], direct = self._part_scale_derivatives(
-                meas, theta, stage, truth, gradient, np.flatnonzero(scaling))
+            d_rods, direct = self._part_scale_derivatives(meas, theta, stage, truth, gradient,
+                                                          np.flatnonzero(scaling))
+            moving.append((np.flatnonzero(scaling), d_rods, None))
             J[:, :, _as_slice(np.flatnonzero(scaling))] = self._counted(meas, direct, n_comp,
                                                                         derivative=True)
         if np.any(wanted & ~by["robot"] & ~by["load_optics"] & ~by["part_scales"]):
@@ -440,16 +439,21 @@ class PhysicsModel:
                 return (rod_residuals(geom_j, motor_positions(self.effects, pts), stage.kin),
                         self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
 
-            d_residuals[:, :, np.searchsorted(moving, j)], J[:, :, j] = richardson_derivative(
+            d_rods, J[:, :, j] = richardson_derivative(
                 evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M, at_zero=at_theta)
+            moving.append((np.array([j]), d_rods[..., None], None))
         self.set_theta(theta)
-        if moving.size:
+        if moving:
             d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient, response)
             # the chain rule per point: the paths' derivative through the kinematic pose
-            # (adjoint: three right-hand sides, not one per parameter) and the home
-            out = pose_derivative(stage.geom, q, stage.kin, d_residuals, through=d_kin)
-            out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)   # one product
-            J[:, :, _as_slice(moving)] += self._counted(meas, out, n_comp, derivative=True)
+            # (adjoint: three right-hand sides, not one per parameter), block by block (no
+            # (N + S, 6, k) array of every column), and the home's (one product)
+            adjoint = pose_adjoint(stage.geom, q, stage.kin, d_kin)
+            for cols, d_rods, d_home in moving:
+                out = -(adjoint @ d_rods)
+                if d_home is not None:
+                    out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)
+                J[:, :, _as_slice(cols)] += self._counted(meas, out, n_comp, derivative=True)
         return A, J
 
     def _pose_gradients(self, meas: Measurements, stage: Stage,
