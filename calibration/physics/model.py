@@ -400,17 +400,21 @@ class PhysicsModel:
         # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
         # derivative at the fixed pose (N + S, 6, k), the home's (3, k) or None: it stays)
         moving = []
+        # the rods (P - A) and platform hinges (R P0) at the points, (N + S, 3, 2, 3) each
+        rods = rod_vectors(stage.geom, q, stage.kin) if np.any(wanted & ~by["load_optics"]) \
+            else None
         robot = wanted & by["robot"]
         if robot.any():
             moving.append((np.flatnonzero(robot), *self._robot_derivatives(
-                meas, theta, stage, np.flatnonzero(robot), GEOMETRY_STEP * self.scales)))
+                meas, theta, stage, np.flatnonzero(robot), GEOMETRY_STEP * self.scales,
+                rods[0])))
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
         gradient, response = self._pose_gradients(meas, stage, truth)
         scaling = wanted & by["part_scales"]
         if scaling.any():
             d_rods, direct = self._part_scale_derivatives(meas, theta, stage, truth, gradient,
-                                                          np.flatnonzero(scaling))
+                                                          np.flatnonzero(scaling), rods)
             moving.append((np.flatnonzero(scaling), d_rods, None))
             J[:, :, _as_slice(np.flatnonzero(scaling))] = self._counted(meas, direct, n_comp,
                                                                         derivative=True)
@@ -448,7 +452,7 @@ class PhysicsModel:
             # the chain rule per point: the paths' derivative through the kinematic pose
             # (adjoint: three right-hand sides, not one per parameter), block by block (no
             # (N + S, 6, k) array of every column), and the home's (one product)
-            adjoint = pose_adjoint(stage.geom, q, stage.kin, d_kin)
+            adjoint = pose_adjoint(stage.geom, q, stage.kin, d_kin, rods)
             for cols, d_rods, d_home in moving:
                 out = -(adjoint @ d_rods)
                 if d_home is not None:
@@ -519,7 +523,7 @@ class PhysicsModel:
         return column
 
     def _part_scale_derivatives(self, meas, theta, stage: Stage, truth: Truth, gradient,
-                                cols) -> tuple[np.ndarray, np.ndarray]:
+                                cols, rods: tuple) -> tuple[np.ndarray, np.ndarray]:
         """For parameters ``cols`` that change only the part temperatures the geometry is
         scaled by: the rod equations' derivative at the fixed pose (N + S, 6, k) and the paths'
         at the fixed deflected pose (N + S, 3, k), analytic in the parts' thermal factors.
@@ -550,7 +554,8 @@ class PhysicsModel:
         g_base, g_arm, g_rod, g_plat = (g[:, 0], g[:, 1:4], g[:, 4:10].reshape(n, 3, 2, -1),
                                         g[:, 10])
         geom = stage.geom
-        rod, w = rod_vectors(geom, motor_positions(self.effects, pts), stage.kin)
+        q = motor_positions(self.effects, pts)         # (``rods``: at the encoders' readings)
+        rod, w = rods if q is pts.q else rod_vectors(geom, q, stage.kin)
         B, L, cube = ((geom.B, geom.L, geom.cube_offset) if geom.batched else
                       (geom.B[None], geom.L[None], geom.cube_offset[None]))   # (1|N, ...)
         B = B[:, :, None, :]
@@ -565,7 +570,7 @@ class PhysicsModel:
         direct = np.einsum("nai,ni->na", gradient[:, :, :3], cube)[..., None] * g_plat[:, None]
         return d_rods.reshape(n, 6, -1), direct
 
-    def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps):
+    def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps, rod: np.ndarray):
         """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
         (N + S, 6, k) and the home's (3, k). Each point's joint arrays are the robot's at its
         parameters' temperatures times the parts' thermal factors at the point
@@ -618,7 +623,6 @@ class PhysicsModel:
             step = 2 * steps[cols[turning]]
             d_arm[..., turning] = np.moveaxis((arms[0::2] - arms[1::2])
                                               / step[:, None, None, None, None], 0, -1)
-        rod, _ = rod_vectors(stage.geom, q, stage.kin)                  # (N + S, 3, 2, 3)
         n, k = q.shape[0], cols.size
         # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL, each
         # hinge its part's factor times the robot's: the elbow hinges first, each point's rod
