@@ -427,12 +427,14 @@ class AxisFrame:
         self.target = target
         self.n_axes = len(target.axes)
 
-    def block(self, term: Term) -> np.ndarray:
-        X = term.columns
-        if X.ndim != 2:
-            raise ValueError(f"term {term.variable} {term.kind}: per-axis columns need a "
-                             "physics model's frame (model_form.JointFrame)")
-        return np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+    def blocks(self, terms: list[Term]) -> list[np.ndarray]:
+        """Each term's columns, rows with a non-finite value zeroed."""
+        for t in terms:
+            if t.columns.ndim != 2:
+                raise ValueError(f"term {t.variable} {t.kind}: per-axis columns need a "
+                                 "physics model's frame (model_form.JointFrame)")
+        return [np.where(np.all(np.isfinite(t.columns), axis=1)[:, None], t.columns, 0.0)
+                for t in terms]
 
     def n_val(self) -> dict:
         return {k: int(self.target.val[rows].sum()) for k, rows, _ in self.target.axes}
@@ -511,7 +513,7 @@ def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
     if not frame.n_axes or p0 <= 0:
         return out
     terms = [t for var in variables for t in variable_terms(var, target)] + list(extra_terms)
-    blocks = [frame.block(t) for t in terms]
+    blocks = frame.blocks(terms)
     responses = {v.name for v in variables if v.response}
     chosen: list[int] = []
     p_values = {}

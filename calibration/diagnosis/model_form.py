@@ -40,7 +40,6 @@ from deltatwin.calibration.diagnosis.term_form import (
 )
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
-    _projected,
     group_offsets,
     residuals,
 )
@@ -105,31 +104,72 @@ class _Joint:
         meas = self.meas = fit.measurements_
         self.Qm = _orthonormal(Jm)
         self.r = r0 - self.Qm @ (self.Qm.T @ r0)
-        self.JS = JS
         self.pinv = np.linalg.pinv(Jm) if Jm.shape[1] else np.zeros((0, r0.size))
         # the model one linear step further: the reference every column is judged against
         change = JS @ (self.pinv @ r0) if Jm.shape[1] else 0.0
         pred = fit.prediction_ + change
         self.before = residuals(meas, pred, group_offsets(meas, pred, meas.cal))
-        self.val_groups = [((meas.group == g) & meas.val[:, None] & np.isfinite(self.before),
-                            (meas.group == g) & meas.cal[:, None]) for g in range(len(meas.groups))]
-        self.b = self._val(self.before[:, :, None])[:, 0]
-        self.axis_of = np.concatenate([np.nonzero(v)[1] for v, _ in self.val_groups])
+        # each group's readings (one reading axis), found once for the hundreds of columns
+        # projected here: (axis, its calibration rows, their place among the calibration
+        # readings (_projected's order), its validation rows, their place among those)
+        self.groups, n_cal, n_val = [], 0, 0
+        for g in range(len(meas.groups)):
+            in_group = meas.group == g
+            k = int(np.flatnonzero(in_group.any(axis=0))[0]) if in_group.any() else 0
+            cal_g = np.flatnonzero(in_group[:, k] & meas.cal)
+            val_g = np.flatnonzero(in_group[:, k] & meas.val & np.isfinite(self.before[:, k]))
+            self.groups.append((k, cal_g, slice(n_cal, n_cal + cal_g.size), val_g,
+                                slice(n_val, n_val + val_g.size)))
+            n_cal, n_val = n_cal + cal_g.size, n_val + val_g.size
+        self.n_cal, self.n_val = n_cal, n_val
+        self.axis_of = np.concatenate([np.full(val_g.size, k, np.intp)
+                                       for k, _, _, val_g, _ in self.groups])
+        self.b = self._val(self.before)
+        # the model's directions on the validation readings, and the parts of their pseudo-
+        # inverse and orthonormal basis on each axis' calibration readings: a column on one
+        # axis is projected with those alone
+        self.JS_val = self._val(JS)
+        on_axis = {k: np.concatenate([np.arange(n_cal)[sl] for a, _, sl, _, _ in self.groups
+                                      if a == k] or [np.zeros(0, np.intp)]) for k in range(3)}
+        self.pinv_on_axis = {k: self.pinv[:, i] for k, i in on_axis.items()}
+        self.Qm_on_axis = {k: self.Qm[i] for k, i in on_axis.items()}
         self.n_groups = len(meas.groups)
 
     def _val(self, X: np.ndarray) -> np.ndarray:
-        """Values X (N,3,c) on the validation readings, each group's calibration mean out."""
-        return np.concatenate([X[v] - (X[c].mean(axis=0) if c.any() else 0.0)
-                               for v, c in self.val_groups])
+        """Values X (N,3,...) on the validation readings, each group's calibration mean out."""
+        out = np.zeros((self.n_val,) + X.shape[2:])
+        for k, cal_g, _, val_g, sl in self.groups:
+            out[sl] = X[val_g, k] - (X[cal_g, k].mean(axis=0) if cal_g.size else 0.0)
+        return out
+
+    def axis_columns(self, X: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Columns X (N,c) on reading axis ``k`` alone (zero on the others): as ``columns``."""
+        P = np.zeros((self.n_cal, X.shape[1]))
+        D = np.zeros((self.n_val, X.shape[1]))
+        for axis, cal_g, sl_cal, val_g, sl_val in self.groups:
+            if axis != k:
+                continue
+            mean = X[cal_g].mean(axis=0) if cal_g.size else 0.0
+            P[sl_cal] = X[cal_g] - mean
+            D[sl_val] = X[val_g] - mean
+        Pk = np.concatenate([P[sl] for a, _, sl, _, _ in self.groups if a == k]
+                            or [np.zeros((0, X.shape[1]))])
+        if self.pinv.shape[0]:
+            D -= self.JS_val @ (self.pinv_on_axis[k] @ Pk)
+        if self.Qm.shape[1]:
+            P -= self.Qm @ (self.Qm_on_axis[k].T @ Pk)
+        return P, D
 
     def columns(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Columns C (N,3,c): (on the calibration readings orthogonal to the model's directions,
         the change of the validation residual per unit coefficient)."""
-        P = _projected(self.meas, self.meas.cal, C)
-        D = C - self.JS @ (self.pinv @ P) if self.pinv.shape[0] else C
-        if self.Qm.shape[1]:
-            P = P - self.Qm @ (self.Qm.T @ P)
-        return P, self._val(D)
+        P, D = np.zeros((self.n_cal, C.shape[2])), np.zeros((self.n_val, C.shape[2]))
+        for k in range(C.shape[1]):
+            if np.any(C[:, k]):
+                Pk, Dk = self.axis_columns(C[:, k], k)
+                P += Pk
+                D += Dk
+        return P, D
 
     def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray]:
         """(coefficients of the columns on the residual, per-axis validation power after)."""
@@ -161,16 +201,26 @@ class JointFrame:
         self.n_axes = len(self.axes)
         self.shape = meas.y.shape
 
-    def block(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
-        X = term.columns
-        if X.ndim == 2:
-            X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
-            C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
-            for i, k in enumerate(self.axes):
-                C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
-        else:
-            C = np.nan_to_num(X)
-        return self.joint.columns(C)
+    def blocks(self, terms: list[Term]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each term's columns on the fit's readings (``_Joint.columns``): a term of (N,p)
+        columns on every axis of the target with coefficients of its own (axis-major), an
+        (N,3,p) one as it is. The terms' columns are projected together, one pass of the
+        model's directions over the readings per axis instead of one per term."""
+        flat = [np.where(np.all(np.isfinite(t.columns), axis=1)[:, None], t.columns, 0.0)
+                for t in terms if t.columns.ndim == 2]
+        ends = np.cumsum([x.shape[1] for x in flat])
+        on_axis = ({k: self.joint.axis_columns(np.hstack(flat), k) for k in self.axes}
+                   if flat else {})
+        out, i = [], 0
+        for t in terms:
+            if t.columns.ndim == 2:
+                cols = slice(ends[i] - t.columns.shape[1], ends[i])
+                out.append(tuple(np.hstack([on_axis[k][part][:, cols] for k in self.axes])
+                                 for part in (0, 1)))
+                i += 1
+            else:
+                out.append(self.joint.columns(np.nan_to_num(t.columns)))
+        return out
 
     def n_val(self) -> dict:
         return {k: int(np.sum(self.joint.axis_of == k)) for k in self.axes}
@@ -280,26 +330,33 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     candidates = candidate_library(variables, target) + (load_candidates(fit) if loads is None
                                                          else loads)
     axes = [k for k, _, _ in target.axes]
-    pairs = []                        # (candidate, axis, C (N,3,c), P, D)
-    for cand in candidates:
-        for k in ([cand.axis] if cand.axis is not None else axes):
-            if k not in axes:
-                continue
-            C = np.zeros(meas.y.shape + (cand.columns.shape[1],))
-            C[:, k] = np.nan_to_num(cand.columns)
-            P, D = joint.columns(C)
-            if np.linalg.norm(P) > 0:
-                pairs.append((cand, k, C, P, D))
+    # (candidate, axis) pairs, each candidate's columns on one reading axis; projected
+    # together per axis (one pass of the model's directions over the readings)
+    tried = [(cand, k) for cand in candidates
+             for k in ([cand.axis] if cand.axis is not None else axes) if k in axes]
+    projected = {}
+    for k in axes:
+        on_k = [cand.columns for cand, a in tried if a == k]
+        if on_k:
+            P, D = joint.axis_columns(np.nan_to_num(np.hstack(on_k)), k)
+            ends = np.cumsum([x.shape[1] for x in on_k])
+            projected[k] = iter(zip(np.split(P, ends[:-1], axis=1),
+                                    np.split(D, ends[:-1], axis=1)))
+    pairs = []                        # (candidate, axis, P, D)
+    for cand, k in tried:
+        P, D = next(projected[k])
+        if np.linalg.norm(P) > 0:
+            pairs.append((cand, k, P, D))
     per_axis = lambda chosen, i: sum(pairs[j][1] == pairs[i][1] for j in chosen) < max_terms
     responses = {v.name for v in variables if v.response}
-    chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
+    chosen = _forward(joint, [(P, D, c.scanned) for c, _, P, D in pairs], alpha, min_share,
                       per_axis, frozenset(i for i, pair in enumerate(pairs)
                                           if pair[0].variable in responses))
     if not chosen:
         return empty
-    fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])
+    fit_of = lambda idx: joint.fit([pairs[j][2] for j in idx], [pairs[j][3] for j in idx])
     coefs, p_full = fit_of(chosen)
-    per_term = np.split(coefs, np.cumsum([pairs[j][2].shape[2] for j in chosen])[:-1])
+    per_term = np.split(coefs, np.cumsum([pairs[j][0].columns.shape[1] for j in chosen])[:-1])
     form = []
     for k in sorted({pairs[j][1] for j in chosen}):
         terms = []
@@ -318,5 +375,10 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
                      "explained_fraction": 1.0 - p_full[k] / p0_axes[k],
                      "val_rms_nm": float(np.sqrt(p0_axes[k] / n_val) * 1e9),
                      "val_rms_after_nm": float(np.sqrt(p_full[k] / n_val) * 1e9)})
-    G = np.concatenate([pairs[j][2] for j in chosen], axis=2)
+    G = np.zeros(meas.y.shape + (sum(pairs[j][0].columns.shape[1] for j in chosen),))
+    at = 0
+    for j in chosen:
+        cand, k = pairs[j][:2]
+        G[:, k, at:at + cand.columns.shape[1]] = np.nan_to_num(cand.columns)
+        at += cand.columns.shape[1]
     return form, G, 1.0 - float(p_full.sum()) / p0
