@@ -387,7 +387,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     # the model's identified directions on every row, made once for the form, the attribution
     # and every candidate
     JS = fit.jacobian_ * fit.model_.scales @ fit.identified_directions_
-    Jm = (_projected(meas, cal, JS)
+    Jm = (_projected(meas, cal, fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_
           if k_m else np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
     r0 = _projected(meas, cal, fit.residual_)
     # the reference is the model itself one linear step further (nothing if it converged): a
