@@ -134,6 +134,7 @@ class _Joint:
         self.pinv_on_axis = {k: self.pinv[:, i] for k, i in on_axis.items()}
         self.Qm_on_axis = {k: self.Qm[i] for k, i in on_axis.items()}
         self.n_groups = len(meas.groups)
+        self._lead = ([], *self._factorised([]))   # least_squares' kept factorisation
 
     def _val(self, X: np.ndarray) -> np.ndarray:
         """Values X (N,3,...) on the validation readings, each group's calibration mean out."""
@@ -171,18 +172,70 @@ class _Joint:
                 D += Dk
         return P, D
 
+    def least_squares(self, Ps: list) -> tuple[np.ndarray, int]:
+        """(coefficients, rank) of the residual's least squares on the blocks of columns
+        ``Ps`` [(n,c)]: as np.linalg.lstsq on the columns scaled to unit norm (the minimum-norm
+        solution; singular values below eps max(n, p) of the largest do not count), from an
+        orthogonal factorisation. The forward selections refit the blocks chosen so far with
+        each candidate block in turn: the factorisation of all blocks but the last is kept
+        while they lead the calls, so a trial costs its own block's projection, not a
+        factorisation of them all."""
+        lead, last = Ps[:-1], Ps[-1]
+        if not (len(lead) == len(self._lead[0])
+                and all(a is b for a, b in zip(lead, self._lead[0]))):
+            self._lead = (list(lead), *self._factorised(lead))
+        _, Q, R, Qr, r_rest, norm_lead = self._lead
+        norm = np.linalg.norm(last, axis=0)
+        norm[norm == 0] = 1.0
+        X = last / norm
+        W = Q.T @ X
+        Y = X - Q @ W
+        again = Q.T @ Y                      # twice is enough (Gram-Schmidt's lost digits)
+        Y -= Q @ again
+        W += again
+        # the last block's triangle, and the residual's coordinates on its orthonormal basis
+        # (the residual less its part on the others' basis: the same to rounding), from one
+        # triangular factorisation without forming that basis
+        c = Y.shape[1]
+        R_aug = np.linalg.qr(np.column_stack([Y, r_rest]), mode="r")
+        R = np.block([[R, W], [np.zeros((c, R.shape[1])), R_aug[:c, :c]]])
+        U, sv, Vt = np.linalg.svd(R)
+        rank = int(np.sum(sv > np.finfo(float).eps * max(self.r.size, R.shape[1]) * sv[0]))
+        t = np.concatenate([Qr, R_aug[:c, c]])
+        coef = Vt[:rank].T @ ((U[:, :rank].T @ t) / sv[:rank])
+        return coef / np.concatenate([norm_lead, norm]), rank
+
+    def _factorised(self, Ps: list) -> tuple:
+        """(Q, R, Q^T r, r - Q Q^T r, column norms) of the blocks ``Ps`` side by side, columns
+        at unit norm (r: the residual)."""
+        if not Ps:
+            return (np.zeros((self.r.size, 0)), np.zeros((0, 0)), np.zeros(0), self.r,
+                    np.zeros(0))
+        X = np.hstack(Ps)
+        norm = np.linalg.norm(X, axis=0)
+        norm[norm == 0] = 1.0
+        Q, R = np.linalg.qr(X / norm)
+        Qr = Q.T @ self.r
+        return Q, R, Qr, self.r - Q @ Qr, norm
+
     def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray]:
         """(coefficients of the columns on the residual, per-axis validation power after)."""
         if not Ps:
             return np.zeros(0), self.axis_power(self.b)
-        X = np.hstack(Ps)
-        norm = np.linalg.norm(X, axis=0)
-        norm[norm == 0] = 1.0
-        coef = np.linalg.lstsq(X / norm, self.r, rcond=None)[0] / norm
-        return coef, self.axis_power(self.b - np.hstack(Ds) @ coef)
+        coef = self.least_squares(Ps)[0]
+        return coef, self.axis_power(self.b - _times(Ds, coef))
 
     def axis_power(self, e: np.ndarray) -> np.ndarray:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
+
+
+def _times(blocks: list, coef: np.ndarray) -> np.ndarray:
+    """The blocks of columns side by side times ``coef``, without joining them."""
+    out, at = 0.0, 0
+    for X in blocks:
+        out = out + X @ coef[at:at + X.shape[1]]
+        at += X.shape[1]
+    return out
 
 
 class JointFrame:
@@ -229,13 +282,9 @@ class JointFrame:
         """As attribution.AxisFrame.fit."""
         r, joint = self.joint.r, self.joint
         if blocks:
-            X = np.hstack([P for P, _ in blocks])
-            norm = np.linalg.norm(X, axis=0)
-            norm[norm == 0] = 1.0
-            coef, _, rank, _ = np.linalg.lstsq(X / norm, r, rcond=None)
-            coef = coef / norm
-            e = r - X @ coef
-            val = joint.axis_power(joint.b - np.hstack([D for _, D in blocks]) @ coef)
+            coef, rank = joint.least_squares([P for P, _ in blocks])
+            e = r - _times([P for P, _ in blocks], coef)
+            val = joint.axis_power(joint.b - _times([D for _, D in blocks], coef))
         else:
             e, rank, val = r, 0, joint.axis_power(joint.b)
         return {"rss_cal": float(e @ e), "rank": int(rank),
