@@ -451,7 +451,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
                                      form=form if best is None else False,
                                      target=frame.target, variables=variables, frame=frame,
-                                     extra_terms=load_terms(loads, meas.y.shape))
+                                     extra_terms=load_terms(loads))
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]

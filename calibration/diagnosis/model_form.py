@@ -8,18 +8,25 @@ the platform more where the structure is softer, and tilts it too, so no polynom
 force (or the force times the position) reproduces it. The load candidates are the model's own
 response: the derivative of the readings with respect to a force f (N) along world x, y or z
 applied as ``f * (I / 1 A)^k`` (I the coils' mean current, k = 1, 2, 3) at the fitted
-parameters, through the model's statics (the path of a library effect's wrench). A researcher's
-effect written from one is a ``wrench`` hook (deltatwin effect new --from).
+parameters, through the model's statics (the path of a library effect's wrench): one term per
+power and direction, its response on all three reading axes with one coefficient, the force
+(the compliance divides it between the axes). A researcher's effect written from one is a
+``wrench`` hook (deltatwin effect new --from).
 
-``joint_form`` is term_form's forward selection on the stacked readings: each (candidate,
-reading axis) pair is a column; the model's identified directions are always in the fit
-(Frisch-Waugh: the columns and the residual are taken orthogonal to them); a pair joins while it
-is significant on the calibration rows (partial F test, a scanned period or moment counted as
-a parameter, Bonferroni over the pairs) and lowers the validation residual power (zeros
-re-estimated on the calibration rows, the model's directions re-adjusted) by at least
-``MIN_SHARE`` of it; at most ``MAX_TERMS`` per axis. The rotations' candidates are tried only
-once no other qualifies (readings of the platform's response, attribution.py: an effect
-written from a rotation reading removes nothing of the load or backlash that tilts it).
+``joint_form`` is term_form's forward selection on the stacked readings. Each block it tries is
+a candidate on one reading axis; or on every axis at once with coefficients of its own per axis,
+for an error in where a motor sits (the direction of its last move, a sine of its angle: the
+kinematics show it on every axis); or a load's response with its shared coefficient. The
+model's identified directions are always in the fit (Frisch-Waugh: the columns and the
+residual are taken orthogonal to them); a block joins while it is significant on the
+calibration rows (partial F test, a scanned period or moment counted as a parameter,
+Bonferroni over the blocks) and lowers the validation residual power (zeros re-estimated on the
+calibration rows, the model's directions re-adjusted) by at least ``MIN_SHARE`` of it; at most
+``MAX_TERMS`` per axis. Then a backward pass: a block that no longer passes that test given the
+blocks that joined after it leaves (a step in time that followed a backlash's pattern of moves
+until the direction's offset joined). The rotations' candidates are tried only once no other
+qualifies (readings of the platform's response, attribution.py: an effect written from a
+rotation reading removes nothing of the load or backlash that tilts it).
 """
 from __future__ import annotations
 
@@ -47,6 +54,9 @@ from deltatwin.twin.effects import Effect, Parameter
 from deltatwin.twin.instruments.optics import AXES
 
 POWERS = (1, 2, 3)
+# columns projected in one pass of the model's directions (_Joint.columns): enough to
+# amortise the pass, few enough to keep the arrays small (n readings x this)
+COLUMNS_AT_ONCE = 64
 
 
 class CurrentLoad(Effect):
@@ -68,8 +78,10 @@ class CurrentLoad(Effect):
 
 def load_candidates(fit) -> list[Candidate]:
     """The load candidates of a fitted physics model (calibration.physics.fit.PhysicsFit): per
-    power, force direction and reading axis, the reading's response (N,) m per N, tried on that
-    axis only. None when the coil currents do not vary (no load to probe)."""
+    power and force direction, the readings' response on all three axes (N,3,1) m per N, one
+    term with one coefficient (the force): the compliance sets how it divides between the
+    axes, so none is fitted on one axis alone. None when the coil currents do not vary (no load
+    to probe)."""
     meas = fit.measurements_
     if not np.ptp(np.mean(meas.points.currents_A[:meas.n], axis=1)) > 0:
         return []
@@ -80,10 +92,10 @@ def load_candidates(fit) -> list[Candidate]:
         new[f.sl] = f.effect == CurrentLoad.name
     _, J = model.jacobian(meas, model.theta(), columns=new)
     response = J[:, :, new]                                   # (N,3,9) m per N
-    return [Candidate("load", "F_N", response[:, k, 3 * i + j][:, None], power=power, axis=k,
+    return [Candidate("load", "F_N", response[:, :, 3 * i + j, None], power=power,
                       extra={"direction": direction})
             for i, power in enumerate(POWERS) for j, direction in enumerate(AXES)
-            for k in range(3) if np.any(response[:, k, 3 * i + j])]
+            if np.any(response[:, :, 3 * i + j])]
 
 
 def _orthonormal(X: np.ndarray) -> np.ndarray:
@@ -161,16 +173,27 @@ class _Joint:
             P -= self.Qm @ (self.Qm_on_axis[k].T @ Pk)
         return P, D
 
-    def columns(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Columns C (N,3,c): (on the calibration readings orthogonal to the model's directions,
-        the change of the validation residual per unit coefficient)."""
-        P, D = np.zeros((self.n_cal, C.shape[2])), np.zeros((self.n_val, C.shape[2]))
-        for k in range(C.shape[1]):
-            if np.any(C[:, k]):
-                Pk, Dk = self.axis_columns(C[:, k], k)
-                P += Pk
-                D += Dk
-        return P, D
+    def columns(self, Cs: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each array of columns C (N,3,c) of ``Cs``: (on the calibration readings orthogonal
+        to the model's directions, the change of the validation residual per unit
+        coefficient). Linear in C, so each reading axis' nonzero columns of all of them are
+        projected together (``axis_columns``, in batches of COLUMNS_AT_ONCE: one pass of the
+        model's directions over the readings per batch instead of one per array) and summed
+        back."""
+        out = [(np.zeros((self.n_cal, C.shape[2])), np.zeros((self.n_val, C.shape[2])))
+               for C in Cs]
+        for k in range(3):
+            parts = [(i, cols) for i, C in enumerate(Cs)
+                     for cols in [np.flatnonzero(np.any(C[:, k] != 0, axis=0))] if cols.size]
+            for start in range(0, len(parts), COLUMNS_AT_ONCE):
+                batch = parts[start:start + COLUMNS_AT_ONCE]
+                P, D = self.axis_columns(np.hstack([Cs[i][:, k, cols] for i, cols in batch]), k)
+                at = 0
+                for i, cols in batch:
+                    out[i][0][:, cols] += P[:, at:at + cols.size]
+                    out[i][1][:, cols] += D[:, at:at + cols.size]
+                    at += cols.size
+        return out
 
     def least_squares(self, Ps: list) -> tuple[np.ndarray, int]:
         """(coefficients, rank) of the residual's least squares on the blocks of columns
@@ -218,12 +241,14 @@ class _Joint:
         Qr = Q.T @ self.r
         return Q, R, Qr, self.r - Q @ Qr, norm
 
-    def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray]:
-        """(coefficients of the columns on the residual, per-axis validation power after)."""
+    def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray, float, int]:
+        """(coefficients of the columns on the residual, per-axis validation power after, the
+        calibration residual's sum of squares after, the columns' rank)."""
         if not Ps:
-            return np.zeros(0), self.axis_power(self.b)
-        coef = self.least_squares(Ps)[0]
-        return coef, self.axis_power(self.b - _times(Ds, coef))
+            return np.zeros(0), self.axis_power(self.b), float(self.r @ self.r), 0
+        coef, rank = self.least_squares(Ps)
+        e = self.r - _times(Ps, coef)
+        return coef, self.axis_power(self.b - _times(Ds, coef)), float(e @ e), rank
 
     def axis_power(self, e: np.ndarray) -> np.ndarray:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
@@ -257,56 +282,52 @@ class JointFrame:
     def blocks(self, terms: list[Term]) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each term's columns on the fit's readings (``_Joint.columns``): a term of (N,p)
         columns on every axis of the target with coefficients of its own (axis-major), an
-        (N,3,p) one as it is. The terms' columns are projected together, one pass of the
-        model's directions over the readings per axis instead of one per term."""
-        flat = [np.where(np.all(np.isfinite(t.columns), axis=1)[:, None], t.columns, 0.0)
-                for t in terms if t.columns.ndim == 2]
-        ends = np.cumsum([x.shape[1] for x in flat])
-        on_axis = ({k: self.joint.axis_columns(np.hstack(flat), k) for k in self.axes}
-                   if flat else {})
-        out, i = [], 0
-        for t in terms:
-            if t.columns.ndim == 2:
-                cols = slice(ends[i] - t.columns.shape[1], ends[i])
-                out.append(tuple(np.hstack([on_axis[k][part][:, cols] for k in self.axes])
-                                 for part in (0, 1)))
-                i += 1
-            else:
-                out.append(self.joint.columns(np.nan_to_num(t.columns)))
+        (N,3,p) one as it is; COLUMNS_AT_ONCE terms' columns projected together."""
+        out = []
+        for start in range(0, len(terms), COLUMNS_AT_ONCE):
+            out += self.joint.columns([self._placed(t)
+                                       for t in terms[start:start + COLUMNS_AT_ONCE]])
         return out
+
+    def _placed(self, term: Term) -> np.ndarray:
+        X = term.columns
+        if X.ndim != 2:
+            return np.nan_to_num(X)
+        X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+        C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
+        for i, k in enumerate(self.axes):
+            C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
+        return C
 
     def n_val(self) -> dict:
         return {k: int(np.sum(self.joint.axis_of == k)) for k in self.axes}
 
     def fit(self, blocks: list) -> dict:
         """As attribution.AxisFrame.fit."""
-        r, joint = self.joint.r, self.joint
-        if blocks:
-            coef, rank = joint.least_squares([P for P, _ in blocks])
-            e = r - _times([P for P, _ in blocks], coef)
-            val = joint.axis_power(joint.b - _times([D for _, D in blocks], coef))
-        else:
-            e, rank, val = r, 0, joint.axis_power(joint.b)
-        return {"rss_cal": float(e @ e), "rank": int(rank),
-                "dof": r.size - joint.Qm.shape[1] - int(rank) - joint.n_groups,
+        joint = self.joint
+        _, val, rss, rank = joint.fit([P for P, _ in blocks], [D for _, D in blocks])
+        return {"rss_cal": rss, "rank": rank,
+                "dof": joint.r.size - joint.Qm.shape[1] - rank - joint.n_groups,
                 "val_power": float(val.sum()), "val_by_axis": {k: float(val[k]) for k in self.axes}}
 
 
-def load_terms(candidates: list[Candidate], shape: tuple) -> list[Term]:
+def load_terms(candidates: list[Candidate]) -> list[Term]:
     """attribution.py's terms of the force from ``load_candidates``: one per power and
-    direction of the load, its response on each reading axis with a coefficient of its own (as
-    the form fits it)."""
-    groups = {}
-    for cand in candidates:
-        if cand.kind == "load":
-            groups.setdefault((cand.power, cand.extra["direction"]), []).append(cand)
-    terms = []
-    for (power, direction), cands in groups.items():
-        C = np.zeros(shape + (len(cands),))
-        for i, cand in enumerate(cands):
-            C[:, cand.axis, i] = cand.columns[:, 0]
-        terms.append(Term(cand.variable, f"load I^{power} along {direction}", C))
-    return terms
+    direction of the load, its response on every reading axis with one coefficient (the
+    force), as the form fits it."""
+    return [Term(c.variable, f"load I^{c.power} along {c.extra['direction']}", c.columns)
+            for c in candidates if c.kind == "load"]
+
+
+def _on_every_axis(cand: Candidate) -> bool:
+    """Whether a candidate is tried on every reading axis at once (coefficients of its own per
+    axis): an error in where a motor sits (the direction of its last move: a backlash; a sine
+    of its angle: an encoder's periodic error) moves the platform, so the kinematics show it on
+    every axis; fitted on one axis at a time, another function can take its place on a weaker
+    axis (a motor's coordinate that follows its moves on a grid) and the effect written from
+    the form misses it there."""
+    return cand.kind == "sign" or (cand.kind == "sine" and cand.variable.startswith("q")
+                                   and cand.variable.endswith("_rad"))
 
 
 def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
@@ -349,6 +370,33 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
                 continue
             break
         chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
+    return _backward(joint, blocks, chosen, limit, min_share * p0)
+
+
+def _backward(joint: _Joint, blocks: list, chosen: list[int], limit: float,
+              min_power: float) -> list[int]:
+    """``chosen`` without the blocks that no longer pass the joining test given all the others
+    (significant at ``limit``, lowering the validation power by ``min_power``): a block that
+    joined early can be explained by those that joined after it (a step in time that followed
+    a backlash's pattern of moves until the direction's offset joined); the one that explains
+    least on validation leaves first, then the rest are tested again."""
+    fit = lambda idx: joint.fit([blocks[j][0] for j in idx], [blocks[j][1] for j in idx])
+    n = joint.r.size
+    while len(chosen) > 1:
+        _, val, rss, rank = fit(chosen)
+        df2 = n - joint.Qm.shape[1] - rank - joint.n_groups
+        failing = []
+        for i in chosen:
+            _, val_o, rss_o, rank_o = fit([j for j in chosen if j != i])
+            kk = rank - rank_o + blocks[i][2]
+            gain = float(val_o.sum() - val.sum())
+            significant = (kk > 0 and df2 > 0 and rss > 0 and special.fdtrc(
+                kk, df2, ((rss_o - rss) / kk) / (rss / df2)) < limit)
+            if not significant or gain < min_power:
+                failing.append((gain, i))
+        if not failing:
+            break
+        chosen = [j for j in chosen if j != min(failing)[1]]
     return chosen
 
 
@@ -379,43 +427,59 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     candidates = candidate_library(variables, target) + (load_candidates(fit) if loads is None
                                                          else loads)
     axes = [k for k, _, _ in target.axes]
-    # (candidate, axis) pairs, each candidate's columns on one reading axis; projected
-    # together per axis (one pass of the model's directions over the readings)
-    tried = [(cand, k) for cand in candidates
-             for k in ([cand.axis] if cand.axis is not None else axes) if k in axes]
-    projected = {}
-    for k in axes:
-        on_k = [cand.columns for cand, a in tried if a == k]
-        if on_k:
-            P, D = joint.axis_columns(np.nan_to_num(np.hstack(on_k)), k)
-            ends = np.cumsum([x.shape[1] for x in on_k])
-            projected[k] = iter(zip(np.split(P, ends[:-1], axis=1),
-                                    np.split(D, ends[:-1], axis=1)))
-    pairs = []                        # (candidate, axis, P, D)
-    for cand, k in tried:
-        P, D = next(projected[k])
-        if np.linalg.norm(P) > 0:
-            pairs.append((cand, k, P, D))
-    per_axis = lambda chosen, i: sum(pairs[j][1] == pairs[i][1] for j in chosen) < max_terms
+    # the blocks the selection tries: (candidate, {reading axis: its coefficients' slice}, C
+    # (N,3,p), P, D); a function fitted on one axis, on every axis with coefficients of its own
+    # (a motor's error) or on every axis with shared ones (a load's response); their columns
+    # projected together (_Joint.columns)
+    tried, pairs = [], []
+    for cand in candidates:
+        c = cand.columns.shape[-1]
+        if cand.columns.ndim == 3:
+            layouts = [({k: slice(0, c) for k in axes}, np.nan_to_num(cand.columns))]
+        else:
+            layouts = []
+            for group in ([axes] if _on_every_axis(cand) else [[k] for k in axes]):
+                C = np.zeros(meas.y.shape + (c * len(group),))
+                for i, k in enumerate(group):
+                    C[:, k, i * c:(i + 1) * c] = np.nan_to_num(cand.columns)
+                layouts.append(({k: slice(i * c, (i + 1) * c) for i, k in enumerate(group)}, C))
+        tried += [(cand, layout, C) for layout, C in layouts]
+    for start in range(0, len(tried), COLUMNS_AT_ONCE):
+        batch = tried[start:start + COLUMNS_AT_ONCE]
+        for (cand, layout, C), (P, D) in zip(batch, joint.columns([C for _, _, C in batch])):
+            if np.linalg.norm(P) > 0:
+                pairs.append((cand, layout, C, P, D))
+    on = lambda j, k: k in pairs[j][1]
+    per_axis = lambda chosen, i: all(sum(on(j, k) for j in chosen) < max_terms
+                                     for k in pairs[i][1])
     responses = {v.name for v in variables if v.response}
-    chosen = _forward(joint, [(P, D, c.scanned) for c, _, P, D in pairs], alpha, min_share,
+    chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
                       per_axis, frozenset(i for i, pair in enumerate(pairs)
                                           if pair[0].variable in responses))
     if not chosen:
         return empty
-    fit_of = lambda idx: joint.fit([pairs[j][2] for j in idx], [pairs[j][3] for j in idx])
-    coefs, p_full = fit_of(chosen)
-    per_term = np.split(coefs, np.cumsum([pairs[j][0].columns.shape[1] for j in chosen])[:-1])
+    fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])
+    coefs, p_full, _, _ = fit_of(chosen)
+    per_term = np.split(coefs, np.cumsum([pairs[j][2].shape[2] for j in chosen])[:-1])
+    shares = {}         # (term, axis): the share of the axis' power the term alone explains
+    for j in chosen:
+        without = fit_of([m for m in chosen if m != j])[1]
+        for k in pairs[j][1]:
+            shares[j, k] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
+    # a term on several axes is listed on those where it explains at least a joining term's
+    # share, and on its strongest
+    listed = {(j, k) for (j, k), share in shares.items()
+              if share >= min_share or share == max(v for (m, _), v in shares.items() if m == j)}
     form = []
-    for k in sorted({pairs[j][1] for j in chosen}):
+    for k in axes:
         terms = []
         for j, c in zip(chosen, per_term):
-            if pairs[j][1] != k:
-                continue
-            _, without = fit_of([m for m in chosen if m != j])
-            term = pairs[j][0].describe(c)
-            term["explained_fraction"] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
-            terms.append(term)
+            if (j, k) in listed:
+                term = pairs[j][0].describe(c[pairs[j][1][k]])
+                term["explained_fraction"] = shares[j, k]
+                terms.append(term)
+        if not terms:
+            continue
         terms.sort(key=lambda t: -t["explained_fraction"])
         n_val = max(int(np.sum(joint.axis_of == k)), 1)
         if 1.0 - p_full[k] / p0_axes[k] < min_share:
@@ -424,10 +488,5 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
                      "explained_fraction": 1.0 - p_full[k] / p0_axes[k],
                      "val_rms_nm": float(np.sqrt(p0_axes[k] / n_val) * 1e9),
                      "val_rms_after_nm": float(np.sqrt(p_full[k] / n_val) * 1e9)})
-    G = np.zeros(meas.y.shape + (sum(pairs[j][0].columns.shape[1] for j in chosen),))
-    at = 0
-    for j in chosen:
-        cand, k = pairs[j][:2]
-        G[:, k, at:at + cand.columns.shape[1]] = np.nan_to_num(cand.columns)
-        at += cand.columns.shape[1]
+    G = np.concatenate([pairs[j][2] for j in chosen], axis=2)
     return form, G, 1.0 - float(p_full.sum()) / p0
