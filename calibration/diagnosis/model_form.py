@@ -112,6 +112,10 @@ class _Joint:
     on the calibration readings, session means out), and the validation residual that results
     (zeros re-estimated on the calibration rows), both linear in the added columns."""
 
+    # least_squares' kept factorisation of the leading blocks: (those blocks, Q, R, Q^T r,
+    # r - Q Q^T r, their column norms); none yet
+    _lead: tuple = (None,)
+
     def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
         meas = self.meas = fit.measurements_
         self.Qm = _orthonormal(Jm)
@@ -146,7 +150,6 @@ class _Joint:
         self.pinv_on_axis = {k: self.pinv[:, i] for k, i in on_axis.items()}
         self.Qm_on_axis = {k: self.Qm[i] for k, i in on_axis.items()}
         self.n_groups = len(meas.groups)
-        self._lead = ([], *self._factorised([]))   # least_squares' kept factorisation
 
     def _val(self, X: np.ndarray) -> np.ndarray:
         """Values X (N,3,...) on the validation readings, each group's calibration mean out."""
@@ -204,8 +207,9 @@ class _Joint:
         while they lead the calls, so a trial costs its own block's projection, not a
         factorisation of them all."""
         lead, last = Ps[:-1], Ps[-1]
-        if not (len(lead) == len(self._lead[0])
-                and all(a is b for a, b in zip(lead, self._lead[0]))):
+        kept = self._lead[0]
+        if (kept is None or len(lead) != len(kept)
+                or any(a is not b for a, b in zip(lead, kept))):
             self._lead = (list(lead), *self._factorised(lead))
         _, Q, R, Qr, r_rest, norm_lead = self._lead
         norm = np.linalg.norm(last, axis=0)

@@ -8,7 +8,6 @@ from deltatwin.calibration.diagnosis.model_form import _Joint
 def _joint(r):
     joint = object.__new__(_Joint)        # only the residual: least_squares needs nothing else
     joint.r = r
-    joint._lead = ([], *joint._factorised([]))
     return joint
 
 
