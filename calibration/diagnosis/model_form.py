@@ -47,7 +47,6 @@ from deltatwin.calibration.diagnosis.term_form import (
 )
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
-    _projected,
     group_offsets,
     residuals,
 )
@@ -55,6 +54,9 @@ from deltatwin.twin.effects import Effect, Parameter
 from deltatwin.twin.instruments.optics import AXES
 
 POWERS = (1, 2, 3)
+# columns projected in one pass of the model's directions (_Joint.columns): enough to
+# amortise the pass, few enough to keep the arrays small (n readings x this)
+COLUMNS_AT_ONCE = 64
 
 
 class CurrentLoad(Effect):
@@ -110,51 +112,159 @@ class _Joint:
     on the calibration readings, session means out), and the validation residual that results
     (zeros re-estimated on the calibration rows), both linear in the added columns."""
 
+    # least_squares' kept factorisation of the leading blocks: (those blocks, Q, R, Q^T r,
+    # r - Q Q^T r, their column norms); none yet
+    _lead: tuple = (None,)
+
     def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
         meas = self.meas = fit.measurements_
         self.Qm = _orthonormal(Jm)
         self.r = r0 - self.Qm @ (self.Qm.T @ r0)
-        self.JS = JS
         self.pinv = np.linalg.pinv(Jm) if Jm.shape[1] else np.zeros((0, r0.size))
         # the model one linear step further: the reference every column is judged against
         change = JS @ (self.pinv @ r0) if Jm.shape[1] else 0.0
         pred = fit.prediction_ + change
         self.before = residuals(meas, pred, group_offsets(meas, pred, meas.cal))
-        self.val_groups = [((meas.group == g) & meas.val[:, None] & np.isfinite(self.before),
-                            (meas.group == g) & meas.cal[:, None]) for g in range(len(meas.groups))]
-        self.b = self._val(self.before[:, :, None])[:, 0]
-        self.axis_of = np.concatenate([np.nonzero(v)[1] for v, _ in self.val_groups])
+        # each group's readings (one reading axis), found once for the hundreds of columns
+        # projected here: (axis, its calibration rows, their place among the calibration
+        # readings (_projected's order), its validation rows, their place among those)
+        self.groups, n_cal, n_val = [], 0, 0
+        for g in range(len(meas.groups)):
+            in_group = meas.group == g
+            k = int(np.flatnonzero(in_group.any(axis=0))[0]) if in_group.any() else 0
+            cal_g = np.flatnonzero(in_group[:, k] & meas.cal)
+            val_g = np.flatnonzero(in_group[:, k] & meas.val & np.isfinite(self.before[:, k]))
+            self.groups.append((k, cal_g, slice(n_cal, n_cal + cal_g.size), val_g,
+                                slice(n_val, n_val + val_g.size)))
+            n_cal, n_val = n_cal + cal_g.size, n_val + val_g.size
+        self.n_cal, self.n_val = n_cal, n_val
+        self.axis_of = np.concatenate([np.full(val_g.size, k, np.intp)
+                                       for k, _, _, val_g, _ in self.groups])
+        self.b = self._val(self.before)
+        # the model's directions on the validation readings, and the parts of their pseudo-
+        # inverse and orthonormal basis on each axis' calibration readings: a column on one
+        # axis is projected with those alone
+        self.JS_val = self._val(JS)
+        on_axis = {k: np.concatenate([np.arange(n_cal)[sl] for a, _, sl, _, _ in self.groups
+                                      if a == k] or [np.zeros(0, np.intp)]) for k in range(3)}
+        self.pinv_on_axis = {k: self.pinv[:, i] for k, i in on_axis.items()}
+        self.Qm_on_axis = {k: self.Qm[i] for k, i in on_axis.items()}
         self.n_groups = len(meas.groups)
 
     def _val(self, X: np.ndarray) -> np.ndarray:
-        """Values X (N,3,c) on the validation readings, each group's calibration mean out."""
-        return np.concatenate([X[v] - (X[c].mean(axis=0) if c.any() else 0.0)
-                               for v, c in self.val_groups])
+        """Values X (N,3,...) on the validation readings, each group's calibration mean out."""
+        out = np.zeros((self.n_val,) + X.shape[2:])
+        for k, cal_g, _, val_g, sl in self.groups:
+            out[sl] = X[val_g, k] - (X[cal_g, k].mean(axis=0) if cal_g.size else 0.0)
+        return out
 
-    def columns(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Columns C (N,3,c): (on the calibration readings orthogonal to the model's directions,
-        the change of the validation residual per unit coefficient)."""
-        P = _projected(self.meas, self.meas.cal, C)
-        D = C - self.JS @ (self.pinv @ P) if self.pinv.shape[0] else C
+    def axis_columns(self, X: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Columns X (N,c) on reading axis ``k`` alone (zero on the others): as ``columns``."""
+        P = np.zeros((self.n_cal, X.shape[1]))
+        D = np.zeros((self.n_val, X.shape[1]))
+        for axis, cal_g, sl_cal, val_g, sl_val in self.groups:
+            if axis != k:
+                continue
+            mean = X[cal_g].mean(axis=0) if cal_g.size else 0.0
+            P[sl_cal] = X[cal_g] - mean
+            D[sl_val] = X[val_g] - mean
+        Pk = np.concatenate([P[sl] for a, _, sl, _, _ in self.groups if a == k]
+                            or [np.zeros((0, X.shape[1]))])
+        if self.pinv.shape[0]:
+            D -= self.JS_val @ (self.pinv_on_axis[k] @ Pk)
         if self.Qm.shape[1]:
-            P = P - self.Qm @ (self.Qm.T @ P)
-        return P, self._val(D)
+            P -= self.Qm @ (self.Qm_on_axis[k].T @ Pk)
+        return P, D
+
+    def columns(self, Cs: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each array of columns C (N,3,c) of ``Cs``: (on the calibration readings orthogonal
+        to the model's directions, the change of the validation residual per unit
+        coefficient). Linear in C, so each reading axis' nonzero columns of all of them are
+        projected together (``axis_columns``, in batches of COLUMNS_AT_ONCE: one pass of the
+        model's directions over the readings per batch instead of one per array) and summed
+        back."""
+        out = [(np.zeros((self.n_cal, C.shape[2])), np.zeros((self.n_val, C.shape[2])))
+               for C in Cs]
+        for k in range(3):
+            parts = [(i, cols) for i, C in enumerate(Cs)
+                     for cols in [np.flatnonzero(np.any(C[:, k] != 0, axis=0))] if cols.size]
+            for start in range(0, len(parts), COLUMNS_AT_ONCE):
+                batch = parts[start:start + COLUMNS_AT_ONCE]
+                P, D = self.axis_columns(np.hstack([Cs[i][:, k, cols] for i, cols in batch]), k)
+                at = 0
+                for i, cols in batch:
+                    out[i][0][:, cols] += P[:, at:at + cols.size]
+                    out[i][1][:, cols] += D[:, at:at + cols.size]
+                    at += cols.size
+        return out
+
+    def least_squares(self, Ps: list) -> tuple[np.ndarray, int]:
+        """(coefficients, rank) of the residual's least squares on the blocks of columns
+        ``Ps`` [(n,c)]: as np.linalg.lstsq on the columns scaled to unit norm (the minimum-norm
+        solution; singular values below eps max(n, p) of the largest do not count), from an
+        orthogonal factorisation. The forward selections refit the blocks chosen so far with
+        each candidate block in turn: the factorisation of all blocks but the last is kept
+        while they lead the calls, so a trial costs its own block's projection, not a
+        factorisation of them all."""
+        lead, last = Ps[:-1], Ps[-1]
+        kept = self._lead[0]
+        if (kept is None or len(lead) != len(kept)
+                or any(a is not b for a, b in zip(lead, kept))):
+            self._lead = (list(lead), *self._factorised(lead))
+        _, Q, R, Qr, r_rest, norm_lead = self._lead
+        norm = np.linalg.norm(last, axis=0)
+        norm[norm == 0] = 1.0
+        X = last / norm
+        W = Q.T @ X
+        Y = X - Q @ W
+        again = Q.T @ Y                      # twice is enough (Gram-Schmidt's lost digits)
+        Y -= Q @ again
+        W += again
+        # the last block's triangle, and the residual's coordinates on its orthonormal basis
+        # (the residual less its part on the others' basis: the same to rounding), from one
+        # triangular factorisation without forming that basis
+        c = Y.shape[1]
+        R_aug = np.linalg.qr(np.column_stack([Y, r_rest]), mode="r")
+        R = np.block([[R, W], [np.zeros((c, R.shape[1])), R_aug[:c, :c]]])
+        U, sv, Vt = np.linalg.svd(R)
+        rank = int(np.sum(sv > np.finfo(float).eps * max(self.r.size, R.shape[1]) * sv[0]))
+        t = np.concatenate([Qr, R_aug[:c, c]])
+        coef = Vt[:rank].T @ ((U[:, :rank].T @ t) / sv[:rank])
+        return coef / np.concatenate([norm_lead, norm]), rank
+
+    def _factorised(self, Ps: list) -> tuple:
+        """(Q, R, Q^T r, r - Q Q^T r, column norms) of the blocks ``Ps`` side by side, columns
+        at unit norm (r: the residual)."""
+        if not Ps:
+            return (np.zeros((self.r.size, 0)), np.zeros((0, 0)), np.zeros(0), self.r,
+                    np.zeros(0))
+        X = np.hstack(Ps)
+        norm = np.linalg.norm(X, axis=0)
+        norm[norm == 0] = 1.0
+        Q, R = np.linalg.qr(X / norm)
+        Qr = Q.T @ self.r
+        return Q, R, Qr, self.r - Q @ Qr, norm
 
     def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray, float, int]:
         """(coefficients of the columns on the residual, per-axis validation power after, the
         calibration residual's sum of squares after, the columns' rank)."""
         if not Ps:
             return np.zeros(0), self.axis_power(self.b), float(self.r @ self.r), 0
-        X = np.hstack(Ps)
-        norm = np.linalg.norm(X, axis=0)
-        norm[norm == 0] = 1.0
-        coef, _, rank, _ = np.linalg.lstsq(X / norm, self.r, rcond=None)
-        coef = coef / norm
-        e = self.r - X @ coef
-        return coef, self.axis_power(self.b - np.hstack(Ds) @ coef), float(e @ e), int(rank)
+        coef, rank = self.least_squares(Ps)
+        e = self.r - _times(Ps, coef)
+        return coef, self.axis_power(self.b - _times(Ds, coef)), float(e @ e), rank
 
     def axis_power(self, e: np.ndarray) -> np.ndarray:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
+
+
+def _times(blocks: list, coef: np.ndarray) -> np.ndarray:
+    """The blocks of columns side by side times ``coef``, without joining them."""
+    out, at = 0.0, 0
+    for X in blocks:
+        out = out + X @ coef[at:at + X.shape[1]]
+        at += X.shape[1]
+    return out
 
 
 class JointFrame:
@@ -173,16 +283,25 @@ class JointFrame:
         self.n_axes = len(self.axes)
         self.shape = meas.y.shape
 
-    def block(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
+    def blocks(self, terms: list[Term]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each term's columns on the fit's readings (``_Joint.columns``): a term of (N,p)
+        columns on every axis of the target with coefficients of its own (axis-major), an
+        (N,3,p) one as it is; COLUMNS_AT_ONCE terms' columns projected together."""
+        out = []
+        for start in range(0, len(terms), COLUMNS_AT_ONCE):
+            out += self.joint.columns([self._placed(t)
+                                       for t in terms[start:start + COLUMNS_AT_ONCE]])
+        return out
+
+    def _placed(self, term: Term) -> np.ndarray:
         X = term.columns
-        if X.ndim == 2:
-            X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
-            C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
-            for i, k in enumerate(self.axes):
-                C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
-        else:
-            C = np.nan_to_num(X)
-        return self.joint.columns(C)
+        if X.ndim != 2:
+            return np.nan_to_num(X)
+        X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+        C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
+        for i, k in enumerate(self.axes):
+            C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
+        return C
 
     def n_val(self) -> dict:
         return {k: int(np.sum(self.joint.axis_of == k)) for k in self.axes}
@@ -314,8 +433,9 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     axes = [k for k, _, _ in target.axes]
     # the blocks the selection tries: (candidate, {reading axis: its coefficients' slice}, C
     # (N,3,p), P, D); a function fitted on one axis, on every axis with coefficients of its own
-    # (a motor's error) or on every axis with shared ones (a load's response)
-    pairs = []
+    # (a motor's error) or on every axis with shared ones (a load's response); their columns
+    # projected together (_Joint.columns)
+    tried, pairs = [], []
     for cand in candidates:
         c = cand.columns.shape[-1]
         if cand.columns.ndim == 3:
@@ -327,8 +447,10 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
                 for i, k in enumerate(group):
                     C[:, k, i * c:(i + 1) * c] = np.nan_to_num(cand.columns)
                 layouts.append(({k: slice(i * c, (i + 1) * c) for i, k in enumerate(group)}, C))
-        for layout, C in layouts:
-            P, D = joint.columns(C)
+        tried += [(cand, layout, C) for layout, C in layouts]
+    for start in range(0, len(tried), COLUMNS_AT_ONCE):
+        batch = tried[start:start + COLUMNS_AT_ONCE]
+        for (cand, layout, C), (P, D) in zip(batch, joint.columns([C for _, _, C in batch])):
             if np.linalg.norm(P) > 0:
                 pairs.append((cand, layout, C, P, D))
     on = lambda j, k: k in pairs[j][1]
