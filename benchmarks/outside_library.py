@@ -42,6 +42,7 @@ scores are printed for each set.
     python benchmarks/outside_library.py                       # fixed + 8 generated (seed 16)
     python benchmarks/outside_library.py --cases '' --generated 10 --seed 7   # held-back seed
     python benchmarks/outside_library.py --cases periodic-encoder,backlash --generated 0
+    python benchmarks/outside_library.py --cases '' --generated 12 --seed 99 --only g09
 """
 from __future__ import annotations
 
@@ -106,7 +107,10 @@ def _scores(label: str, rows: list[dict]) -> dict:
               "term": (sum(r["term_visible"] and r["term_share"] >= TARGETS["form"] for r in rows)
                        / max(sum(r["term_visible"] for r in rows), 1)),
               "within": sum(x <= TARGETS["floor_ratio"] for x in ratios) / n,
-              "floor_ratio": max(ratios)}
+              # a case without a proposed form (nan) is not within; max() of a list holding nan
+              # depends on its order: the worst over the cases with a form, those without counted
+              "floor_ratio": max((x for x in ratios if np.isfinite(x)), default=float("nan")),
+              "no_form": sum(not np.isfinite(x) for x in ratios)}
     met = lambda ok: "MET" if ok else "NOT MET"
     print(f"\n{label} ({n} cases):")
     print(f"  no library effect claimed: {100 * scores['unclaimed']:.0f} % (target 100 %): "
@@ -120,7 +124,9 @@ def _scores(label: str, rows: list[dict]) -> dict:
           f"validation residual in {100 * scores['form']:.0f} % of all {n}")
     print(f"  with the researcher's effect within 1.1x the achievable floor: "
           f"{100 * scores['within']:.0f} % of the cases, worst ratio {scores['floor_ratio']:.2f} "
-          f"(target <= 1.1): {met(scores['floor_ratio'] <= TARGETS['floor_ratio'])}")
+          f"over the {n - scores['no_form']} with a proposed form (target <= 1.1; "
+          f"{scores['no_form']} without one, not within): "
+          f"{met(scores['within'] >= 1.0)}")
     return scores
 
 
@@ -132,6 +138,9 @@ def main(argv=None) -> int:
     ap.add_argument("--generated", type=int, default=8,
                     help="number of cases generated from --seed (default 8)")
     ap.add_argument("--seed", type=int, default=16, help="seed of the generated cases")
+    ap.add_argument("--only", default="",
+                    help="comma-separated prefixes of the generated cases to run (e.g. g05,g09; "
+                         "default all): rerun a few of a seed's cases, drawn as in the full set")
     args = ap.parse_args(argv)
     names = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = [c for c in names if c not in every]
@@ -141,6 +150,9 @@ def main(argv=None) -> int:
         ap.error(f"--generated {args.generated}: must be >= 0")
     fixed = {n: (every[n], PORTAL_SCALE if n in PORTAL_CASES else None) for n in names}
     generated = generate_cases(np.random.default_rng(args.seed), args.generated)
+    only = [c.strip() for c in args.only.split(",") if c.strip()]
+    if only:
+        generated = {n: c for n, c in generated.items() if any(n.startswith(o) for o in only)}
     t_all = time.perf_counter()
     results = {}
     with tempfile.TemporaryDirectory() as work:

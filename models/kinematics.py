@@ -248,13 +248,27 @@ def pose_derivative(geom: Geometry, q, pose: Pose, d_residuals: np.ndarray,
     each parameter. ``through`` (N,a,6): the derivative of ``a`` outputs in the pose; then the
     outputs' derivative (N,a,k) is returned, -(through (d f / d pose)^-1) d f / d parameter,
     with ``a`` right-hand sides solved instead of k (the adjoint)."""
+    if through is not None:
+        return -(pose_adjoint(geom, q, pose, through) @ d_residuals)
+    return -np.linalg.solve(_pose_jacobian(geom, q, pose), d_residuals)
+
+
+def _pose_jacobian(geom: Geometry, q, pose: Pose, rods: tuple | None = None) -> np.ndarray:
+    """The rod equations' derivative (N,6,6) in the pose (position, rotation vector);
+    ``rods``: ``rod_vectors`` at the pose when the caller has them."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
-    d, w = rod_vectors(geom, q, pose)
-    J = np.concatenate([2 * d, 2 * np.cross(w, d)], axis=-1).reshape(q.shape[0], 6, 6)
-    if through is None:
-        return -np.linalg.solve(J, d_residuals)
-    adjoint = np.linalg.solve(J.transpose(0, 2, 1), through.transpose(0, 2, 1))   # (N,6,a)
-    return -np.einsum("nia,nik->nak", adjoint, d_residuals)
+    d, w = rod_vectors(geom, q, pose) if rods is None else rods
+    return np.concatenate([2 * d, 2 * np.cross(w, d)], axis=-1).reshape(q.shape[0], 6, 6)
+
+
+def pose_adjoint(geom: Geometry, q, pose: Pose, through: np.ndarray,
+                 rods: tuple | None = None) -> np.ndarray:
+    """(N,a,6) ``through`` (N,a,6) times the inverse of the rod equations' derivative in the
+    pose: minus its product with the rod equations' partial derivatives in parameters (N,6,k)
+    is the ``a`` outputs' derivative in them (``pose_derivative``), for any k at the cost of
+    ``a`` right-hand sides. ``rods``: ``rod_vectors`` at the pose when the caller has them."""
+    J = _pose_jacobian(geom, q, pose, rods)
+    return np.linalg.solve(J.transpose(0, 2, 1), through.transpose(0, 2, 1)).transpose(0, 2, 1)
 
 
 def _ideal_chain_angles(geom: Geometry, p: np.ndarray) -> np.ndarray:

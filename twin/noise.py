@@ -20,3 +20,10 @@ class NoiseBank:
             block = self.draw(self.rng, self.BLOCK)
             self.rows = block if self.rows is None else np.concatenate([self.rows, block])
         return self.rows[start:stop]
+
+
+def quantised_u(noise: float, resolution: float) -> float:
+    """The standard uncertainty of a reading with white noise of std ``noise`` shown to steps of
+    ``resolution`` (same units): the rounding error is uniform over one step, variance
+    step^2 / 12 (GUM F.2.2.1), independent of the noise."""
+    return float(np.hypot(noise, resolution / np.sqrt(12)))

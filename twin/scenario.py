@@ -27,6 +27,7 @@ from deltatwin.twin.campaign import Plan, force_plan, run_campaign, simulate_cam
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, make_effect
 from deltatwin.twin.instruments.optics import nominal_dead_path, saturation_vapour_pressure
 from deltatwin.twin.instruments.simulated import InstrumentSettings, SimulatedLab
+from deltatwin.twin.noise import quantised_u
 from deltatwin.twin.thermal import PART_NODES
 from deltatwin.twin.world import Twin, random_streams
 
@@ -74,11 +75,10 @@ def air_wander(settings: InstrumentSettings, climate: dict | None, barometer: bo
     from deltatwin.twin.effects.room_climate import RoomClimate
 
     c = {p.name: p.default for p in RoomClimate.parameters} | (climate or {})
-    rounding = lambda noise, step: float(np.hypot(noise, step / np.sqrt(12)))
-    pressure = ((rounding(settings.barometer_noise_Pa, settings.barometer_resolution_Pa), 0.0)
+    pressure = ((quantised_u(settings.barometer_noise_Pa, settings.barometer_resolution_Pa), 0.0)
                 if barometer else (float(c["pressure_std_Pa"]), float(c["pressure_time_s"])))
     per_pct = float(saturation_vapour_pressure(room_C)) / 100.0
-    vapour = ((rounding(settings.hygrometer_noise_pct, settings.hygrometer_resolution_pct)
+    vapour = ((quantised_u(settings.hygrometer_noise_pct, settings.hygrometer_resolution_pct)
                * per_pct, 0.0) if hygrometer
               else (float(c["vapour_std_Pa"]), float(c["vapour_time_s"])))
     return {"pressure_Pa": pressure, "vapour_Pa": vapour}

@@ -42,7 +42,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from deltatwin.models import batched
 from deltatwin.models.geometry import Geometry
@@ -70,6 +69,13 @@ class StaticResult:
     def deflection(self) -> np.ndarray:
         """(N,6): platform translation (m) and small rotation (rad) from the kinematic pose."""
         return self.y[:, :6]
+
+
+def deflected_pose(kin: Pose, y: np.ndarray) -> Pose:
+    """The kinematic pose displaced by ``y`` (N,6: position m, rotation vector rad): its small
+    rotation applied on the kinematic one, component-first (models/batched.py)."""
+    R = batched.matmul(batched.rotation_matrices(y[:, 3:6].T), kin.R.transpose(1, 2, 0))
+    return Pose(kin.p + y[:, :3], np.ascontiguousarray(R.transpose(2, 0, 1)))
 
 
 def _bend_vector(rest, actual):
@@ -258,8 +264,7 @@ class Statics:
             raise ValueError(f"statics: no finite equilibrium at pose {i} (q = {q[i].tolist()} rad, "
                              f"kinematic position {kin.p[i].tolist()} m; {bad.size} pose(s)): "
                              "non-finite pose or stiffness not positive definite")
-        R = Rotation.from_rotvec(y[:, 3:6]).as_matrix() @ kin.R
-        return StaticResult(pose=Pose(kin.p + y[:, :3], R), kinematic_pose=kin, y=y)
+        return StaticResult(pose=deflected_pose(kin, y[:, :6]), kinematic_pose=kin, y=y)
 
     def compliance(self, q) -> np.ndarray:
         """Platform compliance (N,6,6) at motor coordinates q: [m/N, m/(N m); rad/N, rad/(N m)]."""

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deltatwin.models import batched
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import Pose, forward
 from deltatwin.models.params import RobotParams
@@ -35,7 +34,7 @@ from deltatwin.twin.instruments.optics import (
     saturation_vapour_pressure,
 )
 from deltatwin.twin.noise import NoiseBank
-from deltatwin.twin.statics import Statics
+from deltatwin.twin.statics import Statics, deflected_pose
 from deltatwin.twin.thermal import GRID_S, SUPPORTS, Inputs, ThermalNetwork, sensor_set
 
 # a new stream goes at the end: a child's draws depend only on its position
@@ -168,6 +167,7 @@ class Truth:
     n_comp: dict                   # axis -> (N,)
     angles_rad: dict               # autocollimator channel -> (N,)
     optics: Optics = field(repr=False, default=None)
+    deflection: np.ndarray = field(repr=False, default=None)   # (N,6) y of ``pose``
 
 
 class Twin:
@@ -351,16 +351,13 @@ def deflection(preload: np.ndarray, compliance: np.ndarray, wrench: np.ndarray) 
     return preload + np.einsum("nij,nj->ni", compliance, wrench)
 
 
-def deflected_pose(kin: Pose, y: np.ndarray) -> Pose:
-    """The kinematic pose displaced by ``y`` (N,6): its small rotation applied on the kinematic
-    one, component-first (models/batched.py)."""
-    R = batched.matmul(batched.rotation_matrices(y[:, 3:6].T), kin.R.transpose(1, 2, 0))
-    return Pose(kin.p + y[:, :3], np.ascontiguousarray(R.transpose(2, 0, 1)))
-
-
-def instrument_optics(effects: list[Effect], pts: Points, cube_home: np.ndarray) -> Optics:
-    """The effects' optics (heads, beams, fold mirror, air indices) at the points."""
-    optics = Optics.nominal(cube_home, pts.t_s.shape[0], n_nominal=1.0)
+def instrument_optics(effects: list[Effect], pts: Points, cube_home: np.ndarray,
+                      start: Optics | None = None) -> Optics:
+    """The effects' optics (heads, beams, fold mirror, air indices) at the points, on the
+    nominal instruments aligned on ``cube_home`` or on a copy of ``start`` (the optics earlier
+    effects made: a model's derivative in one effect's parameter re-uses them)."""
+    optics = (Optics.nominal(cube_home, pts.t_s.shape[0], n_nominal=1.0) if start is None
+              else start.copy())
     for e in effects:
         e.optics(pts, optics)
     return optics
@@ -376,9 +373,10 @@ def observe(geom, kin: Pose, effects: list[Effect], pts: Points, preload: np.nda
     pts.pose = kin
     if wrench is None:
         wrench = platform_wrench(effects, pts)
-    pose = deflected_pose(kin, deflection(preload, compliance, wrench))
+    y = deflection(preload, compliance, wrench)
+    pose = deflected_pose(kin, y)
     optics = instrument_optics(effects, pts, cube_home)
     paths = {a: optical_path(pose, geom.cube_offset, cube_size_m, optics, a) for a in AXES}
     return Truth(pose=pose, kinematic_pose=kin, wrench=wrench, optical_path_m=paths,
                  n_comp=dict(optics.n_comp), angles_rad=autocollimator_angles(pose.R),
-                 optics=optics)
+                 optics=optics, deflection=y)

@@ -51,6 +51,7 @@ from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.measurements import measurements
 from deltatwin.calibration.physics.model import PhysicsModel, _projected
 from deltatwin.twin.instruments.optics import AXES
+from deltatwin.twin.noise import quantised_u
 
 
 def mixture_p90(u: np.ndarray) -> float:
@@ -350,8 +351,8 @@ def without_random_errors(sc):
 
 def thermometer_u_K(settings) -> float:
     """A thermometer's standard uncertainty per scan (K): its noise and its resolution's
-    rounding (step^2 / 12), what Scenario.with_perfect(["thermometers"]) removes."""
-    return float(np.hypot(settings.T_noise_C, settings.T_resolution_C / np.sqrt(12)))
+    rounding, what Scenario.with_perfect(["thermometers"]) removes."""
+    return quantised_u(settings.T_noise_C, settings.T_resolution_C)
 
 
 # the noise lines the Monte Carlo measures on the twin: the scenario's error source switched

@@ -69,7 +69,8 @@ class Variable:
 
 
 def _rates(t: np.ndarray, session: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Causal rate (unit/s) of ``v`` within each session, rows in any order."""
+    """Causal rate (unit/s) of every column of ``v`` (N,c) within each session, rows in any
+    order (the columns in one call per session: the windows are found once)."""
     out = np.empty_like(v)
     for s in dict.fromkeys(session):
         rows = np.flatnonzero(session == s)
@@ -85,11 +86,12 @@ def laboratory_variables(df: pd.DataFrame) -> list[Variable]:
     t = df["t_s"].to_numpy(dtype=np.float64)
     session = df["session"].astype(str).to_numpy() if "session" in df else np.full(len(df), "1")
     out = [Variable("t_s", t, "time")]
-    for c in df.columns:
-        if c.startswith("T_") and c.endswith("_C"):
-            v = df[c].to_numpy(dtype=np.float64)
-            out.append(Variable(c, v, "smooth"))
-            out.append(Variable(f"dT_{c[2:-2]}_dt_K_per_s", _rates(t, session, v), "smooth"))
+    temperatures = [c for c in df.columns if c.startswith("T_") and c.endswith("_C")]
+    T = df[temperatures].to_numpy(dtype=np.float64) if temperatures else np.zeros((len(df), 0))
+    rates = _rates(t, session, T)
+    for k, c in enumerate(temperatures):
+        out.append(Variable(c, T[:, k], "smooth"))
+        out.append(Variable(f"dT_{c[2:-2]}_dt_K_per_s", rates[:, k], "smooth"))
     if all(f"q{i}_rad" in df for i in (1, 2, 3)):
         q = df[["q1_rad", "q2_rad", "q3_rad"]].to_numpy(dtype=np.float64)
         out += [Variable(f"q{i + 1}_rad", q[:, i], "coordinate") for i in range(3)]
@@ -427,12 +429,14 @@ class AxisFrame:
         self.target = target
         self.n_axes = len(target.axes)
 
-    def block(self, term: Term) -> np.ndarray:
-        X = term.columns
-        if X.ndim != 2:
-            raise ValueError(f"term {term.variable} {term.kind}: per-axis columns need a "
-                             "physics model's frame (model_form.JointFrame)")
-        return np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+    def blocks(self, terms: list[Term]) -> list[np.ndarray]:
+        """Each term's columns, rows with a non-finite value zeroed."""
+        for t in terms:
+            if t.columns.ndim != 2:
+                raise ValueError(f"term {t.variable} {t.kind}: per-axis columns need a "
+                                 "physics model's frame (model_form.JointFrame)")
+        return [np.where(np.all(np.isfinite(t.columns), axis=1)[:, None], t.columns, 0.0)
+                for t in terms]
 
     def n_val(self) -> dict:
         return {k: int(self.target.val[rows].sum()) for k, rows, _ in self.target.axes}
@@ -511,7 +515,7 @@ def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
     if not frame.n_axes or p0 <= 0:
         return out
     terms = [t for var in variables for t in variable_terms(var, target)] + list(extra_terms)
-    blocks = [frame.block(t) for t in terms]
+    blocks = frame.blocks(terms)
     responses = {v.name for v in variables if v.response}
     chosen: list[int] = []
     p_values = {}

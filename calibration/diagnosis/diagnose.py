@@ -96,8 +96,11 @@ def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
 
 
 def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0: float,
-               n: int, k_m: int, before: np.ndarray, floor_all_nm: float | None = None,
-               generic: tuple[np.ndarray, float] | None = None):
+               n: int, k_m: int, before: np.ndarray, floor_all_nm: float | None,
+               generic: tuple[np.ndarray, float] | None, JS: np.ndarray, effect_spans: dict):
+    """One candidate's row of the ranking. ``JS``: the model's identified directions on every
+    row (N,3,k_m), ``effect_spans``: ``_effect_spans(fit)``; both the same for every
+    candidate."""
     meas = fit.measurements_
     model = PhysicsModel(fit.effects + [name], fit.model_.params,
                          {**fit.model_.values(), name: fit.known_.get(name, {})})
@@ -110,20 +113,19 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
     Jc = J[:, :, new] * model.scales[new]
     cal = meas.cal
     r = _projected(meas, cal, meas.y - A)              # residual with the candidate on
-    Pc = _projected(meas, cal, Jc)
-    absorbed = _absorbed(fit, Qm, Pc, _projected(meas, cal, delta0))
+    Pc_all = _projected(meas, cal, Jc)
+    absorbed = _absorbed(Qm, Pc_all, _projected(meas, cal, delta0), effect_spans)
     # the candidate's directions beyond the model's own, that the data determine
-    if Jm.shape[1]:
-        Pc = Pc - Qm @ (Qm.T @ Pc)
+    Pc = Pc_all - Qm @ (Qm.T @ Pc_all) if Jm.shape[1] else Pc_all
     k_c = 0
     if Pc.shape[1]:
         _, s, Vt = np.linalg.svd(Pc, full_matrices=False)
         keep = s > (fit.noise_nm * 1e-9) / fit.identifiable_ratio
         k_c = int(keep.sum())
         Vc = Vt[keep].T
-    X = np.hstack([Jm, _projected(meas, cal, Jc) @ Vc]) if k_c else Jm
+    X = np.hstack([Jm, Pc_all @ Vc]) if k_c else Jm
     # the same change on every row (the model's own columns re-adjust too)
-    full = [fit.jacobian_ * fit.model_.scales @ fit.identified_directions_] if k_m else []
+    full = [JS] if k_m else []
     if k_c:
         full.append(Jc @ Vc)
     # the candidate at its start and, where what its determined directions leave of the start
@@ -259,20 +261,12 @@ def _above_floor_share(err90_nm: float, floor_nm: float | None) -> float:
     return 1.0 - (floor_nm / err90_nm) ** 2
 
 
-def _absorbed(fit: PhysicsFit, Qm: np.ndarray, Pc: np.ndarray, change0: np.ndarray) -> dict:
-    """How much of a candidate's signature lies in the span of the model's identified
-    directions (``Qm``, orthonormal, session means out): its columns at their parameters'
-    typical size (``Pc``) and its change at its starting values (``change0``), as a fraction
-    of their power; the model effect whose own columns absorb most of it; and the signature's
-    size (rms over the readings, nm, per parameter at its typical size)."""
-    sig = np.hstack([Pc, change0[:, None]]) if np.any(change0) else Pc
-    power = float(np.sum(sig ** 2))
-    signature_nm = float(np.sqrt(power / max(sig.size, 1))) * 1e9
-    if power == 0 or not Qm.shape[1]:
-        return {"absorbed_fraction": 0.0, "absorbed_by": None, "signature_nm": signature_nm}
-    fraction = float(np.sum((Qm.T @ sig) ** 2)) / power
+def _effect_spans(fit: PhysicsFit) -> dict:
+    """Per effect of the fitted model, an orthonormal basis of its own Jacobian columns (at
+    their parameters' typical size) on the calibration readings, session means out: what
+    ``_absorbed`` compares every candidate with, made once per diagnosis."""
     meas, JS = fit.measurements_, fit.jacobian_ * fit.model_.scales
-    by, best = None, 0.0
+    out = {}
     for e in fit.effects:
         cols = np.concatenate([np.arange(f.sl.start, f.sl.stop) for f in fit.model_.free
                                if f.effect == e] or [np.zeros(0, int)])
@@ -280,7 +274,25 @@ def _absorbed(fit: PhysicsFit, Qm: np.ndarray, Pc: np.ndarray, change0: np.ndarr
             continue
         Pe = _projected(meas, meas.cal, JS[:, :, cols])
         u, sv, _ = np.linalg.svd(Pe, full_matrices=False)
-        Qe = u[:, sv > sv.max(initial=0) * 1e-9]
+        out[e] = u[:, sv > sv.max(initial=0) * 1e-9]
+    return out
+
+
+def _absorbed(Qm: np.ndarray, Pc: np.ndarray, change0: np.ndarray, effect_spans: dict) -> dict:
+    """How much of a candidate's signature lies in the span of the model's identified
+    directions (``Qm``, orthonormal, session means out): its columns at their parameters'
+    typical size (``Pc``) and its change at its starting values (``change0``), as a fraction
+    of their power; the model effect whose own columns (``effect_spans``, ``_effect_spans``)
+    absorb most of it; and the signature's size (rms over the readings, nm, per parameter at
+    its typical size)."""
+    sig = np.hstack([Pc, change0[:, None]]) if np.any(change0) else Pc
+    power = float(np.sum(sig ** 2))
+    signature_nm = float(np.sqrt(power / max(sig.size, 1))) * 1e9
+    if power == 0 or not Qm.shape[1]:
+        return {"absorbed_fraction": 0.0, "absorbed_by": None, "signature_nm": signature_nm}
+    fraction = float(np.sum((Qm.T @ sig) ** 2)) / power
+    by, best = None, 0.0
+    for e, Qe in effect_spans.items():
         share = float(np.sum((Qe.T @ sig) ** 2)) / power
         if share > best:
             by, best = e, share
@@ -435,6 +447,9 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     meas = fit.measurements_
     cal = meas.cal
     k_m = fit.identifiability_["n_identified_directions"]
+    # the model's identified directions on every row, made once for the form, the attribution
+    # and every candidate
+    JS = fit.jacobian_ * fit.model_.scales @ fit.identified_directions_
     Jm = (_projected(meas, cal, fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_
           if k_m else np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
     r0 = _projected(meas, cal, fit.residual_)
@@ -443,8 +458,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     # short of its minimum (a misspecified model's slow valley)
     coef_m = np.linalg.lstsq(Jm, r0, rcond=None)[0] if k_m else np.zeros(0)
     rss0 = float(np.sum((r0 - Jm @ coef_m) ** 2))
-    before = _val_after(meas, fit, (fit.jacobian_ * fit.model_.scales
-                                    @ fit.identified_directions_) @ coef_m if k_m else 0.0)
+    before = _val_after(meas, fit, JS @ coef_m if k_m else 0.0)
     n = r0.size
     Qm = np.linalg.qr(Jm)[0]                        # the model's span, once for all candidates
     candidates = [e for e in model_effects() if e not in fit.effects]
@@ -452,7 +466,6 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     floor_all = (floor.get("all") or max(floor[a] for a in AXES if a in floor)) if floor else None
     # the missing term's form fitted jointly with the model's directions: what a library
     # candidate must beat to be claimed, and the form proposed when none is
-    JS = fit.jacobian_ * fit.model_.scales @ fit.identified_directions_
     # the frame both the form and the attribution fit in (the model's directions re-adjusted,
     # attribution.py): the scans, the load responses and the projections made once
     variables = laboratory_variables(meas.df)
@@ -463,12 +476,13 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     generic = (_projected(meas, cal, G), generic_explained, r0,
                _above_floor_share(fit.val_["all"]["err_p90"], floor_all))
     ranking = []
+    effect_spans = _effect_spans(fit) if candidates and k_m else {}
     for name in candidates:
         if progress:
             progress(name)
         try:
             ranking.append(_candidate(fit, name, Jm, Qm, rss0, n, k_m, before, floor_all,
-                                      generic))
+                                      generic, JS, effect_spans))
         except (CalibrationInputError, EffectError, KinematicsError,
                 np.linalg.LinAlgError) as exc:
             # a candidate the model cannot take on (a pose out of reach, an impossible value)
@@ -502,7 +516,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
                                      form=form if best is None else False,
                                      target=frame.target, variables=variables, frame=frame,
-                                     extra_terms=load_terms(loads, meas.y.shape))
+                                     extra_terms=load_terms(loads))
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]

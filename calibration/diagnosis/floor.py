@@ -37,6 +37,7 @@ from deltatwin.calibration.physics.measurements import measurements
 from deltatwin.calibration.physics.model import _projected, model_effects
 from deltatwin.twin.effects import LIBRARY
 from deltatwin.twin.instruments.optics import AXES
+from deltatwin.twin.noise import quantised_u
 from deltatwin.twin.scenario import ERROR_SOURCES
 
 # the floor's sources in the twin (twin/scenario.py ERROR_SOURCES), by their budget line's name
@@ -202,7 +203,7 @@ def predicted_floor_budget(fit: PhysicsFit, df, meta: dict, settings=None,
     T_u = thermometer_u_K(s)
     air = air_wander(s, climate, "p_Pa" in df, "RH_pct" in df,
                      fit.model_.params.reference_temperature_C)
-    reading_u = float(np.hypot(s.noise_floor_m, s.resolution_m / np.sqrt(12)))
+    reading_u = quantised_u(s.noise_floor_m, s.resolution_m)
     table = uncertainty_budget(fit, df, meta, reading_u, T_u, servo_u_rad, air,
                                np.random.default_rng(0), per_sensor=True)
     return table[table["kind"].isin(["noise", "thermometer"])].reset_index(drop=True)
@@ -217,7 +218,7 @@ def air_line_check(scenario: str, scale: float | None, seeds) -> dict:
     the session zeros, "twin_refit": the true model refitted on both runs (from the twin's
     values), the difference of their residuals}. The wander is slow: one campaign sees one
     path of it, so the comparison needs several."""
-    from deltatwin.calibration.design.budget import _figures, air_line, zero_centred
+    from deltatwin.calibration.design.budget import _figures, _quantile90, air_line, zero_centred
     from deltatwin.twin.scenario import Scenario
 
     lines = {"budget": [], "twin": [], "twin_refit": []}
@@ -244,9 +245,10 @@ def air_line_check(scenario: str, scale: float | None, seeds) -> dict:
         if name == "budget":        # standard uncertainties: the mixture's 90 %
             out[name] = _figures(np.where(val, v, np.nan), val)
         else:                       # errors: their 90 % quantile
-            out[name] = {a: float(np.nanquantile(np.abs(np.where(val, v, np.nan)[:, k]), 0.9))
-                         * 1e9 for k, a in enumerate(AXES) if val[:, k].any()}
-            out[name]["all"] = float(np.nanquantile(np.abs(np.where(val, v, np.nan)), 0.9)) * 1e9
+            v = np.where(val, v, np.nan)
+            out[name] = {a: _quantile90(v[:, k]) * 1e9
+                         for k, a in enumerate(AXES) if val[:, k].any()}
+            out[name]["all"] = _quantile90(v) * 1e9
     return out
 
 

@@ -8,18 +8,25 @@ the platform more where the structure is softer, and tilts it too, so no polynom
 force (or the force times the position) reproduces it. The load candidates are the model's own
 response: the derivative of the readings with respect to a force f (N) along world x, y or z
 applied as ``f * (I / 1 A)^k`` (I the coils' mean current, k = 1, 2, 3) at the fitted
-parameters, through the model's statics (the path of a library effect's wrench). A researcher's
-effect written from one is a ``wrench`` hook (deltatwin effect new --from).
+parameters, through the model's statics (the path of a library effect's wrench): one term per
+power and direction, its response on all three reading axes with one coefficient, the force
+(the compliance divides it between the axes). A researcher's effect written from one is a
+``wrench`` hook (deltatwin effect new --from).
 
-``joint_form`` is term_form's forward selection on the stacked readings: each (candidate,
-reading axis) pair is a column; the model's identified directions are always in the fit
-(Frisch-Waugh: the columns and the residual are taken orthogonal to them); a pair joins while it
-is significant on the calibration rows (partial F test, a scanned period or moment counted as
-a parameter, Bonferroni over the pairs) and lowers the validation residual power (zeros
-re-estimated on the calibration rows, the model's directions re-adjusted) by at least
-``MIN_SHARE`` of it; at most ``MAX_TERMS`` per axis. The rotations' candidates are tried only
-once no other qualifies (readings of the platform's response, attribution.py: an effect
-written from a rotation reading removes nothing of the load or backlash that tilts it).
+``joint_form`` is term_form's forward selection on the stacked readings. Each block it tries is
+a candidate on one reading axis; or on every axis at once with coefficients of its own per axis,
+for an error in where a motor sits (the direction of its last move, a sine of its angle: the
+kinematics show it on every axis); or a load's response with its shared coefficient. The
+model's identified directions are always in the fit (Frisch-Waugh: the columns and the
+residual are taken orthogonal to them); a block joins while it is significant on the
+calibration rows (partial F test, a scanned period or moment counted as a parameter,
+Bonferroni over the blocks) and lowers the validation residual power (zeros re-estimated on the
+calibration rows, the model's directions re-adjusted) by at least ``MIN_SHARE`` of it; at most
+``MAX_TERMS`` per axis. Then a backward pass: a block that no longer passes that test given the
+blocks that joined after it leaves (a step in time that followed a backlash's pattern of moves
+until the direction's offset joined). The rotations' candidates are tried only once no other
+qualifies (readings of the platform's response, attribution.py: an effect written from a
+rotation reading removes nothing of the load or backlash that tilts it).
 """
 from __future__ import annotations
 
@@ -40,7 +47,6 @@ from deltatwin.calibration.diagnosis.term_form import (
 )
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
-    _projected,
     group_offsets,
     residuals,
 )
@@ -48,6 +54,9 @@ from deltatwin.twin.effects import Effect, Parameter
 from deltatwin.twin.instruments.optics import AXES
 
 POWERS = (1, 2, 3)
+# columns projected in one pass of the model's directions (_Joint.columns): enough to
+# amortise the pass, few enough to keep the arrays small (n readings x this)
+COLUMNS_AT_ONCE = 64
 
 
 class CurrentLoad(Effect):
@@ -69,8 +78,10 @@ class CurrentLoad(Effect):
 
 def load_candidates(fit) -> list[Candidate]:
     """The load candidates of a fitted physics model (calibration.physics.fit.PhysicsFit): per
-    power, force direction and reading axis, the reading's response (N,) m per N, tried on that
-    axis only. None when the coil currents do not vary (no load to probe)."""
+    power and force direction, the readings' response on all three axes (N,3,1) m per N, one
+    term with one coefficient (the force): the compliance sets how it divides between the
+    axes, so none is fitted on one axis alone. None when the coil currents do not vary (no load
+    to probe)."""
     meas = fit.measurements_
     if not np.ptp(np.mean(meas.points.currents_A[:meas.n], axis=1)) > 0:
         return []
@@ -81,10 +92,10 @@ def load_candidates(fit) -> list[Candidate]:
         new[f.sl] = f.effect == CurrentLoad.name
     _, J = model.jacobian(meas, model.theta(), columns=new)
     response = J[:, :, new]                                   # (N,3,9) m per N
-    return [Candidate("load", "F_N", response[:, k, 3 * i + j][:, None], power=power, axis=k,
+    return [Candidate("load", "F_N", response[:, :, 3 * i + j, None], power=power,
                       extra={"direction": direction})
             for i, power in enumerate(POWERS) for j, direction in enumerate(AXES)
-            for k in range(3) if np.any(response[:, k, 3 * i + j])]
+            if np.any(response[:, :, 3 * i + j])]
 
 
 def _orthonormal(X: np.ndarray) -> np.ndarray:
@@ -101,48 +112,159 @@ class _Joint:
     on the calibration readings, session means out), and the validation residual that results
     (zeros re-estimated on the calibration rows), both linear in the added columns."""
 
+    # least_squares' kept factorisation of the leading blocks: (those blocks, Q, R, Q^T r,
+    # r - Q Q^T r, their column norms); none yet
+    _lead: tuple = (None,)
+
     def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
         meas = self.meas = fit.measurements_
         self.Qm = _orthonormal(Jm)
         self.r = r0 - self.Qm @ (self.Qm.T @ r0)
-        self.JS = JS
         self.pinv = np.linalg.pinv(Jm) if Jm.shape[1] else np.zeros((0, r0.size))
         # the model one linear step further: the reference every column is judged against
         change = JS @ (self.pinv @ r0) if Jm.shape[1] else 0.0
         pred = fit.prediction_ + change
         self.before = residuals(meas, pred, group_offsets(meas, pred, meas.cal))
-        self.val_groups = [((meas.group == g) & meas.val[:, None] & np.isfinite(self.before),
-                            (meas.group == g) & meas.cal[:, None]) for g in range(len(meas.groups))]
-        self.b = self._val(self.before[:, :, None])[:, 0]
-        self.axis_of = np.concatenate([np.nonzero(v)[1] for v, _ in self.val_groups])
+        # each group's readings (one reading axis), found once for the hundreds of columns
+        # projected here: (axis, its calibration rows, their place among the calibration
+        # readings (_projected's order), its validation rows, their place among those)
+        self.groups, n_cal, n_val = [], 0, 0
+        for g in range(len(meas.groups)):
+            in_group = meas.group == g
+            k = int(np.flatnonzero(in_group.any(axis=0))[0]) if in_group.any() else 0
+            cal_g = np.flatnonzero(in_group[:, k] & meas.cal)
+            val_g = np.flatnonzero(in_group[:, k] & meas.val & np.isfinite(self.before[:, k]))
+            self.groups.append((k, cal_g, slice(n_cal, n_cal + cal_g.size), val_g,
+                                slice(n_val, n_val + val_g.size)))
+            n_cal, n_val = n_cal + cal_g.size, n_val + val_g.size
+        self.n_cal, self.n_val = n_cal, n_val
+        self.axis_of = np.concatenate([np.full(val_g.size, k, np.intp)
+                                       for k, _, _, val_g, _ in self.groups])
+        self.b = self._val(self.before)
+        # the model's directions on the validation readings, and the parts of their pseudo-
+        # inverse and orthonormal basis on each axis' calibration readings: a column on one
+        # axis is projected with those alone
+        self.JS_val = self._val(JS)
+        on_axis = {k: np.concatenate([np.arange(n_cal)[sl] for a, _, sl, _, _ in self.groups
+                                      if a == k] or [np.zeros(0, np.intp)]) for k in range(3)}
+        self.pinv_on_axis = {k: self.pinv[:, i] for k, i in on_axis.items()}
+        self.Qm_on_axis = {k: self.Qm[i] for k, i in on_axis.items()}
         self.n_groups = len(meas.groups)
 
     def _val(self, X: np.ndarray) -> np.ndarray:
-        """Values X (N,3,c) on the validation readings, each group's calibration mean out."""
-        return np.concatenate([X[v] - (X[c].mean(axis=0) if c.any() else 0.0)
-                               for v, c in self.val_groups])
+        """Values X (N,3,...) on the validation readings, each group's calibration mean out."""
+        out = np.zeros((self.n_val,) + X.shape[2:])
+        for k, cal_g, _, val_g, sl in self.groups:
+            out[sl] = X[val_g, k] - (X[cal_g, k].mean(axis=0) if cal_g.size else 0.0)
+        return out
 
-    def columns(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Columns C (N,3,c): (on the calibration readings orthogonal to the model's directions,
-        the change of the validation residual per unit coefficient)."""
-        P = _projected(self.meas, self.meas.cal, C)
-        D = C - self.JS @ (self.pinv @ P) if self.pinv.shape[0] else C
+    def axis_columns(self, X: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Columns X (N,c) on reading axis ``k`` alone (zero on the others): as ``columns``."""
+        P = np.zeros((self.n_cal, X.shape[1]))
+        D = np.zeros((self.n_val, X.shape[1]))
+        for axis, cal_g, sl_cal, val_g, sl_val in self.groups:
+            if axis != k:
+                continue
+            mean = X[cal_g].mean(axis=0) if cal_g.size else 0.0
+            P[sl_cal] = X[cal_g] - mean
+            D[sl_val] = X[val_g] - mean
+        Pk = np.concatenate([P[sl] for a, _, sl, _, _ in self.groups if a == k]
+                            or [np.zeros((0, X.shape[1]))])
+        if self.pinv.shape[0]:
+            D -= self.JS_val @ (self.pinv_on_axis[k] @ Pk)
         if self.Qm.shape[1]:
-            P = P - self.Qm @ (self.Qm.T @ P)
-        return P, self._val(D)
+            P -= self.Qm @ (self.Qm_on_axis[k].T @ Pk)
+        return P, D
 
-    def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray]:
-        """(coefficients of the columns on the residual, per-axis validation power after)."""
+    def columns(self, Cs: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each array of columns C (N,3,c) of ``Cs``: (on the calibration readings orthogonal
+        to the model's directions, the change of the validation residual per unit
+        coefficient). Linear in C, so each reading axis' nonzero columns of all of them are
+        projected together (``axis_columns``, in batches of COLUMNS_AT_ONCE: one pass of the
+        model's directions over the readings per batch instead of one per array) and summed
+        back."""
+        out = [(np.zeros((self.n_cal, C.shape[2])), np.zeros((self.n_val, C.shape[2])))
+               for C in Cs]
+        for k in range(3):
+            parts = [(i, cols) for i, C in enumerate(Cs)
+                     for cols in [np.flatnonzero(np.any(C[:, k] != 0, axis=0))] if cols.size]
+            for start in range(0, len(parts), COLUMNS_AT_ONCE):
+                batch = parts[start:start + COLUMNS_AT_ONCE]
+                P, D = self.axis_columns(np.hstack([Cs[i][:, k, cols] for i, cols in batch]), k)
+                at = 0
+                for i, cols in batch:
+                    out[i][0][:, cols] += P[:, at:at + cols.size]
+                    out[i][1][:, cols] += D[:, at:at + cols.size]
+                    at += cols.size
+        return out
+
+    def least_squares(self, Ps: list) -> tuple[np.ndarray, int]:
+        """(coefficients, rank) of the residual's least squares on the blocks of columns
+        ``Ps`` [(n,c)]: as np.linalg.lstsq on the columns scaled to unit norm (the minimum-norm
+        solution; singular values below eps max(n, p) of the largest do not count), from an
+        orthogonal factorisation. The forward selections refit the blocks chosen so far with
+        each candidate block in turn: the factorisation of all blocks but the last is kept
+        while they lead the calls, so a trial costs its own block's projection, not a
+        factorisation of them all."""
+        lead, last = Ps[:-1], Ps[-1]
+        kept = self._lead[0]
+        if (kept is None or len(lead) != len(kept)
+                or any(a is not b for a, b in zip(lead, kept))):
+            self._lead = (list(lead), *self._factorised(lead))
+        _, Q, R, Qr, r_rest, norm_lead = self._lead
+        norm = np.linalg.norm(last, axis=0)
+        norm[norm == 0] = 1.0
+        X = last / norm
+        W = Q.T @ X
+        Y = X - Q @ W
+        again = Q.T @ Y                      # twice is enough (Gram-Schmidt's lost digits)
+        Y -= Q @ again
+        W += again
+        # the last block's triangle, and the residual's coordinates on its orthonormal basis
+        # (the residual less its part on the others' basis: the same to rounding), from one
+        # triangular factorisation without forming that basis
+        c = Y.shape[1]
+        R_aug = np.linalg.qr(np.column_stack([Y, r_rest]), mode="r")
+        R = np.block([[R, W], [np.zeros((c, R.shape[1])), R_aug[:c, :c]]])
+        U, sv, Vt = np.linalg.svd(R)
+        rank = int(np.sum(sv > np.finfo(float).eps * max(self.r.size, R.shape[1]) * sv[0]))
+        t = np.concatenate([Qr, R_aug[:c, c]])
+        coef = Vt[:rank].T @ ((U[:, :rank].T @ t) / sv[:rank])
+        return coef / np.concatenate([norm_lead, norm]), rank
+
+    def _factorised(self, Ps: list) -> tuple:
+        """(Q, R, Q^T r, r - Q Q^T r, column norms) of the blocks ``Ps`` side by side, columns
+        at unit norm (r: the residual)."""
         if not Ps:
-            return np.zeros(0), self.axis_power(self.b)
+            return (np.zeros((self.r.size, 0)), np.zeros((0, 0)), np.zeros(0), self.r,
+                    np.zeros(0))
         X = np.hstack(Ps)
         norm = np.linalg.norm(X, axis=0)
         norm[norm == 0] = 1.0
-        coef = np.linalg.lstsq(X / norm, self.r, rcond=None)[0] / norm
-        return coef, self.axis_power(self.b - np.hstack(Ds) @ coef)
+        Q, R = np.linalg.qr(X / norm)
+        Qr = Q.T @ self.r
+        return Q, R, Qr, self.r - Q @ Qr, norm
+
+    def fit(self, Ps: list, Ds: list) -> tuple[np.ndarray, np.ndarray, float, int]:
+        """(coefficients of the columns on the residual, per-axis validation power after, the
+        calibration residual's sum of squares after, the columns' rank)."""
+        if not Ps:
+            return np.zeros(0), self.axis_power(self.b), float(self.r @ self.r), 0
+        coef, rank = self.least_squares(Ps)
+        e = self.r - _times(Ps, coef)
+        return coef, self.axis_power(self.b - _times(Ds, coef)), float(e @ e), rank
 
     def axis_power(self, e: np.ndarray) -> np.ndarray:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
+
+
+def _times(blocks: list, coef: np.ndarray) -> np.ndarray:
+    """The blocks of columns side by side times ``coef``, without joining them."""
+    out, at = 0.0, 0
+    for X in blocks:
+        out = out + X @ coef[at:at + X.shape[1]]
+        at += X.shape[1]
+    return out
 
 
 class JointFrame:
@@ -161,53 +283,55 @@ class JointFrame:
         self.n_axes = len(self.axes)
         self.shape = meas.y.shape
 
-    def block(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
+    def blocks(self, terms: list[Term]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each term's columns on the fit's readings (``_Joint.columns``): a term of (N,p)
+        columns on every axis of the target with coefficients of its own (axis-major), an
+        (N,3,p) one as it is; COLUMNS_AT_ONCE terms' columns projected together."""
+        out = []
+        for start in range(0, len(terms), COLUMNS_AT_ONCE):
+            out += self.joint.columns([self._placed(t)
+                                       for t in terms[start:start + COLUMNS_AT_ONCE]])
+        return out
+
+    def _placed(self, term: Term) -> np.ndarray:
         X = term.columns
-        if X.ndim == 2:
-            X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
-            C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
-            for i, k in enumerate(self.axes):
-                C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
-        else:
-            C = np.nan_to_num(X)
-        return self.joint.columns(C)
+        if X.ndim != 2:
+            return np.nan_to_num(X)
+        X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
+        C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
+        for i, k in enumerate(self.axes):
+            C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
+        return C
 
     def n_val(self) -> dict:
         return {k: int(np.sum(self.joint.axis_of == k)) for k in self.axes}
 
     def fit(self, blocks: list) -> dict:
         """As attribution.AxisFrame.fit."""
-        r, joint = self.joint.r, self.joint
-        if blocks:
-            X = np.hstack([P for P, _ in blocks])
-            norm = np.linalg.norm(X, axis=0)
-            norm[norm == 0] = 1.0
-            coef, _, rank, _ = np.linalg.lstsq(X / norm, r, rcond=None)
-            coef = coef / norm
-            e = r - X @ coef
-            val = joint.axis_power(joint.b - np.hstack([D for _, D in blocks]) @ coef)
-        else:
-            e, rank, val = r, 0, joint.axis_power(joint.b)
-        return {"rss_cal": float(e @ e), "rank": int(rank),
-                "dof": r.size - joint.Qm.shape[1] - int(rank) - joint.n_groups,
+        joint = self.joint
+        _, val, rss, rank = joint.fit([P for P, _ in blocks], [D for _, D in blocks])
+        return {"rss_cal": rss, "rank": rank,
+                "dof": joint.r.size - joint.Qm.shape[1] - rank - joint.n_groups,
                 "val_power": float(val.sum()), "val_by_axis": {k: float(val[k]) for k in self.axes}}
 
 
-def load_terms(candidates: list[Candidate], shape: tuple) -> list[Term]:
+def load_terms(candidates: list[Candidate]) -> list[Term]:
     """attribution.py's terms of the force from ``load_candidates``: one per power and
-    direction of the load, its response on each reading axis with a coefficient of its own (as
-    the form fits it)."""
-    groups = {}
-    for cand in candidates:
-        if cand.kind == "load":
-            groups.setdefault((cand.power, cand.extra["direction"]), []).append(cand)
-    terms = []
-    for (power, direction), cands in groups.items():
-        C = np.zeros(shape + (len(cands),))
-        for i, cand in enumerate(cands):
-            C[:, cand.axis, i] = cand.columns[:, 0]
-        terms.append(Term(cand.variable, f"load I^{power} along {direction}", C))
-    return terms
+    direction of the load, its response on every reading axis with one coefficient (the
+    force), as the form fits it."""
+    return [Term(c.variable, f"load I^{c.power} along {c.extra['direction']}", c.columns)
+            for c in candidates if c.kind == "load"]
+
+
+def _on_every_axis(cand: Candidate) -> bool:
+    """Whether a candidate is tried on every reading axis at once (coefficients of its own per
+    axis): an error in where a motor sits (the direction of its last move: a backlash; a sine
+    of its angle: an encoder's periodic error) moves the platform, so the kinematics show it on
+    every axis; fitted on one axis at a time, another function can take its place on a weaker
+    axis (a motor's coordinate that follows its moves on a grid) and the effect written from
+    the form misses it there."""
+    return cand.kind == "sign" or (cand.kind == "sine" and cand.variable.startswith("q")
+                                   and cand.variable.endswith("_rad"))
 
 
 def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
@@ -250,6 +374,33 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
                 continue
             break
         chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
+    return _backward(joint, blocks, chosen, limit, min_share * p0)
+
+
+def _backward(joint: _Joint, blocks: list, chosen: list[int], limit: float,
+              min_power: float) -> list[int]:
+    """``chosen`` without the blocks that no longer pass the joining test given all the others
+    (significant at ``limit``, lowering the validation power by ``min_power``): a block that
+    joined early can be explained by those that joined after it (a step in time that followed
+    a backlash's pattern of moves until the direction's offset joined); the one that explains
+    least on validation leaves first, then the rest are tested again."""
+    fit = lambda idx: joint.fit([blocks[j][0] for j in idx], [blocks[j][1] for j in idx])
+    n = joint.r.size
+    while len(chosen) > 1:
+        _, val, rss, rank = fit(chosen)
+        df2 = n - joint.Qm.shape[1] - rank - joint.n_groups
+        failing = []
+        for i in chosen:
+            _, val_o, rss_o, rank_o = fit([j for j in chosen if j != i])
+            kk = rank - rank_o + blocks[i][2]
+            gain = float(val_o.sum() - val.sum())
+            significant = (kk > 0 and df2 > 0 and rss > 0 and special.fdtrc(
+                kk, df2, ((rss_o - rss) / kk) / (rss / df2)) < limit)
+            if not significant or gain < min_power:
+                failing.append((gain, i))
+        if not failing:
+            break
+        chosen = [j for j in chosen if j != min(failing)[1]]
     return chosen
 
 
@@ -280,17 +431,31 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     candidates = candidate_library(variables, target) + (load_candidates(fit) if loads is None
                                                          else loads)
     axes = [k for k, _, _ in target.axes]
-    pairs = []                        # (candidate, axis, C (N,3,c), P, D)
+    # the blocks the selection tries: (candidate, {reading axis: its coefficients' slice}, C
+    # (N,3,p), P, D); a function fitted on one axis, on every axis with coefficients of its own
+    # (a motor's error) or on every axis with shared ones (a load's response); their columns
+    # projected together (_Joint.columns)
+    tried, pairs = [], []
     for cand in candidates:
-        for k in ([cand.axis] if cand.axis is not None else axes):
-            if k not in axes:
-                continue
-            C = np.zeros(meas.y.shape + (cand.columns.shape[1],))
-            C[:, k] = np.nan_to_num(cand.columns)
-            P, D = joint.columns(C)
+        c = cand.columns.shape[-1]
+        if cand.columns.ndim == 3:
+            layouts = [({k: slice(0, c) for k in axes}, np.nan_to_num(cand.columns))]
+        else:
+            layouts = []
+            for group in ([axes] if _on_every_axis(cand) else [[k] for k in axes]):
+                C = np.zeros(meas.y.shape + (c * len(group),))
+                for i, k in enumerate(group):
+                    C[:, k, i * c:(i + 1) * c] = np.nan_to_num(cand.columns)
+                layouts.append(({k: slice(i * c, (i + 1) * c) for i, k in enumerate(group)}, C))
+        tried += [(cand, layout, C) for layout, C in layouts]
+    for start in range(0, len(tried), COLUMNS_AT_ONCE):
+        batch = tried[start:start + COLUMNS_AT_ONCE]
+        for (cand, layout, C), (P, D) in zip(batch, joint.columns([C for _, _, C in batch])):
             if np.linalg.norm(P) > 0:
-                pairs.append((cand, k, C, P, D))
-    per_axis = lambda chosen, i: sum(pairs[j][1] == pairs[i][1] for j in chosen) < max_terms
+                pairs.append((cand, layout, C, P, D))
+    on = lambda j, k: k in pairs[j][1]
+    per_axis = lambda chosen, i: all(sum(on(j, k) for j in chosen) < max_terms
+                                     for k in pairs[i][1])
     responses = {v.name for v in variables if v.response}
     chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
                       per_axis, frozenset(i for i, pair in enumerate(pairs)
@@ -298,18 +463,27 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     if not chosen:
         return empty
     fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])
-    coefs, p_full = fit_of(chosen)
+    coefs, p_full, _, _ = fit_of(chosen)
     per_term = np.split(coefs, np.cumsum([pairs[j][2].shape[2] for j in chosen])[:-1])
+    shares = {}         # (term, axis): the share of the axis' power the term alone explains
+    for j in chosen:
+        without = fit_of([m for m in chosen if m != j])[1]
+        for k in pairs[j][1]:
+            shares[j, k] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
+    # a term on several axes is listed on those where it explains at least a joining term's
+    # share, and on its strongest
+    listed = {(j, k) for (j, k), share in shares.items()
+              if share >= min_share or share == max(v for (m, _), v in shares.items() if m == j)}
     form = []
-    for k in sorted({pairs[j][1] for j in chosen}):
+    for k in axes:
         terms = []
         for j, c in zip(chosen, per_term):
-            if pairs[j][1] != k:
-                continue
-            _, without = fit_of([m for m in chosen if m != j])
-            term = pairs[j][0].describe(c)
-            term["explained_fraction"] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
-            terms.append(term)
+            if (j, k) in listed:
+                term = pairs[j][0].describe(c[pairs[j][1][k]])
+                term["explained_fraction"] = shares[j, k]
+                terms.append(term)
+        if not terms:
+            continue
         terms.sort(key=lambda t: -t["explained_fraction"])
         n_val = max(int(np.sum(joint.axis_of == k)), 1)
         if 1.0 - p_full[k] / p0_axes[k] < min_share:

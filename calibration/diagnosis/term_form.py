@@ -79,10 +79,11 @@ def _about(v: str, centre: float, unit: str) -> str:
 
 @dataclass
 class Candidate:
-    """One function of the library: ``columns`` (N,k) SI, the ``kind`` (poly, sine, step,
-    ramp, sign, product, load) with what defines it (variable, power, period, moment, centre;
-    ``axis``: the only reading axis it applies to, e.g. a load's response on that axis,
-    model_form.py)."""
+    """One function of the library: ``columns`` (N,k) SI, fitted on each reading axis with
+    coefficients of its own, or (N,3,k) already the readings' response on every axis with k
+    coefficients shared by the axes (a load's, model_form.py); the ``kind`` (poly, sine,
+    step, ramp, sign, product, load) with what defines it (variable, power, period, moment,
+    centre)."""
     kind: str
     variable: str
     columns: np.ndarray
@@ -92,7 +93,6 @@ class Candidate:
     moment_s: float | None = None
     centre: float = 0.0
     extra: dict = field(default_factory=dict)
-    axis: int | None = None
 
     def describe(self, coef_m: np.ndarray) -> dict:
         """The term with coefficients ``coef_m`` (m per column): a printable formula (nm) and

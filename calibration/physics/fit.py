@@ -333,9 +333,18 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
             cost_new = float(r_new @ r_new)
         except KinematicsError:
             cost_new = math.inf
-        log.debug("evaluation %d: cost %.6g -> %.6g (predicted %.6g; Jacobian %s, |step| %.3g "
-                  "of radius %.3g)", evaluations, cost, cost_new, cost - predicted,
-                  "exact" if exact else "re-used", length, radius)
+        if log.isEnabledFor(logging.DEBUG):
+            # the actual over the predicted fall, and where the step goes: a curved valley
+            # of weakly determined directions shows as steps into the last directions (the
+            # start's identified ones, strongest first) whose gain falls with their length
+            share = step ** 2 / max(length * length, 1e-300)
+            most = int(np.argmax(share)) if step.size else 0
+            log.debug("evaluation %d: cost %.6g -> %.6g (predicted %.6g, gain %.3g; Jacobian %s, "
+                      "|step| %.3g of radius %.3g, %.0f %% along direction %d of %d)",
+                      evaluations, cost, cost_new, cost - predicted,
+                      (cost - cost_new) / predicted if predicted > 0 else math.nan,
+                      "exact" if exact else "re-used", length, radius,
+                      100 * share[most] if step.size else 0.0, most + 1, step.size)
         if math.isfinite(cost_new) and cost_new < cost:
             gain = (cost - cost_new) / predicted if predicted > 0 else 0.0
             # Broyden's update: the Jacobian that reproduces the step's residual change

@@ -16,18 +16,23 @@ from deltatwin.models import batched
 from deltatwin.models.geometry import build_geometry, part_scales
 from deltatwin.models.kinematics import (
     Pose,
-    elbow_points,
     forward,
-    pose_derivative,
+    pose_adjoint,
     rod_residuals,
     rod_vectors,
+    rotate_about_axis,
 )
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, effect_spec, make_effect
-from deltatwin.twin.instruments.optics import AXES, optical_path, optical_path_pose_gradient
+from deltatwin.twin.instruments.optics import (
+    AXES,
+    Optics,
+    double_pass_reading,
+    optical_path,
+    optical_path_pose_gradient,
+)
 from deltatwin.twin.world import (
     Truth,
-    deflection,
     geometry_temperatures,
     instrument_optics,
     kinematic_pose,
@@ -104,6 +109,15 @@ def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
             return estimates[-3]                    # round-off took over at the last halving
         changes.append(change)
     return estimates[-1]
+
+
+def _as_slice(index: np.ndarray):
+    """Sorted column indices as a slice when they are one range: assigning an (N, ..., k)
+    block through a slice is a strided copy, through an index array or a mask a gather and
+    scatter ~30x slower."""
+    if index.size and index[-1] - index[0] + 1 == index.size:
+        return slice(int(index[0]), int(index[-1]) + 1)
+    return index
 
 
 class Stage(NamedTuple):
@@ -222,14 +236,18 @@ class PhysicsModel:
     def free_by_stage(self) -> dict[str, np.ndarray]:
         """Masks over theta by the first stage a parameter changes: ``robot`` (the geometry),
         ``temperatures`` (the part temperatures), or ``load_optics`` (the kinematics can be
-        re-used)."""
-        out = {k: np.zeros(self.n_free, bool) for k in ("robot", "temperatures", "load_optics")}
+        re-used); and ``part_scales``, the ``temperatures`` parameters that change nothing but
+        the part temperatures the geometry is scaled by (a CTE factor: not what the sensors
+        read, nor where the motors sit)."""
+        out = {k: np.zeros(self.n_free, bool)
+               for k in ("robot", "temperatures", "load_optics", "part_scales")}
         for f in self.free:
             stages = self.classes[f.effect].model_stages()
             key = ("temperatures" if {"sensed_parts", "part_temperatures", "motor_angles"}
                    & set(stages) else
                    "robot" if "robot" in stages else "load_optics")
             out[key][f.sl] = True
+            out["part_scales"][f.sl] = stages == ("part_temperatures",)
         return out
 
     # -- evaluation ---------------------------------------------------------------------------
@@ -292,6 +310,41 @@ class PhysicsModel:
                           for a in AXES], axis=1),
                 np.stack([optics.n_comp[a] for a in AXES], axis=1))
 
+    def _optics_at(self, meas: Measurements, stage: Stage, truth: Truth) -> dict:
+        """What a step of one optics effect's parameter re-uses (``_stepped_optics_paths``):
+        per effect, the optics the effects before it make at the stage (they do not change),
+        and the geometric reading h cos(alpha) per axis at the deflected pose."""
+        pts = self._stage_points(meas, stage)
+        optics = Optics.nominal(stage.cube_home, pts.t_s.shape[0], n_nominal=1.0)
+        before = {}
+        for e in self.effects:
+            before[e.name] = optics
+            optics = instrument_optics([e], pts, stage.cube_home, start=optics)
+        size = stage.params.mirror_cube_size_m
+        return {"before": before,
+                "reading": {a: double_pass_reading(truth.pose, stage.geom.cube_offset, size, a,
+                                                   *truth.optics.beam(a)) for a in AXES}}
+
+    def _stepped_optics_paths(self, meas: Measurements, stage: Stage, truth: Truth, effect,
+                              optics_at: dict) -> tuple[np.ndarray, np.ndarray]:
+        """``_optics_paths`` at the deflected pose after a step of a parameter of ``effect``:
+        only that effect and those after it are applied, on the optics the ones before it make
+        (``optics_at``), and a beam whose head, direction (and fold mirror) the step left as
+        they were keeps its geometric reading (an index parameter: only n changes). Equal to
+        ``_optics_paths`` bit for bit."""
+        pts = self._stage_points(meas, stage)
+        optics = instrument_optics(self.effects[self.names.index(effect.name):], pts,
+                                   stage.cube_home, start=optics_at["before"][effect.name])
+        at_theta, size = truth.optics, stage.params.mirror_cube_size_m
+        paths = []
+        for a in AXES:
+            same_beam = (np.array_equal(optics.head[a], at_theta.head[a])
+                         and np.array_equal(optics.direction[a], at_theta.direction[a])
+                         and (a != "z" or np.array_equal(optics.fold, at_theta.fold)))
+            paths.append(optics.n_air[a] * optics_at["reading"][a] if same_beam else
+                         optical_path(truth.pose, stage.geom.cube_offset, size, optics, a))
+        return np.stack(paths, axis=1), np.stack([optics.n_comp[a] for a in AXES], axis=1)
+
     @staticmethod
     def _counted(meas: Measurements, path: np.ndarray, n_comp: np.ndarray,
                  derivative: bool = False) -> np.ndarray:
@@ -299,9 +352,9 @@ class PhysicsModel:
         the data show it (cosine corrected or not): (N, 3, ...) from paths (N + S, 3, ...).
         ``derivative``: paths are derivatives, so the correction's constant term drops out."""
         n = meas.n
-        d = path[:n] - path[meas.zero_row]
+        counted = path[:n] - path[meas.zero_row]
         f = meas.cos_scale / n_comp[:n]
-        counted = d * f.reshape(f.shape + (1,) * (d.ndim - 2))
+        counted *= f.reshape(f.shape + (1,) * (counted.ndim - 2))   # in place: (N, 3, p) is big
         return counted if derivative else counted + meas.cos_offset
 
     def _observe(self, meas: Measurements, stage, wrench: np.ndarray | None = None) -> np.ndarray:
@@ -344,28 +397,39 @@ class PhysicsModel:
         by = self.free_by_stage()
         wanted = np.ones(theta.size, bool) if columns is None else np.asarray(columns, bool)
         pts, q = meas.points, meas.points.q
-        moving = np.flatnonzero(wanted & ~by["load_optics"])
-        d_residuals = np.zeros((q.shape[0], 6, moving.size))   # rod equations at the fixed pose
-        d_home = np.zeros((3, moving.size))
+        # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
+        # derivative at the fixed pose (N + S, 6, k), the home's (3, k) or None: it stays)
+        moving = []
+        # the rods (P - A) and platform hinges (R P0) at the points, (N + S, 3, 2, 3) each
+        rods = rod_vectors(stage.geom, q, stage.kin) if np.any(wanted & ~by["load_optics"]) \
+            else None
         robot = wanted & by["robot"]
         if robot.any():
-            d_residuals[:, :, np.isin(moving, np.flatnonzero(robot))], \
-                d_home[:, np.isin(moving, np.flatnonzero(robot))] = \
-                self._robot_derivatives(meas, theta, stage, np.flatnonzero(robot),
-                                        GEOMETRY_STEP * self.scales)
+            moving.append((np.flatnonzero(robot), *self._robot_derivatives(
+                meas, theta, stage, np.flatnonzero(robot), GEOMETRY_STEP * self.scales,
+                rods[0])))
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
         gradient, response = self._pose_gradients(meas, stage, truth)
-        if np.any(wanted & ~by["robot"] & ~by["load_optics"]):
+        scaling = wanted & by["part_scales"]
+        if scaling.any():
+            d_rods, direct = self._part_scale_derivatives(meas, theta, stage, truth, gradient,
+                                                          np.flatnonzero(scaling), rods)
+            moving.append((np.flatnonzero(scaling), d_rods, None))
+            J[:, :, _as_slice(np.flatnonzero(scaling))] = self._counted(meas, direct, n_comp,
+                                                                        derivative=True)
+        if np.any(wanted & ~by["robot"] & ~by["load_optics"] & ~by["part_scales"]):
             # theta's rod equations (~0 at the solved pose) and readings: the third
             # difference that lets a nearly linear column keep three evaluations
             pts = self._stage_points(meas, stage)
             at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
                         A)
-        for j in np.flatnonzero(wanted & ~by["robot"]):
+        optics_at = self._optics_at(meas, stage, truth) if np.any(wanted & by["load_optics"]) \
+            else None
+        for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"]):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
-                                                      response, n_comp, A)
+                                                      response, n_comp, A, optics_at)
                 continue
 
             def evaluate(offset, j=j):
@@ -379,16 +443,21 @@ class PhysicsModel:
                 return (rod_residuals(geom_j, motor_positions(self.effects, pts), stage.kin),
                         self._observe(meas, stage._replace(geom=geom_j, node_T=pts.node_T)))
 
-            d_residuals[:, :, np.searchsorted(moving, j)], J[:, :, j] = richardson_derivative(
+            d_rods, J[:, :, j] = richardson_derivative(
                 evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M, at_zero=at_theta)
+            moving.append((np.array([j]), d_rods[..., None], None))
         self.set_theta(theta)
-        if moving.size:
+        if moving:
             d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient, response)
             # the chain rule per point: the paths' derivative through the kinematic pose
-            # (adjoint: three right-hand sides, not one per parameter) and the home
-            out = pose_derivative(stage.geom, q, stage.kin, d_residuals, through=d_kin)
-            J[:, :, moving] += self._counted(meas, out + d_home_path @ d_home, n_comp,
-                                             derivative=True)
+            # (adjoint: three right-hand sides, not one per parameter), block by block (no
+            # (N + S, 6, k) array of every column), and the home's (one product)
+            adjoint = pose_adjoint(stage.geom, q, stage.kin, d_kin, rods)
+            for cols, d_rods, d_home in moving:
+                out = -(adjoint @ d_rods)
+                if d_home is not None:
+                    out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)
+                J[:, :, _as_slice(cols)] += self._counted(meas, out, n_comp, derivative=True)
         return A, J
 
     def _pose_gradients(self, meas: Measurements, stage: Stage,
@@ -402,20 +471,20 @@ class PhysicsModel:
         gradient = np.stack([optical_path_pose_gradient(truth.pose, stage.geom.cube_offset,
                                                         size, truth.optics, a) for a in AXES],
                             axis=1)
-        preload, C = meas.statics(self.params)
-        y = deflection(preload, C, truth.wrench)
-        turn = batched.left_jacobian(y[:, 3:].T)                       # (3, 3, N + S)
+        _, C = meas.statics(self.params)
+        turn = batched.left_jacobian(truth.deflection[:, 3:].T)        # (3, 3, N + S)
         d_path_d_y = np.concatenate(
-            [gradient[:, :, :3], np.einsum("nai,ijn->naj", gradient[:, :, 3:], turn)], axis=2)
-        return gradient, np.einsum("nai,nij->naj", d_path_d_y, C)
+            [gradient[:, :, :3], gradient[:, :, 3:] @ turn.transpose(2, 0, 1)], axis=2)
+        return gradient, d_path_d_y @ C
 
     def _load_optics_column(self, meas: Measurements, theta, j: int, effect, stage: Stage,
                             truth: Truth, response: np.ndarray, n_comp: np.ndarray,
-                            A: np.ndarray) -> np.ndarray:
+                            A: np.ndarray, optics_at: dict) -> np.ndarray:
         """(N,3) the readings' derivative in the load or optics parameter ``j`` of ``effect``:
         its wrench's derivative through the compliance (``response``: the paths' derivative
         in the wrench) plus its optics' derivative at the deflected pose. Each is a difference
-        of that effect's wrench, or of the optics alone, never of a whole load stage."""
+        of that effect's wrench, or of the optics alone (``_stepped_optics_paths``, from
+        ``optics_at``), never of a whole load stage."""
         stages = self.classes[effect.name].model_stages()
         pts = self._stage_points(meas, stage)
         n_rows = pts.t_s.shape[0]
@@ -430,7 +499,8 @@ class PhysicsModel:
                 w = effect.wrench(pts)
                 out.append(np.zeros((n_rows, 6)) if w is None else w)
             if "optics" in stages:
-                out.append(self._counted(meas, *self._optics_paths(meas, stage, truth.pose)))
+                out.append(self._counted(meas, *self._stepped_optics_paths(
+                    meas, stage, truth, effect, optics_at)))
             return tuple(out)
 
         at_zero = []                          # theta's: the effect's wrench, the readings A
@@ -452,7 +522,55 @@ class PhysicsModel:
             column += d[-1]
         return column
 
-    def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps):
+    def _part_scale_derivatives(self, meas, theta, stage: Stage, truth: Truth, gradient,
+                                cols, rods: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """For parameters ``cols`` that change only the part temperatures the geometry is
+        scaled by: the rod equations' derivative at the fixed pose (N + S, 6, k) and the paths'
+        at the fixed deflected pose (N + S, 3, k), analytic in the parts' thermal factors.
+        Every joint array of a part is its factor s times the robot's (build_geometry), so a
+        parameter moving log s by g moves the platform hinges R P0, the base joints B, the
+        arm vectors A - B and the rod lengths L by g times themselves: with the rod P - A,
+        d f / 2 = (P - A) . (R P0 g_platform - B g_base - (A - B) g_arm) - L^2 g_rod, and the
+        mirror cube (R times the cube offset, g_platform) moves the paths through their
+        gradient in the deflected position. Only g is differenced, with the stencils of
+        ``richardson_derivative`` on the factors alone (a CTE factor's are linear in it)."""
+        pts = self._stage_points(meas, stage)
+        n = pts.t_s.shape[0]
+        shapes = ((n,), (n, 3), (n, 3, 2), (n,))          # base, arms, rods, platform
+
+        def factors(offset=0.0, j=None):
+            th = theta.copy()
+            if j is not None:
+                th[j] += offset
+            self.set_theta(th)
+            scales = part_scales(stage.params, geometry_temperatures(self.effects, pts) or None)
+            return (np.concatenate([np.broadcast_to(s, shape).reshape(n, -1)
+                                    for s, shape in zip(scales, shapes)], axis=1),)
+
+        s = factors()
+        g = np.stack([richardson_derivative(lambda o, j=j: factors(o, j), self.scales[j],
+                                            at_zero=s)[0] for j in cols], axis=-1) / s[0][..., None]
+        self.set_theta(theta)
+        g_base, g_arm, g_rod, g_plat = (g[:, 0], g[:, 1:4], g[:, 4:10].reshape(n, 3, 2, -1),
+                                        g[:, 10])
+        geom = stage.geom
+        q = motor_positions(self.effects, pts)         # (``rods``: at the encoders' readings)
+        rod, w = rods if q is pts.q else rod_vectors(geom, q, stage.kin)
+        B, L, cube = ((geom.B, geom.L, geom.cube_offset) if geom.batched else
+                      (geom.B[None], geom.L[None], geom.cube_offset[None]))   # (1|N, ...)
+        B = B[:, :, None, :]
+        arm = stage.kin.p[:, None, None, :] + w - rod - B             # A - B, (N, 3, 2, 3)
+        rod_dot = lambda v: rod[..., 0] * v[..., 0] + rod[..., 1] * v[..., 1] \
+            + rod[..., 2] * v[..., 2]
+        d_rods = 2 * (rod_dot(w)[..., None] * g_plat[:, None, None]
+                      - rod_dot(np.broadcast_to(B, rod.shape))[..., None] * g_base[:, None, None]
+                      - rod_dot(arm)[..., None] * g_arm[:, :, None]
+                      - (L ** 2)[..., None] * g_rod)
+        cube = np.einsum("nij,nj->ni", truth.pose.R, np.broadcast_to(cube, (n, 3)))  # world
+        direct = np.einsum("nai,ni->na", gradient[:, :, :3], cube)[..., None] * g_plat[:, None]
+        return d_rods.reshape(n, 6, -1), direct
+
+    def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps, rod: np.ndarray):
         """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
         (N + S, 6, k) and the home's (3, k). Each point's joint arrays are the robot's at its
         parameters' temperatures times the parts' thermal factors at the point
@@ -483,11 +601,28 @@ class PhysicsModel:
                         np.zeros((len(geoms), 3)), check=False).p
         diff = []
         for i, j in enumerate(cols):
-            sides = [(g.B, elbow_points(g, g.theta(qu)) - g.B[None, :, None, :], g.P0, g.L,
-                      home) for g, home in zip(geoms[2 * i:2 * i + 2], homes[2 * i:2 * i + 2])]
+            sides = [(g.B, g.P0, g.L, home)
+                     for g, home in zip(geoms[2 * i:2 * i + 2], homes[2 * i:2 * i + 2])]
             diff.append([(a - b) / (2 * steps[j]) for a, b in zip(*sides)])
-        dB, d_arm, dP0, dL, d_home = (np.stack(x, axis=-1) for x in zip(*diff))
-        rod, _ = rod_vectors(stage.geom, q, stage.kin)                  # (N + S, 3, 2, 3)
+        dB, dP0, dL, d_home = (np.stack(x, axis=-1) for x in zip(*diff))
+        # the arms (B -> elbow hinge, rotated by the arm angles of the distinct motor
+        # coordinates): only the parameters that change an arm's axis, vector or zero angle
+        # move them (a joint or rod error does not: zero), all stepped robots in one rotation
+        arm_arrays = ("axis", "arm_vec", "theta_zero")
+        turning = np.array([not all(np.array_equal(getattr(geoms[2 * i], f),
+                                                   getattr(geoms[2 * i + 1], f))
+                                    for f in arm_arrays) for i in range(cols.size)], bool)
+        d_arm = np.zeros((qu.shape[0], 3, 2, 3, cols.size))
+        if turning.any():
+            moved = [g for i in np.flatnonzero(turning) for g in geoms[2 * i:2 * i + 2]]
+            axis, arm_vec, theta_zero = (np.stack([getattr(g, f) for g in moved])
+                                         for f in arm_arrays)
+            arms = rotate_about_axis(axis[:, None, :, None, :],
+                                     (qu[None] + theta_zero[:, None])[..., None],
+                                     arm_vec[:, None])             # (2 k', M, 3, 2, 3)
+            step = 2 * steps[cols[turning]]
+            d_arm[..., turning] = np.moveaxis((arms[0::2] - arms[1::2])
+                                              / step[:, None, None, None, None], 0, -1)
         n, k = q.shape[0], cols.size
         # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL, each
         # hinge its part's factor times the robot's: the elbow hinges first, each point's rod
@@ -501,7 +636,8 @@ class PhysicsModel:
         # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
         # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
         point_terms = np.concatenate(
-            [np.einsum("nisc,ncb->nisb", rod, stage.kin.R) * s_plat[..., None, None, None],
+            [(rod.reshape(n, 6, 3) @ stage.kin.R).reshape(n, 3, 2, 3)
+             * s_plat[..., None, None, None],
              -rod * s_base[..., None, None, None],
              -np.broadcast_to(stage.geom.L * s_rod, (n, 3, 2))[..., None]], axis=-1)
         joint_terms = np.concatenate([dP0, np.broadcast_to(dB[:, None], (3, 2, 3, k)),
@@ -523,11 +659,9 @@ class PhysicsModel:
         coils). The wrench's and the instruments' derivatives are central differences of
         those stages alone."""
         kin = stage.kin
-        preload, C = meas.statics(self.params)
-        y = deflection(preload, C, truth.wrench)
-        turn = batched.rotation_matrices(y[:, 3:].T)                   # (3, 3, N + S)
+        turn = batched.rotation_matrices(truth.deflection[:, 3:].T)    # (3, 3, N + S)
         d_kin = np.concatenate([gradient[:, :, :3],
-                                np.einsum("nai,ijn->naj", gradient[:, :, 3:], turn)], axis=2)
+                                gradient[:, :, 3:] @ turn.transpose(2, 0, 1)], axis=2)
         d_home_path = np.zeros(d_kin.shape[:2] + (3,))
         loads = [e for e in self.effects if "wrench" in self.classes[e.name].model_stages()]
         pts = self._stage_points(meas, stage)

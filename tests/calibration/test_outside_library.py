@@ -140,6 +140,29 @@ def test_noise_is_attributed_to_nothing():
     assert 2490 <= step["moment_s"] <= 2510
 
 
+def test_a_term_the_later_terms_explain_leaves_the_form():
+    # the residual is b + c; a proxy a = b + 0.8 c + noise lowers it most, so it joins first,
+    # then b and c join and explain all a did: the backward pass drops a (as a step in time that
+    # followed a backlash's moves until the direction's offset joined)
+    from deltatwin.calibration.diagnosis.model_form import _forward, _Joint
+
+    rng = np.random.default_rng(21)
+    n_cal, n_val = 400, 200
+    cols = rng.standard_normal((n_cal + n_val, 3))
+    b, c = cols[:, 0], cols[:, 1]
+    a = b + 0.8 * c + 0.3 * cols[:, 2]
+    r = 1e-9 * (b + c) + 0.05e-9 * rng.standard_normal(n_cal + n_val)
+    joint = object.__new__(_Joint)
+    joint.r, joint.b = r[:n_cal], r[n_cal:]
+    joint.Qm, joint.n_groups = np.zeros((n_cal, 0)), 1
+    joint.axis_of = np.zeros(n_val, np.int64)
+    blocks = [(1e-9 * x[:n_cal, None], 1e-9 * x[n_cal:, None], 0) for x in (a, b, c)]
+    first = max(range(3), key=lambda i: float(np.sum(blocks[i][0] * joint.r[:, None])) ** 2
+                / float(np.sum(blocks[i][0] ** 2)))
+    assert first == 0                 # the proxy is the strongest single block
+    assert sorted(_forward(joint, blocks, 1e-3, 0.02, lambda chosen, i: True)) == [1, 2]
+
+
 def _campaign_in_time(rng, n=500):
     """A campaign whose validation rows all follow its calibration rows in time (the papers'
     grids): random poses, a force in steps, a thermometer."""

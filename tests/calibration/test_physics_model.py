@@ -218,3 +218,38 @@ def test_richardson_with_the_value_at_zero_keeps_three_evaluations_only_when_the
     (d,) = richardson_derivative(counted(wave), 1.0, at_zero=(wave(0.0),))
     assert len(calls) > 4
     np.testing.assert_allclose(d, 2.0 * np.cos(2.0 * x), rtol=0, atol=1e-8)
+
+
+def test_an_optics_step_re_uses_the_earlier_effects_optics_bit_for_bit():
+    """A step of an optics parameter applies its effect and those after it on the optics the
+    earlier effects made, and keeps the geometric reading of a beam the step left unmoved:
+    the paths and indices equal those of the whole optics stage exactly, for a parameter of
+    each optics effect (first, middle and last in the model) and both step signs."""
+    effects = ["geometric_errors", "loop_drift", "air_refraction", "beam_misalignment"]
+    df, meta = Scenario.load("quiet/loop-drift").simulate(0.02)
+    model = PhysicsModel(effects, values={"loop_drift": {"frame_arm_m": [-0.6, 0.0]}})
+    meas = measurements(df, meta, model.params)
+    theta = model.theta() + model.scales * np.random.default_rng(4).standard_normal(model.n_free)
+    model.set_theta(theta)
+    stage = model._kinematics(meas)
+    truth = model._truth(meas, stage)
+    optics_at = model._optics_at(meas, stage, truth)
+    at_theta = model._optics_paths(meas, stage, truth.pose)
+    checked = set()
+    for f in model.free:
+        if f.effect == "geometric_errors":
+            continue
+        for j in (f.sl.start, f.sl.stop - 1):
+            for sign in (1.0, -1.0):
+                th = theta.copy()
+                th[j] += sign * model.scales[j]
+                model.set_theta(th)
+                effect = model.effects[model.names.index(f.effect)]
+                stepped = model._stepped_optics_paths(meas, stage, truth, effect, optics_at)
+                whole = model._optics_paths(meas, stage, truth.pose)
+                for got, want in zip(stepped, whole):
+                    np.testing.assert_array_equal(got, want, err_msg=model.labels[j])
+                # the step moved something (a path, or only the index of a compensation)
+                assert any(np.any(w != a) for w, a in zip(whole, at_theta)), model.labels[j]
+                checked.add(f.effect)
+    assert checked == {"loop_drift", "air_refraction", "beam_misalignment"}

@@ -1,4 +1,5 @@
 """Parameter file validation, MJCF building/export, in-place model updates, model CLI."""
+import dataclasses
 import json
 
 import mujoco
@@ -8,7 +9,12 @@ import pytest
 from deltatwin.cli import main
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.mjcf import build_model, is_room_body, update_model
-from deltatwin.models.params import DEFAULT_PARAMS_PATH, ParameterError, load_params
+from deltatwin.models.params import (
+    DEFAULT_PARAMS_PATH,
+    ParameterError,
+    RobotParams,
+    load_params,
+)
 
 
 def _write(tmp_path, text):
@@ -112,3 +118,22 @@ def test_parameter_files_carry_a_format_version(tmp_path):
         load_params(path)
     with pytest.raises(ParameterError, match="is a folder"):
         load_params(tmp_path)
+
+
+def test_replace_checks_what_changed_and_equals_a_full_validation():
+    """``replace`` re-checks only the changed fields (and the set's consistency): the copy
+    equals one validated field by field from scratch, and a bad change is still named."""
+    p = load_params()
+    changed = p.replace(d_rod_length_m=np.full((3, 2), 1e-6), T_base_C=25)
+    fresh = RobotParams(**{f.name: getattr(changed, f.name) for f in dataclasses.fields(p)})
+    for f in dataclasses.fields(p):
+        assert type(getattr(changed, f.name)) is type(getattr(fresh, f.name)), f.name
+        np.testing.assert_array_equal(getattr(changed, f.name), getattr(fresh, f.name))
+    assert not changed.d_rod_length_m.flags.writeable
+    assert np.all(p.d_rod_length_m == 0) and p.T_base_C != 25
+    with pytest.raises(ParameterError, match=r"temperatures_C.arms' must have shape \(3,\)"):
+        p.replace(T_arms_C=np.zeros(2))
+    with pytest.raises(ParameterError, match="must be finite"):
+        p.replace(T_base_C=np.nan)
+    with pytest.raises(ParameterError, match="unknown robot parameter"):
+        p.replace(T_nowhere_C=20.0)

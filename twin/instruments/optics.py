@@ -53,6 +53,13 @@ class Optics:
                    n_air={a: np.full(n, n_nominal) for a in AXES},
                    n_comp={a: np.full(n, n_nominal) for a in AXES})
 
+    def copy(self) -> Optics:
+        """An independent copy (an effect may change the arrays in place)."""
+        return Optics(head={a: v.copy() for a, v in self.head.items()},
+                      direction={a: v.copy() for a, v in self.direction.items()},
+                      fold=self.fold.copy(), n_air={a: v.copy() for a, v in self.n_air.items()},
+                      n_comp={a: v.copy() for a, v in self.n_comp.items()})
+
     def beam(self, axis: str) -> tuple[np.ndarray, np.ndarray]:
         """Effective straight beam (cube-corner vertex, unit direction) reaching the cube, (N,3)
         each: for Z their images in the fold mirror."""
