@@ -99,8 +99,8 @@ def run(args) -> int:
                                         f"{' (significant)' if c['significant'] else ''}" for c in top))
         if d["missing_effect"]:
             say(f"  missing effect: {d['missing_effect']} -> {d['next_command']}")
-        if d.get("refit_rejected"):
-            say("  " + d["refit_rejected"]["message"])
+            if d.get("refit_rejected"):
+                say("  " + d["refit_rejected"]["message"])
         else:
             say("  " + d["unexplained"]["message"])
     recording = None
