@@ -92,7 +92,8 @@ def full_loop(df, meta, repeats: int) -> None:
 
     def diagnose_fitted():
         kept = PhysicsFit(list(SEVEN), start=fit.model_.values()).fit(
-            df, meta, keep_converged_start=True, start_directions=fit.identified_directions_)
+            df, meta, keep_converged_start=True, start_directions=fit.identified_directions_,
+            fitted_on=fit.data_sha256_)         # as `deltatwin diagnose` does from the file
         c0 = time.process_time()
         return kept, diagnose(kept), time.process_time() - c0
     w_diag, c_diag, (kept, diagnosis, c_diagnosis) = timed(diagnose_fitted, repeats)

@@ -10,7 +10,12 @@ import numpy as np
 import pandas as pd
 
 from deltatwin.calibration.errors import FitError, TooFewPointsError
-from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
+from deltatwin.calibration.physics.measurements import (
+    Measurements,
+    check_sensors,
+    data_sha256,
+    measurements,
+)
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
     _projected,
@@ -81,7 +86,7 @@ class PhysicsFit:
 
     def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
             where: str = "data", keep_converged_start: bool = False,
-            start_directions: np.ndarray | None = None):
+            start_directions: np.ndarray | None = None, fitted_on: str | None = None):
         """Fit to the calibration rows of ``df`` (``where`` names the data in errors).
         ``keep_converged_start``: a start that is already converged on these data (a fitted
         model diagnosed on its own data: the Gauss-Newton step left from it moves the
@@ -95,10 +100,16 @@ class PhysicsFit:
         can have a step of a few tenths of an uncertainty left along directions it held. A
         kept start keeps these directions; one that is not converged is refined in the
         directions identified here (a start fitted to other data is not converged on these:
-        their noise alone moves the optimum by ~sqrt(k) uncertainties)."""
+        their noise alone moves the optimum by ~sqrt(k) uncertainties). ``fitted_on``: the
+        fingerprint (``data_sha256``) of the data the start was fitted on, saved in its file:
+        on those very data the start is kept as it is, converged or not (with
+        ``start_directions``): refining it would diagnose another model than the file's, and
+        the diagnosis takes the model's own remaining linear step as its reference anyway;
+        its status says how far from converged it is."""
         model = PhysicsModel(self.effects, self.params, self.start)
         meas = meas or measurements(df, meta, model.params, where)
         check_sensors(model.names, meas, where)
+        self.data_sha256_ = data_sha256(meas)
         cal = meas.cal
         n_cal = int(np.sum((meas.group >= 0) & cal[:, None]))
         p = model.n_free
@@ -157,15 +168,18 @@ class PhysicsFit:
         r0 = _projected(meas, cal, meas.y - A0) * NM
         # convergence of the start is judged in the directions it was fitted in, when given
         V_test = V if start_directions is None else _checked_directions(start_directions, p)
-        keep_start = keep_converged_start and V_test.shape[1] and _remaining_step_sigma(
-            -P0 @ V_test * NM, r0, max(n_res - V_test.shape[1] - len(meas.groups), 1)) \
-            <= STEP_SIGMA
+        same_data = (fitted_on == self.data_sha256_ and start_directions is not None)
+        keep_start = same_data or keep_converged_start and V_test.shape[1] and \
+            _remaining_step_sigma(-P0 @ V_test * NM, r0,
+                                  max(n_res - V_test.shape[1] - len(meas.groups), 1)) <= STEP_SIGMA
         if keep_start and V_test is not V:
             V = V_test
             s, Vt, keep = _directions_report(Js, V)
         theta, J, A = theta0, J0, A0
         if keep_start:
-            self.solver_message_ = "the start is converged on these data: kept"
+            self.solver_message_ = ("the start was fitted on these data: kept as fitted"
+                                    if same_data else
+                                    "the start is converged on these data: kept")
         elif k:
             z, J, A, self.solver_message_ = _gauss_newton(
                 fun, jac, z_start, Jz0, dof, self.max_evaluations,

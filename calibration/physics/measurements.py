@@ -2,6 +2,7 @@
 currents, part temperatures from the sensors, air), gathered from a dataset table and its metadata."""
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -166,6 +167,18 @@ def move_directions(t_s: np.ndarray, q: np.ndarray, session: np.ndarray):
     rows = np.empty((order.size, 3))
     rows[order] = out[:order.size]
     return rows, out[order.size:]
+
+
+def data_sha256(meas: Measurements) -> str:
+    """A fingerprint of the rows a fit sees (SHA-256, hex): every column of the dataset, row by
+    row (pandas' stable per-row hash), its split and the readings. A fitted model file keeps it,
+    so a diagnosis knows the data are the very ones the model was fitted on."""
+    h = hashlib.sha256()
+    h.update(pd.util.hash_pandas_object(meas.df, index=False).to_numpy().tobytes())
+    h.update(",".join(map(str, meas.df.columns)).encode())
+    for a in (meas.y, meas.cal, meas.val):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 def check_sensors(effects, meas: Measurements, where: str = "data") -> None:

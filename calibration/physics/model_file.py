@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from pathlib import Path
 
@@ -22,7 +23,10 @@ FORMAT_VERSION = 2
 def fitted_toml(fit: PhysicsFit, data: str) -> str:
     """The fitted model as TOML: effects and every parameter value (SI), the fit's figures."""
     doc = {"format": FORMAT, "format_version": FORMAT_VERSION,
-           "model": {"effects": fit.model_.specs, "data": data, "noise_nm": fit.noise_nm,
+           "model": {"effects": fit.model_.specs, "data": data,
+                     # the fitted rows' fingerprint: a diagnosis on the very same data keeps
+                     # the values as fitted (fit.py ``fitted_on``)
+                     "data_sha256": fit.data_sha256_, "noise_nm": fit.noise_nm,
                      "identifiable_ratio": fit.identifiable_ratio,
                      # the sensor -> part map the temperatures were taken from (the data's metadata)
                      "sensors": dict(fit.measurements_.sensors)},
@@ -159,6 +163,9 @@ def _check_layout(path: Path, doc: dict) -> None:
             fail(f"[fit] {key}", f"a number (nan: not evaluated), got {value!r}")
     if not isinstance(doc["model"].get("data", ""), str):
         fail("[model] data", f"the path of the fitted data, got {doc['model']['data']!r}")
+    sha = doc["model"].get("data_sha256")
+    if sha is not None and not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha)):
+        fail("[model] data_sha256", f"the fitted data's SHA-256 in hex, got {str(sha)[:80]!r}")
     for key in ("noise_nm", "identifiable_ratio"):
         value = doc["model"].get(key, 1.0)
         if isinstance(value, bool) or not isinstance(value, (int, float)) \

@@ -111,14 +111,15 @@ def run_diagnose(args) -> int:
     if str(args.model).lower().endswith(".json"):
         return _diagnose_stepwise(args, df, meta)
     model, doc = load_fitted(args.model)
-    # the file's values on this dataset (its zeros are new): kept when they are converged here
-    # in the directions the fit determined (the model was fitted on these data: one
-    # Jacobian), else refined on its calibration rows
+    # the file's values on this dataset (its zeros are new): kept as fitted when these are the
+    # data it was fitted on (its status says how converged), or when they are converged here in
+    # the directions the fit determined (one Jacobian); else refined on its calibration rows
     fit = PhysicsFit(model.names, start={**doc.get("known", {}), **model.values()},
                      noise_nm=float(doc["model"].get("noise_nm", 5.0)),
                      progress=not args.json).fit(df, meta, where=str(args.data),
                                                  keep_converged_start=True,
-                                                 start_directions=saved_directions(doc))
+                                                 start_directions=saved_directions(doc),
+                                                 fitted_on=doc["model"].get("data_sha256"))
     d = diagnose(fit, str(args.data))
     if args.json:
         print(strict_json(d))

@@ -129,7 +129,9 @@ def test_fitted_model_file_round_trips(tmp_path):
                        (text.replace("directions = [", "directions = [[0.5, 1.0], "),
                         r"\[identification\] directions must be a list"),
                        (text.replace("directions = [", "directions = [[0.0], "),
-                        r"\[identification\] directions must be orthonormal")):
+                        r"\[identification\] directions must be orthonormal"),
+                       (text.replace('data_sha256 = "', 'data_sha256 = "x'),
+                        r"\[model\] data_sha256 .*SHA-256")):
         path.write_text(bad)
         with pytest.raises(FitError, match=match):
             load_fitted(path)
@@ -184,6 +186,41 @@ def test_a_saved_converged_model_is_kept_in_the_directions_it_was_fitted_in(tmp_
     with pytest.raises(FitError, match="orthonormal"):
         PhysicsFit(effects, start=fit.model_.values()).fit(
             df, meta, keep_converged_start=True, start_directions=2 * saved_directions(doc))
+
+
+def test_a_saved_unconverged_model_is_diagnosed_as_fitted_on_its_own_data(tmp_path,
+                                                                           monkeypatch):
+    """``deltatwin diagnose`` of a model that stopped short of converging: on the very data it
+    was fitted on (the file's data_sha256) its values are kept as fitted (one Jacobian; its
+    status still says not converged), so the diagnosis is of the file's model; on other data
+    (another campaign of the same laboratory) they are refined as before."""
+    from deltatwin.calibration.diagnosis import diagnose as diagnose_module
+    from deltatwin.cli import main
+    from deltatwin.twin.dataset import write_dataset
+
+    sc = Scenario.load("quiet/magnetic-force")
+    df, meta = sc.simulate(sc.reduced_scale)
+    effects = ["geometric_errors", "magnetic_force"]
+    fit = PhysicsFit(effects, max_evaluations=2).fit(df, meta)
+    assert not fit.converged_
+    data, path = tmp_path / "data.parquet", tmp_path / "fitted.toml"
+    write_dataset(df, meta, data)
+    path.write_text(fitted_toml(fit, str(data)))
+    seen = []
+    monkeypatch.setattr(diagnose_module, "diagnose",
+                        lambda f, data: seen.append(f) or diagnose(f, data))
+    assert main(["diagnose", str(data), "--model", str(path), "--json"]) == 0
+    (kept,) = seen
+    assert "kept as fitted" in kept.solver_message_ and kept.n_jacobians_ == 1
+    np.testing.assert_array_equal(kept.theta_, fit.theta_)
+    assert not kept.converged_
+    np.testing.assert_allclose(kept.residual_, fit.residual_, rtol=0, atol=1e-15)
+    other = tmp_path / "other.parquet"
+    write_dataset(*Scenario.load("quiet/magnetic-force", seed=sc.seed + 1).simulate(
+        sc.reduced_scale), other)
+    assert main(["diagnose", str(other), "--model", str(path), "--json"]) == 0
+    refined = seen[-1]
+    assert "kept" not in refined.solver_message_ and refined.n_jacobians_ > 1
 
 
 def test_a_start_already_fitted_is_reused_not_refitted(monkeypatch):
