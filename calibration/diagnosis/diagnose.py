@@ -130,14 +130,15 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
         full.append(Jc @ Vc)
     # the candidate at its start and, where what its determined directions leave of the start
     # matters (``_held_at``), switched off along it: the verdict of the two that is
-    # significant (the lower BIC if both or neither) is the candidate's
+    # significant (the lower BIC if both or neither) is the candidate's; two tries of one
+    # candidate are two chances at significance, so each is tested at ALPHA / 2 (Bonferroni)
     held = _held_at(fit, X, _projected(meas, cal, delta0))
     tried = [(held, r, delta0)]
     if held:
         tried.append(("off", r + _projected(meas, cal, delta0), 0.0 * delta0))
     held, verdict, after = min(
         (_refit_verdict(fit, X, full, h, r_h, d_h, rss0, n, k_m, k_c, before, floor_all_nm,
-                        Jm, generic) for h, r_h, d_h in tried),
+                        Jm, generic, ALPHA / len(tried)) for h, r_h, d_h in tried),
         key=lambda v: (not v[1]["significant"], v[1]["delta_bic"]))
     fig = figures_nm(after, meas.val)
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],
@@ -155,17 +156,18 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, rss0:
 def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
                    r: np.ndarray, delta0: np.ndarray, rss0: float, n: int, k_m: int, k_c: int,
                    before: np.ndarray, floor_all_nm: float | None, Jm: np.ndarray,
-                   generic: tuple | None):
+                   generic: tuple | None, alpha: float = ALPHA):
     """A candidate's verdict with its change at ``delta0`` (N,3) and its determined directions
     and the model's (``X`` on the calibration readings, ``full`` on every row) refitted to
-    ``r`` (the calibration residual with ``delta0`` on): (held, verdict, residual after)."""
+    ``r`` (the calibration residual with ``delta0`` on), significant at ``alpha``: (held,
+    verdict, residual after)."""
     meas = fit.measurements_
     coef = np.linalg.lstsq(X, r, rcond=None)[0] if X.shape[1] else np.zeros(0)
     rss1 = float(np.sum((r - X @ coef) ** 2))
     change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
     after = _val_after(meas, fit, change)
     verdict = _verdict(rss0, rss1, k_c, n, max(n - k_m - k_c - len(meas.groups), 1),
-                       before, after, meas.val, floor_all_nm)
+                       before, after, meas.val, floor_all_nm, alpha)
     if generic is not None:
         verdict.update(_beyond_generic(r, X[:, k_m:], Jm, generic, k_c, n, len(meas.groups),
                                        verdict["explained_fraction"]))
@@ -175,7 +177,7 @@ def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
         # two effects missing the generic terms hold both, and each alone explains less than
         # GENERIC_SHARE of them (air refraction at 10x beside loop drift: 18 % against 44 %,
         # closing 66 % of the gap, validation p = 8e-8)
-        confirmed = verdict["gap_closed"] >= GAP_CLOSED and verdict["p_combined"] < ALPHA
+        confirmed = verdict["gap_closed"] >= GAP_CLOSED and verdict["p_combined"] < alpha
         verdict["matched_by_generic"] &= verdict["significant"] and not confirmed
         verdict["significant"] &= not verdict["matched_by_generic"]
     return held, verdict, after
@@ -330,18 +332,19 @@ def _in_words(c: dict, effects: list) -> str:
 
 
 def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndarray,
-             after: np.ndarray, val: np.ndarray, floor_all_nm: float | None = None) -> dict:
+             after: np.ndarray, val: np.ndarray, floor_all_nm: float | None = None,
+             alpha: float = ALPHA) -> dict:
     """Whether ``k`` added directions explain the residual: the nested F test and the BIC
     change on the calibration residual sums of squares (``n`` readings, ``df2`` residual
     degrees of freedom), the explained fraction of the validation residual's power (``before``
     / ``after`` (N,3) residuals, ``val`` (N,) rows), the fraction of the gap between the
     validation error 90 % and the floor (``floor_all_nm``) that the candidate closes, and the
-    decision: p < ALPHA, the BIC falls, and the candidate either explains MIN_EXPLAINED of the
+    decision: p < ``alpha``, the BIC falls, and the candidate either explains MIN_EXPLAINED of the
     validation residual or closes GAP_CLOSED of the gap to the floor, and the model is not
     already within AT_FLOOR of the floor (no gap to close: the floor's own error is not
     fitted); or it closes GAP_CLOSED of the gap and the calibration and validation tests
     combined (``p_combined``, Fisher's method on ``p_value`` and ``p_validation``,
-    ``_validation_p``) give p < ALPHA."""
+    ``_validation_p``) give p < ``alpha``."""
     rows = val[:, None] & np.isfinite(before)
     p_before, p_after = float(np.sum(before[rows] ** 2)), float(np.sum(after[rows] ** 2))
     df1 = max(k, 1)        # k = 0: a candidate's fixed change at its starting values
@@ -376,8 +379,8 @@ def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndar
     p_combined = (float(special.chdtrc(4, -2.0 * (math.log(max(p_value, 1e-300))
                                                   + math.log(max(p_val, 1e-300)))))
                   if gap_closed >= GAP_CLOSED else 1.0)
-    significant = ((p_value < ALPHA and d_bic < 0 and useful)
-                   or (gap_closed >= GAP_CLOSED and p_combined < ALPHA))
+    significant = ((p_value < alpha and d_bic < 0 and useful)
+                   or (gap_closed >= GAP_CLOSED and p_combined < alpha))
     return {"p_value": p_value, "delta_bic": d_bic, "explained_fraction": explained,
             "gap_closed": gap_closed, "p_validation": p_val, "p_combined": p_combined,
             "significant": bool(significant)}

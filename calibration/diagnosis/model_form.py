@@ -439,7 +439,9 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     for cand in candidates:
         c = cand.columns.shape[-1]
         if cand.columns.ndim == 3:
-            layouts = [({k: slice(0, c) for k in axes}, np.nan_to_num(cand.columns))]
+            C = np.nan_to_num(cand.columns)
+            C[:, [k for k in range(3) if k not in axes]] = 0.0     # axes read too rarely
+            layouts = [({k: slice(0, c) for k in axes}, C)]
         else:
             layouts = []
             for group in ([axes] if _on_every_axis(cand) else [[k] for k in axes]):
@@ -469,7 +471,8 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     for j in chosen:
         without = fit_of([m for m in chosen if m != j])[1]
         for k in pairs[j][1]:
-            shares[j, k] = max(without[k] - p_full[k], 0.0) / p0_axes[k]
+            shares[j, k] = (max(without[k] - p_full[k], 0.0) / p0_axes[k]
+                            if p0_axes[k] > 0 else 0.0)
     # a term on several axes is listed on those where it explains at least a joining term's
     # share, and on its strongest
     listed = {(j, k) for (j, k), share in shares.items()
@@ -486,7 +489,7 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
             continue
         terms.sort(key=lambda t: -t["explained_fraction"])
         n_val = max(int(np.sum(joint.axis_of == k)), 1)
-        if 1.0 - p_full[k] / p0_axes[k] < min_share:
+        if p0_axes[k] <= 0 or 1.0 - p_full[k] / p0_axes[k] < min_share:
             continue        # the joint fit left this axis' terms less than a joining term's share
         form.append({"axis": AXES[k], "terms": terms,
                      "explained_fraction": 1.0 - p_full[k] / p0_axes[k],

@@ -123,7 +123,10 @@ def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
                          f"{c['val_err90_after_nm']:.1f} | {c['new_directions']} | "
                          f"{c['p_value']:.2g} | {c['delta_bic']:.0f} | "
                          f"{'yes' if c['significant'] else 'no'} |")
-        if d["missing_effect"]:
+        if d.get("refit_rejected"):
+            lines += ["", f"Named: **{d['missing_effect']}**; "
+                      + d["refit_rejected"]["message"] + "."]
+        elif d["missing_effect"]:
             lines += ["", f"Missing effect: **{d['missing_effect']}**. Add it with "
                       f"`{d['next_command']}`."]
         else:

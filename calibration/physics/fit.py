@@ -168,10 +168,13 @@ class PhysicsFit:
         r0 = _projected(meas, cal, meas.y - A0) * NM
         # convergence of the start is judged in the directions it was fitted in, when given
         V_test = V if start_directions is None else _checked_directions(start_directions, p)
-        same_data = (fitted_on == self.data_sha256_ and start_directions is not None)
-        keep_start = same_data or keep_converged_start and V_test.shape[1] and \
-            _remaining_step_sigma(-P0 @ V_test * NM, r0,
-                                  max(n_res - V_test.shape[1] - len(meas.groups), 1)) <= STEP_SIGMA
+        same_data = (fitted_on is not None and fitted_on == self.data_sha256_
+                     and start_directions is not None)
+        keep_start = same_data or (
+            keep_converged_start and V_test.shape[1] > 0
+            and _remaining_step_sigma(-P0 @ V_test * NM, r0,
+                                      max(n_res - V_test.shape[1] - len(meas.groups), 1))
+            <= STEP_SIGMA)
         if keep_start and V_test is not V:
             V = V_test
             s, Vt, keep = _directions_report(Js, V)

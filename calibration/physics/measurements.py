@@ -169,14 +169,21 @@ def move_directions(t_s: np.ndarray, q: np.ndarray, session: np.ndarray):
     return rows, out[order.size:]
 
 
-def data_sha256(meas: Measurements) -> str:
-    """A fingerprint of the rows a fit sees (SHA-256, hex): every column of the dataset, row by
-    row (pandas' stable per-row hash), its split and the readings. A fitted model file keeps it,
-    so a diagnosis knows the data are the very ones the model was fitted on."""
+def data_sha256(meas: Measurements) -> str | None:
+    """A fingerprint of what a fit sees (SHA-256, hex): every column of the dataset, row by row
+    (pandas' per-row hash), its split and readings, and what the metadata make of them (the
+    sensor -> part map, the cosine correction's terms, the reference temperature). A fitted
+    model file keeps it, so a diagnosis knows the data are the very ones the model was fitted
+    on. None (never equal to a file's) when a column holds values pandas cannot hash (lists,
+    dicts: possible only for data built in memory; read files are validated)."""
     h = hashlib.sha256()
-    h.update(pd.util.hash_pandas_object(meas.df, index=False).to_numpy().tobytes())
-    h.update(",".join(map(str, meas.df.columns)).encode())
-    for a in (meas.y, meas.cal, meas.val):
+    try:
+        h.update(pd.util.hash_pandas_object(meas.df, index=False).to_numpy().tobytes())
+    except TypeError:
+        return None
+    h.update(repr((list(map(str, meas.df.columns)), sorted(meas.sensors.items()),
+                   float(meas.T_ref_C))).encode())
+    for a in (meas.y, meas.cal, meas.val, meas.cos_scale, meas.cos_offset):
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()
 

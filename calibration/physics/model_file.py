@@ -26,7 +26,8 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
            "model": {"effects": fit.model_.specs, "data": data,
                      # the fitted rows' fingerprint: a diagnosis on the very same data keeps
                      # the values as fitted (fit.py ``fitted_on``)
-                     "data_sha256": fit.data_sha256_, "noise_nm": fit.noise_nm,
+                     **({"data_sha256": fit.data_sha256_} if fit.data_sha256_ else {}),
+                     "noise_nm": fit.noise_nm,
                      "identifiable_ratio": fit.identifiable_ratio,
                      # the sensor -> part map the temperatures were taken from (the data's metadata)
                      "sensors": dict(fit.measurements_.sensors)},

@@ -115,6 +115,9 @@ def run(args) -> int:
     summary = {"scenario": sc.name, "hidden_effect": sc.hidden["effects"],
                "diagnosed_effect": diagnosed,
                "diagnosed_effects": [d["missing_effect"] for d in diagnoses if d["missing_effect"]],
+               # a named effect whose refit predicted validation worse (the ladder kept none)
+               "rejected_effects": [d["refit_rejected"]["effect"] for d in diagnoses
+                                    if d.get("refit_rejected")],
                "noise_floor_nm": floor, "achievable_floor_nm": achievable,
                "floor_budget_nm": meta["truth"]["floor_budget_nm"],
                "floor_budget_kind": ("per source" if args.measured_budget else

@@ -221,6 +221,15 @@ def test_a_saved_unconverged_model_is_diagnosed_as_fitted_on_its_own_data(tmp_pa
     assert main(["diagnose", str(other), "--model", str(path), "--json"]) == 0
     refined = seen[-1]
     assert "kept" not in refined.solver_message_ and refined.n_jacobians_ > 1
+    # the same rows read through another sensor map (a corrected .meta.json) are other data
+    sensors = dict(meta["sensors"])
+    a, b = sorted(s for s in sensors if sensors[s] != sensors[sorted(sensors)[0]])[:1] + \
+        sorted(sensors)[:1]
+    sensors[a], sensors[b] = sensors[b], sensors[a]
+    moved = PhysicsFit(effects, start=fit.model_.values()).fit(
+        df, {**meta, "sensors": sensors}, keep_converged_start=True,
+        start_directions=fit.identified_directions_, fitted_on=fit.data_sha256_)
+    assert "kept" not in moved.solver_message_
 
 
 def test_a_start_already_fitted_is_reused_not_refitted(monkeypatch):
