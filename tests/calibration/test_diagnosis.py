@@ -137,31 +137,39 @@ def test_fitted_model_file_round_trips(tmp_path):
             load_fitted(path)
 
 
+def _diagnosed_from_its_file(tmp_path, monkeypatch, fit, df, meta):
+    """Write the data and the fitted model, run ``deltatwin diagnose DATA --model FILE``:
+    (the fits handed to the diagnosis, list; the data's path; the model file's path)."""
+    from deltatwin.calibration.diagnosis import diagnose as diagnose_module
+    from deltatwin.cli import main
+    from deltatwin.twin.dataset import write_dataset
+
+    data, path = tmp_path / "data.parquet", tmp_path / "fitted.toml"
+    write_dataset(df, meta, data)
+    path.write_text(fitted_toml(fit, str(data)))
+    seen = []
+    monkeypatch.setattr(diagnose_module, "diagnose",
+                        lambda f, data: seen.append(f) or diagnose(f, data))
+    assert main(["diagnose", str(data), "--model", str(path), "--json"]) == 0
+    return seen, data, path
+
+
 def test_a_saved_converged_model_is_kept_in_the_directions_it_was_fitted_in(tmp_path,
                                                                               monkeypatch):
     """fit, save, ``deltatwin diagnose``: the file's values are kept with one Jacobian and
     diagnosed as the fit would be. On this case the directions identified at the fitted values
     (not the fit's, which were identified at its start) leave a step above the convergence limit:
     judged in them, the model was refitted on reloading (issue 21)."""
-    from deltatwin.calibration.diagnosis import diagnose as diagnose_module
     from deltatwin.calibration.physics.model_file import saved_directions
-    from deltatwin.cli import main
-    from deltatwin.twin.dataset import write_dataset
 
     sc = Scenario.load("quiet/magnetic-force")
     df, meta = sc.simulate(sc.reduced_scale)
     effects = ["geometric_errors", "magnetic_force"]
     fit = PhysicsFit(effects).fit(df, meta)
     assert fit.converged_
-    data, path = tmp_path / "data.parquet", tmp_path / "fitted.toml"
-    write_dataset(df, meta, data)
-    path.write_text(fitted_toml(fit, str(data)))
+    seen, data, path = _diagnosed_from_its_file(tmp_path, monkeypatch, fit, df, meta)
     model, doc = load_fitted(path)
     np.testing.assert_array_equal(saved_directions(doc), fit.identified_directions_)
-    seen = []
-    monkeypatch.setattr(diagnose_module, "diagnose",
-                        lambda f, data: seen.append(f) or diagnose(f, data))
-    assert main(["diagnose", str(data), "--model", str(path), "--json"]) == 0
     (kept,) = seen
     assert "kept" in kept.solver_message_ and kept.n_jacobians_ == 1
     assert kept.n_evaluations_ == kept.model_.n_free + 1
@@ -194,7 +202,6 @@ def test_a_saved_unconverged_model_is_diagnosed_as_fitted_on_its_own_data(tmp_pa
     was fitted on (the file's data_sha256) its values are kept as fitted (one Jacobian; its
     status still says not converged), so the diagnosis is of the file's model; on other data
     (another campaign of the same laboratory) they are refined as before."""
-    from deltatwin.calibration.diagnosis import diagnose as diagnose_module
     from deltatwin.cli import main
     from deltatwin.twin.dataset import write_dataset
 
@@ -203,13 +210,7 @@ def test_a_saved_unconverged_model_is_diagnosed_as_fitted_on_its_own_data(tmp_pa
     effects = ["geometric_errors", "magnetic_force"]
     fit = PhysicsFit(effects, max_evaluations=2).fit(df, meta)
     assert not fit.converged_
-    data, path = tmp_path / "data.parquet", tmp_path / "fitted.toml"
-    write_dataset(df, meta, data)
-    path.write_text(fitted_toml(fit, str(data)))
-    seen = []
-    monkeypatch.setattr(diagnose_module, "diagnose",
-                        lambda f, data: seen.append(f) or diagnose(f, data))
-    assert main(["diagnose", str(data), "--model", str(path), "--json"]) == 0
+    seen, data, path = _diagnosed_from_its_file(tmp_path, monkeypatch, fit, df, meta)
     (kept,) = seen
     assert "kept as fitted" in kept.solver_message_ and kept.n_jacobians_ == 1
     np.testing.assert_array_equal(kept.theta_, fit.theta_)
