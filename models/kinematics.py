@@ -239,17 +239,13 @@ def rod_vectors(geom: Geometry, q, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     return d, w
 
 
-def pose_derivative(geom: Geometry, q, pose: Pose, d_residuals: np.ndarray,
-                    through: np.ndarray | None = None) -> np.ndarray:
+def pose_derivative(geom: Geometry, q, pose: Pose, d_residuals: np.ndarray) -> np.ndarray:
     """Exact derivative of the forward kinematics' pose with respect to parameters, from the rod
     equations' partial derivatives at the fixed pose ``d_residuals`` (N,6,k): the implicit
     function theorem, d pose = -(d f / d pose)^-1 d f / d parameter. Returns (N,6,k): position
     (m) then rotation vector (rad, the rotation applied on the left of ``pose.R``) per unit of
-    each parameter. ``through`` (N,a,6): the derivative of ``a`` outputs in the pose; then the
-    outputs' derivative (N,a,k) is returned, -(through (d f / d pose)^-1) d f / d parameter,
-    with ``a`` right-hand sides solved instead of k (the adjoint)."""
-    if through is not None:
-        return -(pose_adjoint(geom, q, pose, through) @ d_residuals)
+    each parameter. For a few outputs of many parameters, ``pose_adjoint`` solves one
+    right-hand side per output instead."""
     return -np.linalg.solve(_pose_jacobian(geom, q, pose), d_residuals)
 
 

@@ -373,7 +373,7 @@ class PhysicsModel:
         A parameter that changes the geometry (the robot, or the part temperatures that scale
         it) moves the kinematic pose: the rod equations' partial derivatives at each point's
         pose, under that point's own part temperatures (the corrected geometry), give the
-        pose's derivative by the implicit function theorem (models.kinematics.pose_derivative),
+        pose's derivative by the implicit function theorem (models.kinematics.pose_adjoint),
         times the readings' derivative with respect to the pose; plus the parameter's direct
         effect on the readings at the fixed pose (through the part temperatures the optics read,
         or, for the robot, through its home where the instruments were aligned). The readings'

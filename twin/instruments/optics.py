@@ -18,6 +18,7 @@ Units: m, rad.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,11 +55,10 @@ class Optics:
                    n_comp={a: np.full(n, n_nominal) for a in AXES})
 
     def copy(self) -> Optics:
-        """An independent copy (an effect may change the arrays in place)."""
-        return Optics(head={a: v.copy() for a, v in self.head.items()},
-                      direction={a: v.copy() for a, v in self.direction.items()},
-                      fold=self.fold.copy(), n_air={a: v.copy() for a, v in self.n_air.items()},
-                      n_comp={a: v.copy() for a, v in self.n_comp.items()})
+        """An independent copy of every field (an effect may change the arrays in place)."""
+        copied = lambda v: ({a: x.copy() for a, x in v.items()} if isinstance(v, dict)
+                            else v.copy())
+        return Optics(**{f.name: copied(getattr(self, f.name)) for f in dataclasses.fields(self)})
 
     def beam(self, axis: str) -> tuple[np.ndarray, np.ndarray]:
         """Effective straight beam (cube-corner vertex, unit direction) reaching the cube, (N,3)
