@@ -151,6 +151,10 @@ def main(argv=None) -> int:
     fixed = {n: (every[n], PORTAL_SCALE if n in PORTAL_CASES else None) for n in names}
     generated = generate_cases(np.random.default_rng(args.seed), args.generated)
     only = [c.strip() for c in args.only.split(",") if c.strip()]
+    unmatched = [o for o in only if not any(n.startswith(o) for n in generated)]
+    if unmatched:
+        ap.error(f"--only {','.join(unmatched)}: no generated case of seed {args.seed} starts so; "
+                 f"cases: {sorted(generated)}")
     if only:
         generated = {n: c for n, c in generated.items() if any(n.startswith(o) for o in only)}
     t_all = time.perf_counter()

@@ -413,3 +413,17 @@ def test_a_users_file_rewritten_in_the_same_session_is_loaded_again(tmp_path):
     second = effect_class(f"{path}:Ripple")
     assert second is not first and second().amplitude_m == 40e-9
     assert effect_class("ripple_d") is second
+
+
+def test_the_benchmark_refuses_an_only_prefix_that_selects_no_case():
+    """benchmarks/outside_library.py --only: a prefix no generated case of the seed has is named
+    (exit 2, the seed's cases listed), not silently a run of nothing."""
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "outside_library.py"
+    run = subprocess.run([sys.executable, str(script), "--cases", "", "--generated", "3",
+                          "--seed", "99", "--only", "g01,g77"], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 2, run.stderr
+    assert "--only g77: no generated case of seed 99" in run.stderr and "g01-" in run.stderr
+    assert "Traceback" not in run.stderr
