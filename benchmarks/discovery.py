@@ -26,6 +26,7 @@ additions). Prints per case and then the issue's scores against its targets:
     python benchmarks/discovery.py --cases 18 --seed 2611 --skip-full   # docs/calibration.md
     python benchmarks/discovery.py --cases 18 --seed 4242 --skip-full   # held-back: another seed
     python benchmarks/discovery.py                      # 8 cases, seed 15, and the full-scale time
+    python benchmarks/discovery.py --cases 12 --seed 1234 --skip-full --only case010   # one case
 """
 from __future__ import annotations
 
@@ -147,6 +148,9 @@ def main() -> None:
     ap.add_argument("--dump", type=Path, help="write each case's ladder and diagnoses here "
                     "(pickle) to study its failures")
     ap.add_argument("--skip-full", action="store_true", help="skip the full-scale timing")
+    ap.add_argument("--only", default="",
+                    help="run only the cases whose names start so (comma separated, e.g. "
+                    "case003,case010) of those the seed generates, to study one failure")
     args = ap.parse_args()
     if args.dump:
         # a bad --dump is the command line's error, not a crash of every case being scored
@@ -154,6 +158,14 @@ def main() -> None:
             ap.error(f"--dump {args.dump}: not a folder")
         args.dump.mkdir(parents=True, exist_ok=True)
     cases = generate_cases(np.random.default_rng(args.seed), args.cases)
+    only = [c.strip() for c in args.only.split(",") if c.strip()]
+    unmatched = [o for o in only if not any(c.name.startswith(o) for c in cases)]
+    if unmatched:
+        ap.error(f"--only {','.join(unmatched)}: no case of seed {args.seed} starts so; its cases: "
+                 + ", ".join(c.name for c in cases))
+    if only:
+        # the cases are generated from the seed first, so a case is the same with or without --only
+        cases = [c for c in cases if any(c.name.startswith(o) for o in only)]
     print(f"{len(cases)} cases from seed {args.seed}, simulated at scale {SCALE} of the papers' "
           "campaigns (their noise, sensors and climate unchanged)", flush=True)
     results, crashes, table = [], [], []

@@ -303,3 +303,19 @@ def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor
     assert without["p_beyond_generic"] >= diagnosis.ALPHA and without["matched_by_generic"]
     with_floor = diagnosis._beyond_generic(r, Xc, Jm, (G, 0.41, r, above), 1, 400, 1, 0.18)
     assert not with_floor["matched_by_generic"]
+
+
+def test_the_benchmark_refuses_an_only_prefix_that_selects_no_case():
+    """benchmarks/discovery.py --only: a prefix no generated case of the seed has is named (exit 2,
+    the seed's cases listed), not silently a run of nothing."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "discovery.py"
+    run = subprocess.run([sys.executable, str(script), "--cases", "3", "--seed", "1234",
+                          "--skip-full", "--only", "case001,case077"], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 2, run.stderr
+    assert "--only case077: no case of seed 1234" in run.stderr and "case001-" in run.stderr
+    assert "Traceback" not in run.stderr
