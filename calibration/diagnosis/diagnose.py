@@ -404,17 +404,19 @@ def _serial_inflation(meas, explained: np.ndarray, left: np.ndarray) -> float:
     lag 1, 0.60 at 5, 0.27 at 20), and a candidate whose change follows the temperatures as
     slowly looks significant on independent rows (air refraction at its start: p = 8e-15; the
     factor is 12.8 there, where a lag-1 AR(1) model says 3.2). A change that varies pose to
-    pose (rho_x near 0) is barely penalised. 1 with fewer than 3 readings a group."""
+    pose (rho_x near 0) is barely penalised. Groups without calibration readings are skipped;
+    1 when no group has two."""
     sizes = [int(np.sum((meas.group == g) & meas.cal[:, None])) for g in range(len(meas.groups))]
-    lags = max(min(sizes, default=0) // 2, 0)
-    if lags < 2:
-        return 1.0
+    lags = max(sizes, default=0) // 2
     acov = np.zeros((2, lags + 1))
     for part_e, part_x in zip(np.split(left, np.cumsum(sizes)[:-1]),
                               np.split(explained, np.cumsum(sizes)[:-1])):
+        # a group without calibration readings adds nothing; a short one, its lags only
+        m = min(lags, part_e.size - 1)
         for k, x in enumerate((part_e, part_x)):
-            f = np.fft.rfft(x, 2 * x.size)
-            acov[k] += np.fft.irfft(f * np.conj(f), 2 * x.size)[:lags + 1]
+            if m >= 0:
+                f = np.fft.rfft(x, 2 * x.size)
+                acov[k, :m + 1] += np.fft.irfft(f * np.conj(f), 2 * x.size)[:m + 1]
     if acov[0, 0] <= 0 or acov[1, 0] <= 0:
         return 1.0
     product = (acov[0, 1:] / acov[0, 0]) * (acov[1, 1:] / acov[1, 0])

@@ -225,6 +225,26 @@ def test_the_calibration_f_test_holds_its_level_on_correlated_rows(rho):
         assert np.median(factors) < 1.2
 
 
+def test_the_serial_factor_skips_groups_without_calibration_readings():
+    """A (session, axis) group with no calibration readings (a validation-only session) adds
+    nothing to the factor, and one of a single reading no lag: the factor is that of the other
+    groups, not 1."""
+    rng = np.random.default_rng(37)
+    n = 200
+    e, x = _ar1(rng, n, 0.95), _ar1(rng, n, 0.95)
+    e1 = e - x * (x @ e) / (x @ x)
+    one = SimpleNamespace(group=np.column_stack([np.zeros(n, int), np.full((n, 2), -1)]),
+                          groups=[(0, "x")], cal=np.ones(n, bool))
+    alone = diagnosis._serial_inflation(one, e - e1, e1)
+    # group 1: one calibration reading (row n, y); group 2: five validation rows (z)
+    group = np.full((n + 6, 3), -1)
+    group[:n, 0], group[n, 1], group[n + 1:, 2] = 0, 1, 2
+    three = SimpleNamespace(group=group, groups=[(0, "x"), (0, "y"), (1, "z")],
+                            cal=np.arange(n + 6) <= n)
+    padded = diagnosis._serial_inflation(three, np.r_[e - e1, 0.0], np.r_[e1, 0.0])
+    assert alone > 5 and padded == pytest.approx(alone, rel=1e-9)
+
+
 def test_the_validation_test_finds_a_change_that_explains_the_residual():
     """A change that is the residual's structure, leaving white noise, is confirmed (tiny p);
     the same change with the opposite sign, or none, is not."""
