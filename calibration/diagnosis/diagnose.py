@@ -8,7 +8,8 @@ candidate's directions that the data determine (the same identifiability rule as
 after removing what the model's own identified directions already span) count. A linear
 least-squares refit on the calibration rows (session zeros projected out) then gives:
 
-* the calibration residual sum of squares before and after: a nested F test (p-value) and the
+* the calibration residual sum of squares before and after: a nested F test (p-value; its
+  statistic divided by the rows' serial-correlation factor, ``_serial_inflation``) and the
   change of the Bayesian information criterion (BIC, which charges ln(n) per direction: of two
   effects that explain the same, the one with fewer parameters ranks first);
 * the validation residual after (zeros re-estimated on the calibration rows): the explained
