@@ -427,3 +427,40 @@ def test_the_benchmark_refuses_an_only_prefix_that_selects_no_case():
     assert run.returncode == 2, run.stderr
     assert "--only g77: no generated case of seed 99" in run.stderr and "g01-" in run.stderr
     assert "Traceback" not in run.stderr
+
+
+def _joint_of(r: np.ndarray, n_cal: int):
+    """A bare model_form._Joint on the residual r (no model directions, one group, one axis):
+    calibration rows first, validation after."""
+    from deltatwin.calibration.diagnosis.model_form import _Joint
+
+    joint = object.__new__(_Joint)
+    joint.r, joint.b = r[:n_cal], r[n_cal:]
+    joint.Qm, joint.n_groups = np.zeros((n_cal, 0)), 1
+    joint.axis_of = np.zeros(r.size - n_cal, np.int64)
+    return joint
+
+
+@pytest.mark.parametrize("unlike, chosen", [(0.05, 1), (0.3, 0)])
+def test_a_load_replaces_a_force_polynomial_that_does_not_fit_significantly_better(unlike,
+                                                                                   chosen):
+    """model_form._forward with ``physical``: a force polynomial on one axis (block 0) that
+    beats the load of the same power (block 1) by less than the noise gives its place to the
+    load; one whose advantage is significant (the load less like the residual) keeps it."""
+    from deltatwin.calibration.diagnosis.model_form import _forward
+
+    rng = np.random.default_rng(523)
+    n_cal, n_val = 400, 200
+    poly, other, noise = rng.standard_normal((3, n_cal + n_val))
+    # the residual is the polynomial; the load is it with a part ``unlike`` of another pattern
+    # (what the compliance adds on the other axes): 400 * unlike^2 / 0.5^2 residual variances
+    # worse, 4 (below the one-parameter Bonferroni limit, ~12) or 144
+    r = 1e-9 * (poly + 0.5 * noise)
+    joint = _joint_of(r, n_cal)
+    blocks = [(1e-9 * x[:n_cal, None], 1e-9 * x[n_cal:, None], 0)
+              for x in (poly, poly + unlike * other)]
+    gains = [float(np.sum(b[0] * joint.r[:, None])) ** 2 / float(np.sum(b[0] ** 2))
+             for b in blocks]
+    take = lambda chosen, i: not chosen          # one block at most
+    assert gains[0] > gains[1] and _forward(joint, blocks, 1e-3, 0.02, take) == [0]
+    assert _forward(joint, blocks, 1e-3, 0.02, take, physical={0: [1]}) == [chosen], gains
