@@ -429,6 +429,36 @@ def test_the_benchmark_refuses_an_only_prefix_that_selects_no_case():
     assert "Traceback" not in run.stderr
 
 
+def test_the_benchmark_keeps_the_baseline_where_no_form_is_proposed(capsys):
+    """benchmarks/outside_library.py: a case without a proposed form is scored with the baseline
+    the researcher keeps (not counted as nan); within 1.1x the floor only where the term is not
+    visible (the baseline already at the injected effect's fit), never where it is; the two
+    printed apart."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "outside_library.py"
+    spec = importlib.util.spec_from_file_location("outside_library_benchmark", script)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    row = lambda base, own, proposed, form, visible: bench._final(
+        {"baseline_err90_nm": base, "own_err90_nm": own, "proposed_err90_nm": proposed,
+         "form": form, "term_visible": visible, "claimed": [], "named_first": True,
+         "form_explained": 0.9 if form else 0.0, "term_share": 1.0 if visible else np.nan})
+    hidden = row(287.2, 291.8, np.nan, [], False)       # seed 523 g02's figures
+    assert hidden["final_err90_nm"] == 287.2 and hidden["floor_ratio"] < 1.0
+    lost = row(91.5, 39.4, np.nan, [], True)            # a visible term without a form
+    assert lost["floor_ratio"] > 2.0
+    written = row(91.5, 39.4, 67.2, [{"axis": "y"}], True)
+    assert written["floor_ratio"] == pytest.approx(67.2 / 39.4)
+    scores = bench._scores("set", [hidden, lost, written])
+    assert scores["within"] == pytest.approx(1 / 3) and scores["no_form"] == 2
+    assert scores["floor_ratio"] == pytest.approx(91.5 / 39.4)
+    out = capsys.readouterr().out
+    assert "where the term is visible 0/2, where it is not (the baseline near the floor) 1/1" \
+        in out
+
+
 def _joint_of(r: np.ndarray, n_cal: int):
     """A bare model_form._Joint on the residual r (no model directions, one group, one axis):
     calibration rows first, validation after."""
