@@ -40,6 +40,7 @@ from deltatwin.calibration.diagnosis.attribution import (
     Residual,
     Term,
     laboratory_variables,
+    scans,
 )
 from deltatwin.calibration.diagnosis.term_form import (
     ALPHA,
@@ -99,6 +100,60 @@ def load_candidates(fit) -> list[Candidate]:
                       extra={"direction": direction})
             for i, power in enumerate(POWERS) for j, direction in enumerate(AXES)
             if np.any(response[:, :, 3 * i + j])]
+
+
+class MotorError(Effect):
+    """Where each motor sits, off its encoder's reading, rad (the diagnosis' probe for a
+    backlash or an encoder's periodic error outside the library; never simulated): motor m
+    sits ``backlash_rad[m]`` further along its last move and ``sin_rad[m] sin(2 pi qm /
+    period_rad[m]) + cos_rad[m] cos(...)`` off."""
+    name = "diagnosis_motor_error"
+    summary = "motor m sits off its encoder's reading: along its last move, periodic in qm"
+    parameters = (Parameter("backlash_rad", "rad", (0.0,) * 3, "per motor: offset along the "
+                            "last move's direction", fit_scale=1e-6),
+                  Parameter("sin_rad", "rad", (0.0,) * 3, "per motor: sine amplitude",
+                            fit_scale=1e-6),
+                  Parameter("cos_rad", "rad", (0.0,) * 3, "per motor: cosine amplitude",
+                            fit_scale=1e-6),
+                  Parameter("period_rad", "rad", (1.0,) * 3, "per motor: period in qm"))
+
+    def motor_angles(self, points):
+        phase = 2 * np.pi * points.q / self.period_rad
+        return (self.backlash_rad * points.move_direction + self.sin_rad * np.sin(phase)
+                + self.cos_rad * np.cos(phase))
+
+
+def motor_candidates(fit, variables: list, target) -> list[Candidate]:
+    """The motor candidates of a fitted physics model: per motor, the readings' response on all
+    three axes (N,3,c) m per rad to it sitting off its encoder's reading along its last move
+    (c = 1: a backlash) and periodically in its angle at the period the residual's
+    periodogram peaks at (c = 2, sine and cosine: an encoder's periodic error): one term whose
+    coefficients (rad) the kinematics divide between the axes, as a load's force the
+    compliance. Only for the motors whose last-move sign or periodic scan the rows have."""
+    meas = fit.measurements_
+    by_name = {v.name: v for v in variables}
+    periods = [scans(by_name[f"q{m + 1}_rad"], target).get("period")
+               if f"q{m + 1}_rad" in by_name else None for m in range(3)]
+    signs = [f"dir_q{m + 1}" in by_name for m in range(3)]
+    if not any(signs) and all(p is None for p in periods):
+        return []
+    model = PhysicsModel(fit.effects + [MotorError], fit.model_.params,
+                         {**fit.model_.values(), MotorError.name: {
+                             "period_rad": tuple(p or 1.0 for p in periods)}})
+    new = np.zeros(model.n_free, bool)
+    for f in model.free:
+        new[f.sl] = f.effect == MotorError.name
+    _, J = model.jacobian(meas, model.theta(), columns=new)
+    response = J[:, :, new]                   # (N,3,9) m per rad: backlash, sin, cos x motor
+    out = []
+    for m in range(3):
+        if signs[m] and np.any(response[:, :, m]):
+            out.append(Candidate("motor_sign", f"dir_q{m + 1}", response[:, :, [m]],
+                                 extra={"motor": m + 1}))
+        if periods[m] is not None and np.any(response[:, :, [3 + m, 6 + m]]):
+            out.append(Candidate("motor_sine", f"q{m + 1}_rad", response[:, :, [3 + m, 6 + m]],
+                                 scanned=1, period=periods[m], extra={"motor": m + 1}))
+    return out
 
 
 def _orthonormal(X: np.ndarray) -> np.ndarray:
@@ -382,8 +437,10 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
             else []
         if alternatives:
             alt = max(alternatives, key=lambda t: t[1])
-            _, gain, _, _, df2 = best
-            if special.fdtrc(1, df2, (gain - alt[1]) / ((rss - gain) / df2)) >= limit:
+            _, gain, _, kk, df2 = best
+            extra = max(kk - alt[3], 1)
+            if special.fdtrc(extra, df2, (gain - alt[1]) / extra / ((rss - gain) / df2)) \
+                    >= limit:
                 best = alt
         if best is not None:
             i, gain, Pn, kk, df2 = best
@@ -453,8 +510,9 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     if p0 <= 0 or not target.axes:
         return empty
     variables = laboratory_variables(meas.df) if variables is None else variables
-    candidates = candidate_library(variables, target) + (load_candidates(fit) if loads is None
-                                                         else loads)
+    candidates = (candidate_library(variables, target)
+                  + (load_candidates(fit) if loads is None else loads)
+                  + motor_candidates(fit, variables, target))
     axes = [k for k, _, _ in target.axes]
     # the blocks the selection tries: (candidate, {reading axis: its coefficients' slice}, C
     # (N,3,p), P, D); a function fitted on one axis, on every axis with coefficients of its own
@@ -484,12 +542,20 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
     per_axis = lambda chosen, i: all(sum(on(j, k) for j in chosen) < max_terms
                                      for k in pairs[i][1])
     responses = {v.name for v in variables if v.response}
-    loads = {}                       # power of the current: the load blocks
+    # the physical form each reading function stands in for: a force's polynomial on one axis,
+    # the loads of its power; a motor's last-move sign or periodic term fitted axis by axis,
+    # where that motor sits (_forward)
+    stands_for = lambda c: (("load", c.power) if c.variable == "F_N" and c.kind in
+                            ("poly", "product") else
+                            ("motor_sign", c.variable) if c.kind == "sign" else
+                            ("motor_sine", c.variable) if c.kind == "sine" else None)
+    physical_of = {}
     for j, (c, *_) in enumerate(pairs):
-        if c.kind == "load":
-            loads.setdefault(c.power, []).append(j)
-    physical = {i: loads[c.power] for i, (c, *_) in enumerate(pairs)
-                if c.variable == "F_N" and c.kind in ("poly", "product") and c.power in loads}
+        if c.kind in ("load", "motor_sign", "motor_sine"):
+            key = (c.kind, c.power if c.kind == "load" else c.variable)
+            physical_of.setdefault(key, []).append(j)
+    physical = {i: physical_of[stands_for(c)] for i, (c, *_) in enumerate(pairs)
+                if stands_for(c) in physical_of}
     chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
                       per_axis, frozenset(i for i, pair in enumerate(pairs)
                                           if pair[0].variable in responses), physical)
