@@ -25,8 +25,10 @@ calibration rows, the model's directions re-adjusted) by at least ``MIN_SHARE`` 
 ``MAX_TERMS`` per axis. Then a backward pass: a block that no longer passes that test given the
 blocks that joined after it leaves (a step in time that followed a backlash's pattern of moves
 until the direction's offset joined). A polynomial of the force on one reading axis gives its
-place to the load of the same power of the current unless it fits significantly better (the
-load is the physical form: through the compliance, on every axis). The rotations' candidates
+place to the load of the same power of the current, and a motor's sign or periodic term fitted
+axis by axis to where that motor sits (``MotorError``: its offset along its last move, its
+periodic error, rad), unless it fits significantly better: the physical forms, through the
+compliance or the kinematics, on every axis with one coefficient. The rotations' candidates
 are tried only once no other qualifies (readings of the platform's response, attribution.py:
 an effect written from a rotation reading removes nothing of the load or backlash that tilts
 it).
@@ -404,14 +406,17 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
 
     ``physical`` {i: [j, ...]}: the blocks of the physical form block i stands in for (a
     polynomial of the force on one reading axis: the loads of the same power of the current,
-    through the model's statics). The strongest of them joins in i's place unless i lowers the
-    calibration residual by significantly more (the difference of the two sums of squares, in
-    units of the residual variance after i, beyond the Bonferroni limit of a one-parameter
-    test): on a campaign where both fit within the noise, the load carries the compliance's
-    pattern (the tilt on every axis, the workspace's softer corners) into the effect written
-    from the form, the axis' polynomial does not (a y force growing as I^3 on a portal frame,
-    seed 523 g01: the y polynomial wins the linearised selection by 0.6 % of the residual, the
-    effect written from it validates at 45.5 nm refitted to convergence, the load's at 41.3)."""
+    through the model's statics; a motor's last-move sign or periodic term fitted axis by axis:
+    where that motor sits, through the kinematics). The strongest of them joins in i's place
+    unless i lowers the calibration residual by significantly more (the difference of the two
+    sums of squares per parameter i has beyond it (at least one), in units of the residual
+    variance after i, beyond the Bonferroni limit): where both fit within the noise, the
+    physical form carries the pattern the readings share (a load's tilt on every axis and the
+    workspace's softer corners; a motor's kinematic gain, which varies over the workspace) into
+    the effect written from the form, the axis' function does not (a y force growing as I^3 on
+    a portal frame, seed 523 g01: the y polynomial wins the linearised selection by 0.6 % of the
+    residual, the effect written from it validates at 45.5 nm refitted to convergence, the
+    load's at 41.3)."""
     r, n = joint.r, joint.r.size
     p0 = float(joint.axis_power(joint.b).sum())
     limit = alpha / max(len(blocks), 1)
