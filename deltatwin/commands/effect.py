@@ -76,6 +76,12 @@ MOTOR_ANGLES = '''
 {body}
         return d
 '''
+# a periodic error's period is fitted too, its typical size this fraction of the scanned one:
+# the periodogram's grid (3 frequencies per 1 / range) leaves it ~0.1-1 % off, which over the
+# tens of periods a motor's range holds shifts the phase by a good part of a period (seed 606
+# g10: 3.383 against 3.388 mrad, 13.7 nm held at the scan against 12.2 with the injected
+# effect; 12.4 refined)
+PERIOD_REFINED = 1e-3
 # the kinds of the proposed terms written at another stage than the optics: a load's (wrench),
 # a motor's (motor_angles), each once whatever axes it was listed on
 STAGED = ("load", "motor_sign", "motor_sine")
@@ -167,11 +173,12 @@ def _load_code(terms: list[dict]) -> tuple[list[str], list[str]]:
 def _motor_code(terms: list[dict]) -> tuple[list[str], list[str]]:
     """(parameter lines, motor_angles body lines) of the proposed motor terms (model_form.py):
     per motor, its offset along its last move (rad) and its periodic error (sine and cosine
-    amplitudes, rad; the period a constant), once whichever axes it was listed on. Their typical
-    size (``fit_scale``) is a motor angle error's, as the diagnosis' probe declares it, not the
-    seed's: a seed of several urad (a backlash on the paper-force grid) as its typical size
-    left the 20-evaluation fit of seeds 8080 g01 and 777 g04 at 41.8 and 41.5 nm, with the
-    probe's 38.8 and 37.5 (the injected effect: 37.3, 37.5)."""
+    amplitudes, rad; its period refined from the scanned one: PERIOD_REFINED), once whichever
+    axes it was listed on. The amplitudes' typical size (``fit_scale``) is a motor angle
+    error's, as the diagnosis' probe declares it, not the seed's: a seed of several urad (a
+    backlash on the paper-force grid) as its typical size left the 20-evaluation fit of seeds
+    8080 g01 and 777 g04 at 41.8 and 41.5 nm, with the probe's 38.8 and 37.5 (the injected
+    effect: 37.3, 37.5)."""
     from deltatwin.calibration.diagnosis.model_form import MotorError
 
     size = {p.name: p.fit_scale for p in MotorError.parameters}
@@ -198,7 +205,8 @@ def _motor_code(terms: list[dict]) -> tuple[list[str], list[str]]:
                        f'cosine amplitude of its periodic error", '
                        f"fit_scale={_num(size['cos_rad'])}),",
                        f'Parameter("q{m}_period_rad", "rad", {_num(t["period"])}, '
-                       f'"motor {m}: period of its error in q{m}"),']
+                       f'"motor {m}: period of its error in q{m}", '
+                       f"fit_scale={_num(PERIOD_REFINED * t['period'])}),"]
             phase = f"2 * np.pi * points.q[:, {m - 1}] / self.q{m}_period_rad"
             body += [f"        d[:, {m - 1}] += (self.q{m}_sin_rad * np.sin({phase})",
                      f"                      + self.q{m}_cos_rad * np.cos({phase}))"]

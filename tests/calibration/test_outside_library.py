@@ -129,8 +129,10 @@ def test_a_motor_form_becomes_a_motor_angles_hook(tmp_path):
     form = [{"axis": a, "explained_fraction": 0.9, "terms": [sign, sine]} for a in "xyz"]
     (tmp_path / "motor.py").write_text(skeleton("my_motor", {"unexplained": {"form": form}}))
     cls = effect_class(f"{tmp_path / 'motor.py'}:MyMotor")
+    # the period refined from the scanned one, within a small typical size
     assert [p.name for p in cls.free_parameters()] == ["q2_backlash_rad", "q2_sin_rad",
-                                                       "q2_cos_rad"]
+                                                       "q2_cos_rad", "q2_period_rad"]
+    assert cls.free_parameters()[-1].fit_scale == pytest.approx(2e-6)
     from types import SimpleNamespace
 
     q = np.array([[0.0, 0.0, 0.0], [0.1, 5e-4, 0.0], [0.0, -1e-3, 0.2]])
