@@ -30,7 +30,15 @@ targets:
   cases it is at the twin's noise floor, printed beside it; in paper-thermal's climbing room at
   reduced scale the baseline itself stays above the noise floor); the researcher's effect
   scored is the one ``deltatwin effect new --from`` writes from the proposed form
-  (``proposed``): ratio = proposed / own.
+  (``proposed``): ratio = proposed / own. Where the diagnosis proposes no form (it finds the
+  residual noise-like) the researcher has nothing to add and keeps the baseline: ratio =
+  baseline / own. That is within 1.1x only where the term is not visible (the injected effect
+  itself, fitted, lowers the baseline's error by less than 10 %: a wavelength drift on the
+  paper-force campaigns, whose parameters and 45 nm repeatability take it, e.g. seed 523 g02:
+  baseline 287.2 nm, with the injected effect 291.8), and never where it is: a visible term
+  without a form is a loss. The score is printed for the visible and the invisible terms
+  apart, as benchmarks/discovery.py scores separable rounds apart; so is the variable named
+  first (the data do not show an invisible term: nothing can name it).
 
 Beyond the seven fixed cases, ``--generated N`` cases are drawn from ``--seed``
 (tests/calibration/outside_effects.py ``generate_cases``: periodic encoder errors with random
@@ -58,12 +66,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # the repository'
 from tests.calibration.outside_effects import (  # noqa: E402
     CASES,
     PORTAL_CASES,
+    VISIBLE,
     generate_cases,
     run_case,
 )
 
 PORTAL_SCALE = 0.03     # paper-thermal: 855 rows, 2.7 h (its X/Y session 0-3900 s)
 TARGETS = {"unclaimed": 1.0, "named_first": 0.8, "form": 0.8, "floor_ratio": 1.1}
+
+
+def _final(r: dict) -> dict:
+    """The researcher's final val err90 (``final_err90_nm``: with the effect written from the
+    proposed form, or the baseline's where no form is proposed: nothing to add) and its ratio
+    to the achievable floor (``floor_ratio``), set in the case's result ``r``."""
+    r["final_err90_nm"] = r["proposed_err90_nm"] if r["form"] else r["baseline_err90_nm"]
+    r["floor_ratio"] = r["final_err90_nm"] / r["own_err90_nm"]
+    return r
 
 
 def _run(label: str, cases: dict, work: str) -> list[dict]:
@@ -76,7 +94,7 @@ def _run(label: str, cases: dict, work: str) -> list[dict]:
     for name, (case, scale) in cases.items():
         t0 = time.perf_counter()
         r = run_case(case, work, scale=scale)
-        r["floor_ratio"] = r["proposed_err90_nm"] / r["own_err90_nm"]
+        _final(r)
         rows.append(r)
         named = ", ".join(f"{v['variable']} {v['explained_nm']:.1f}"
                           for v in r["diagnosis"]["unexplained"]["depends_on"][:3])
@@ -107,16 +125,21 @@ def _scores(label: str, rows: list[dict]) -> dict:
               "term": (sum(r["term_visible"] and r["term_share"] >= TARGETS["form"] for r in rows)
                        / max(sum(r["term_visible"] for r in rows), 1)),
               "within": sum(x <= TARGETS["floor_ratio"] for x in ratios) / n,
-              # a case without a proposed form (nan) is not within; max() of a list holding nan
-              # depends on its order: the worst over the cases with a form, those without counted
-              "floor_ratio": max((x for x in ratios if np.isfinite(x)), default=float("nan")),
-              "no_form": sum(not np.isfinite(x) for x in ratios)}
+              "floor_ratio": max(ratios),
+              "no_form": sum(not r["form"] for r in rows)}
+    visible = [r for r in rows if r["term_visible"]]
+    hidden = [r for r in rows if not r["term_visible"]]
+    count = lambda subset, ok: f"{sum(map(ok, subset))}/{len(subset)}"
+    within = lambda r: r["floor_ratio"] <= TARGETS["floor_ratio"]
     met = lambda ok: "MET" if ok else "NOT MET"
-    print(f"\n{label} ({n} cases):")
+    print(f"\n{label} ({n} cases, the term visible in {len(visible)}: the injected effect "
+          f"fitted lowers the baseline's val err90 by >= {100 * VISIBLE:.0f} %):")
     print(f"  no library effect claimed: {100 * scores['unclaimed']:.0f} % (target 100 %): "
           f"{met(scores['unclaimed'] >= TARGETS['unclaimed'])}")
     print(f"  variable named first: {100 * scores['named_first']:.0f} % (target >= 80 %): "
-          f"{met(scores['named_first'] >= TARGETS['named_first'])}")
+          f"{met(scores['named_first'] >= TARGETS['named_first'])}; where the term is visible "
+          f"{count(visible, lambda r: r['named_first'])}, where it is not "
+          f"{count(hidden, lambda r: r['named_first'])}")
     print(f"  the effect written from the proposed form explains >= 80 % of the term's power: "
           f"{100 * scores['term']:.0f} % of the {scores['visible']} cases where the term is "
           f"visible (target: every case with a closed form, all here): "
@@ -124,9 +147,9 @@ def _scores(label: str, rows: list[dict]) -> dict:
           f"validation residual in {100 * scores['form']:.0f} % of all {n}")
     print(f"  with the researcher's effect within 1.1x the achievable floor: "
           f"{100 * scores['within']:.0f} % of the cases, worst ratio {scores['floor_ratio']:.2f} "
-          f"over the {n - scores['no_form']} with a proposed form (target <= 1.1; "
-          f"{scores['no_form']} without one, not within): "
-          f"{met(scores['within'] >= 1.0)}")
+          f"(target <= 1.1; {scores['no_form']} without a proposed form: the baseline kept): "
+          f"{met(scores['within'] >= 1.0)}; where the term is visible {count(visible, within)}, "
+          f"where it is not (the baseline near the floor) {count(hidden, within)}")
     return scores
 
 
@@ -168,7 +191,8 @@ def main(argv=None) -> int:
     print(f"\n{sum(map(len, results.values()))} cases in {time.perf_counter() - t_all:.0f} s "
           "(base, own, proposed: val err90 nm of the baseline, with the injected effect fitted "
           "(the achievable floor), with the effect written from the proposed form; noise: the "
-          "twin's noise floor, max over axes; ratio: proposed / own; form: share of the largest "
+          "twin's noise floor, max over axes; ratio: proposed / own (baseline / own where no "
+          "form is proposed: the baseline kept); form: share of the largest "
           "axis' validation residual the form explains; term: share of the term's power the "
           "effect written from it explains, d_proposed . d_own / |d_own|^2 with d = r_base - r "
           "on the validation readings; nan where the term is not visible)")

@@ -81,9 +81,9 @@ def _about(v: str, centre: float, unit: str) -> str:
 class Candidate:
     """One function of the library: ``columns`` (N,k) SI, fitted on each reading axis with
     coefficients of its own, or (N,3,k) already the readings' response on every axis with k
-    coefficients shared by the axes (a load's, model_form.py); the ``kind`` (poly, sine,
-    step, ramp, sign, product, load) with what defines it (variable, power, period, moment,
-    centre)."""
+    coefficients shared by the axes (a load's or a motor's, model_form.py); the ``kind`` (poly,
+    sine, step, ramp, sign, product, load, motor_sign, motor_sine) with what defines it
+    (variable, power, period, moment, centre)."""
     kind: str
     variable: str
     columns: np.ndarray
@@ -128,6 +128,21 @@ class Candidate:
                        formula=f"{force:.3g} N * (I/A)" + (f"^{self.power}" if self.power > 1
                                                            else "")
                                + f" along {direction} (through the compliance)")
+        elif self.kind == "motor_sign":
+            # the column is the readings' response in m per rad of the motor's offset
+            # (model_form.py)
+            motor = self.extra["motor"]
+            out.update(backlash_rad=float(coef_m[0]), motor=motor,
+                       formula=f"{coef_m[0] * 1e6:.3g} urad * sign(last move of q{motor}) "
+                               f"where motor {motor} sits (through the kinematics)")
+        elif self.kind == "motor_sine":
+            motor, (a, b) = self.extra["motor"], coef_m
+            amp, phase = math.hypot(a, b), math.atan2(b, a)
+            out.update(sin_rad=float(a), cos_rad=float(b), period=self.period, motor=motor,
+                       formula=f"{amp * 1e6:.3g} urad * sin(2 pi q{motor} / "
+                               f"{self.period * 1e3:.4g} mrad {'+' if phase >= 0 else '-'} "
+                               f"{abs(phase):.2f}) where motor {motor} sits (through the "
+                               "kinematics)")
         elif self.kind == "sign":
             out.update(coefficient_nm=float(c_nm[0]),
                        formula=f"{c_nm[0]:.1f} nm * sign(last move of {v[4:]})")

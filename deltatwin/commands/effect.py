@@ -67,6 +67,25 @@ WRENCH = '''
         return w
 '''
 
+MOTOR_ANGLES = '''
+    def motor_angles(self, points):
+        """Stage 'motor_angles': where the motors sit off their encoders' readings, (N,3) rad
+        (points.q (N,3) rad the encoders' readings, points.move_direction (N,3) the sign of
+        each motor's last move); the model's kinematics carry it to every reading."""
+        d = np.zeros_like(points.q)
+{body}
+        return d
+'''
+# a periodic error's period is fitted too, its typical size this fraction of the scanned one:
+# the periodogram's grid (3 frequencies per 1 / range) leaves it ~0.1-1 % off, which over the
+# tens of periods a motor's range holds shifts the phase by a good part of a period (seed 606
+# g10: 3.383 against 3.388 mrad, 13.7 nm held at the scan against 12.2 with the injected
+# effect; 12.4 refined)
+PERIOD_REFINED = 1e-3
+# the kinds of the proposed terms written at another stage than the optics: a load's (wrench),
+# a motor's (motor_angles), each once whatever axes it was listed on
+STAGED = ("load", "motor_sign", "motor_sine")
+
 
 def camel(name: str) -> str:
     return "".join(p.capitalize() for p in name.split("_"))
@@ -151,17 +170,62 @@ def _load_code(terms: list[dict]) -> tuple[list[str], list[str]]:
     return params, body
 
 
+def _motor_code(terms: list[dict]) -> tuple[list[str], list[str]]:
+    """(parameter lines, motor_angles body lines) of the proposed motor terms (model_form.py):
+    per motor, its offset along its last move (rad) and its periodic error (sine and cosine
+    amplitudes, rad; its period refined from the scanned one: PERIOD_REFINED), once whichever
+    axes it was listed on. The amplitudes' typical size (``fit_scale``) is a motor angle
+    error's, as the diagnosis' probe declares it, not the seed's: a seed of several urad (a
+    backlash on the paper-force grid) as its typical size left the 20-evaluation fit of seeds
+    8080 g01 and 777 g04 at 41.8 and 41.5 nm, with the probe's 38.8 and 37.5 (the injected
+    effect: 37.3, 37.5)."""
+    from deltatwin.calibration.diagnosis.model_form import MotorError
+
+    size = {p.name: p.fit_scale for p in MotorError.parameters}
+    params, body, seen = [], [], set()
+    for t in terms:
+        key = (t["kind"], t["motor"])
+        if key in seen:
+            continue
+        seen.add(key)
+        m = t["motor"]
+        body += textwrap.wrap(f"proposed: {t['formula']}", 92, initial_indent="        # ",
+                              subsequent_indent="        # ")
+        if t["kind"] == "motor_sign":
+            params.append(f'Parameter("q{m}_backlash_rad", "rad", {_num(t["backlash_rad"])}, '
+                          f'"motor {m} sits this far along its last move", '
+                          f"fit_scale={_num(size['backlash_rad'])}),")
+            body.append(f"        d[:, {m - 1}] += self.q{m}_backlash_rad * "
+                        f"points.move_direction[:, {m - 1}]")
+        else:
+            params += [f'Parameter("q{m}_sin_rad", "rad", {_num(t["sin_rad"])}, "motor {m}: '
+                       f'sine amplitude of its periodic error", '
+                       f"fit_scale={_num(size['sin_rad'])}),",
+                       f'Parameter("q{m}_cos_rad", "rad", {_num(t["cos_rad"])}, "motor {m}: '
+                       f'cosine amplitude of its periodic error", '
+                       f"fit_scale={_num(size['cos_rad'])}),",
+                       f'Parameter("q{m}_period_rad", "rad", {_num(t["period"])}, '
+                       f'"motor {m}: period of its error in q{m}", '
+                       f"fit_scale={_num(PERIOD_REFINED * t['period'])}),"]
+            phase = f"2 * np.pi * points.q[:, {m - 1}] / self.q{m}_period_rad"
+            body += [f"        d[:, {m - 1}] += (self.q{m}_sin_rad * np.sin({phase})",
+                     f"                      + self.q{m}_cos_rad * np.cos({phase}))"]
+    return params, body
+
+
 def skeleton(name: str, diagnosis: dict | None = None, source: str = "") -> str:
     """The Python source of the effect ``name``: from the proposed form of ``diagnosis`` (its
-    ``unexplained.form``: reading terms at the optics stage, loads at the wrench stage), or a
-    minimal working example (a constant X offset)."""
+    ``unexplained.form``: reading terms at the optics stage, loads at the wrench stage, where a
+    motor sits at the motor_angles stage), or a minimal working example (a constant X
+    offset)."""
     form = ((diagnosis or {}).get("unexplained") or {}).get("form") or []
     cls = camel(name)
     params, body, uses_force = [], [], False
     loads = [t for f in form for t in f["terms"] if t["kind"] == "load"]
+    motors = [t for f in form for t in f["terms"] if t["kind"] in ("motor_sign", "motor_sine")]
     for f in form:
         exprs = []
-        for k, term in enumerate(t for t in f["terms"] if t["kind"] != "load"):
+        for k, term in enumerate(t for t in f["terms"] if t["kind"] not in STAGED):
             p, expr, note = _term_code(f["axis"], term, k)
             if note:
                 body.append(note)
@@ -170,7 +234,7 @@ def skeleton(name: str, diagnosis: dict | None = None, source: str = "") -> str:
             exprs.append(expr)
             uses_force |= "FORCE_PER_A" in expr
         if exprs:
-            said = (f"proposed: {'; '.join(t['formula'] for t in f['terms'] if t['kind'] != 'load')}"
+            said = (f"proposed: {'; '.join(t['formula'] for t in f['terms'] if t['kind'] not in STAGED)}"
                     f" (explains {100 * f['explained_fraction']:.0f} % of the validation residual)")
             body += textwrap.wrap(said, 92, initial_indent="        # ",
                                   subsequent_indent="        # ")
@@ -190,13 +254,16 @@ def skeleton(name: str, diagnosis: dict | None = None, source: str = "") -> str:
         origin = f"\nSeeded from the form the diagnosis proposed ({source}).\n"
     baseline = "".join(f"{e}," for e in (diagnosis or {}).get("effects", []))
     load_params, load_body = _load_code(loads)
+    motor_params, motor_body = _motor_code(motors)
     methods = (OPTICS.format(body="\n".join(body)) if body else "") + (
-        WRENCH.format(body="\n".join(load_body)) if load_body else "")
+        WRENCH.format(body="\n".join(load_body)) if load_body else "") + (
+        MOTOR_ANGLES.format(body="\n".join(motor_body)) if motor_body else "")
     return HEADER.format(
         name=name, cls=cls, file=f"{name}.py", summary=summary, origin=origin,
         baseline=baseline,
         constants="\nFORCE_PER_A = 1.0   # N/A: the campaign's force_per_A\n" if uses_force else "",
-        parameters="\n".join(f"        {p}" for p in params + load_params), methods=methods)
+        parameters="\n".join(f"        {p}" for p in params + load_params + motor_params),
+        methods=methods)
 
 
 def run_new(args) -> int:
