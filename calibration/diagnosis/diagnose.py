@@ -72,6 +72,7 @@ from deltatwin.calibration.physics.model import (
     model_effects,
     residuals,
 )
+from deltatwin.models.batched import in_background
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.effects import EffectError
 from deltatwin.twin.instruments.optics import AXES
@@ -419,7 +420,7 @@ def _validation_p(before: np.ndarray, after: np.ndarray, val: np.ndarray) -> flo
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
                         form: bool | list = True, target: Residual | None = None,
                         variables: list | None = None, frame=None,
-                        extra_terms: tuple = ()) -> dict:
+                        extra_terms: tuple = (), attribution=None) -> dict:
     """What the residual (N,3) m still depends on: the laboratory variables ranked by the
     validation power each explains beyond the others (attribution.py) and, with ``form``, the
     proposed form of the missing term (term_form.py; a list: the form computed already, on a
@@ -427,9 +428,11 @@ def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val:
     both. ``target`` (``Residual.of`` the same) and ``variables`` (``laboratory_variables(df)``):
     when already made (their scans too); ``frame`` and ``extra_terms``: where the attribution
     fits and its terms beyond the variables' (on a physics model: model_form.JointFrame, the
-    load responses)."""
+    load responses); ``attribution``: a function that returns that attribution when it is
+    already under way (``diagnose``, models.batched.in_background)."""
     target = target or Residual.of(df, res, cal, val)
-    att = attribute(df, target, variables=variables, frame=frame, extra_terms=extra_terms)
+    att = (attribution() if attribution is not None else
+           attribute(df, target, variables=variables, frame=frame, extra_terms=extra_terms))
     out = {"depends_on": att["variables"], "explained_fraction": att["explained_fraction"],
            "val_rms_nm": att["val_rms_nm"]}
     if isinstance(form, list):
@@ -474,6 +477,10 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     variables = laboratory_variables(meas.df)
     frame = JointFrame(fit, Jm, JS, r0)
     loads = load_candidates(fit)
+    # the attribution depends on none of what follows: on a second core when the process has
+    # one (DELTATWIN_THREADS >= 2, docs/performance.md), else computed where it is used
+    attribution = in_background(attribute, meas.df, frame.target, variables=variables,
+                                frame=frame, extra_terms=load_terms(loads))
     form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, frame=frame,
                                             loads=loads)
     generic = (_projected(meas, cal, G), generic_explained, r0,
@@ -518,8 +525,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     best = next((c for c in ranking if c["significant"]), None)
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
                                      form=form if best is None else False,
-                                     target=frame.target, variables=variables, frame=frame,
-                                     extra_terms=load_terms(loads))
+                                     target=frame.target, attribution=attribution)
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]
