@@ -48,6 +48,7 @@ from deltatwin.calibration.diagnosis.attribution import (
     Residual,
     attribute,
     laboratory_variables,
+    scan_together,
 )
 from deltatwin.calibration.diagnosis.compare import evaluate
 from deltatwin.calibration.diagnosis.conditions import (
@@ -477,8 +478,10 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     variables = laboratory_variables(meas.df)
     frame = JointFrame(fit, Jm, JS, r0)
     loads = load_candidates(fit)
-    # the attribution depends on none of what follows: on a second core when the process has
-    # one (DELTATWIN_THREADS >= 2, docs/performance.md), else computed where it is used
+    # the attribution depends on none of what follows: on a second core where the command has
+    # one (docs/performance.md), else computed where it is used; the periods and step moments
+    # it and the form both use are scanned first, once for both
+    scan_together(variables, [frame.target])
     attribution = in_background(attribute, meas.df, frame.target, variables=variables,
                                 frame=frame, extra_terms=load_terms(loads))
     form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, frame=frame,
