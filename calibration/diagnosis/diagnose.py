@@ -456,9 +456,11 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     k_m = fit.identifiability_["n_identified_directions"]
     # the model's identified directions on every row, made once for the form, the attribution
     # and every candidate
-    JS = fit.jacobian_ * fit.model_.scales @ fit.identified_directions_
-    Jm = (_projected(meas, cal, fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_
+    J_scaled = fit.jacobian_ * fit.model_.scales        # (N,3,p): made once, it is large
+    JS = J_scaled @ fit.identified_directions_
+    Jm = (_projected(meas, cal, J_scaled) @ fit.identified_directions_
           if k_m else np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
+    del J_scaled
     r0 = _projected(meas, cal, fit.residual_)
     # the reference is the model itself one linear step further (nothing if it converged): a
     # candidate must explain what the model's own directions cannot, even when the fit stopped
