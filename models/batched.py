@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import os
 import pickle
+import signal
 import sys
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -80,6 +82,7 @@ def in_background(fun, *args, **kwargs):
     os.close(write)
 
     def result():
+        abandoned.detach()
         with os.fdopen(read, "rb") as channel:
             data = channel.read()
         os.waitpid(pid, 0)
@@ -87,7 +90,18 @@ def in_background(fun, *args, **kwargs):
             raise RuntimeError(f"the background process computing {fun.__name__} ended "
                                "without a result")
         return _outcome(pickle.loads(data))
+    # a result never asked for (the caller failed first): the child is stopped and waited for
+    abandoned = weakref.finalize(result, _stop, pid, read)
     return result
+
+
+def _stop(pid: int, channel: int) -> None:
+    os.close(channel)
+    try:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    except (ProcessLookupError, ChildProcessError):
+        pass
 
 
 def _outcome(done: tuple):

@@ -82,3 +82,18 @@ def test_in_background_returns_the_result_or_raises_the_error(monkeypatch, backg
     failed = batched.in_background(_failing, "bad input at row 3")
     with pytest.raises(ValueError, match="bad input at row 3"):
         failed()
+
+
+def test_a_background_result_never_asked_for_leaves_no_process(monkeypatch):
+    import gc
+    import time
+
+    from deltatwin.models import batched
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the background process is forked on Linux only")
+    monkeypatch.setattr(batched, "BACKGROUND", True)
+    done = batched.in_background(time.sleep, 30)
+    del done
+    gc.collect()
+    with pytest.raises(ChildProcessError):      # stopped and waited for: no child left
+        os.waitpid(-1, os.WNOHANG)
