@@ -482,8 +482,10 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     loads = load_candidates(fit)
     # the attribution depends on none of what follows: on a second core where the command has
     # one (docs/performance.md), else computed where it is used; the periods and step moments
-    # it and the form both use are scanned first, once for both
-    scan_together(variables, [frame.target])
+    # it and the form both use are scanned first, once for both (when either has a residual
+    # to scan: an axis read, validation power left)
+    if frame.target.axes and frame.joint.axis_power(frame.joint.b).sum() > 0:
+        scan_together(variables, [frame.target])
     attribution = in_background(attribute, meas.df, frame.target, variables=variables,
                                 frame=frame, extra_terms=load_terms(loads))
     form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, frame=frame,
