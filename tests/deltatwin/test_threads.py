@@ -84,7 +84,7 @@ def test_in_background_returns_the_result_or_raises_the_error(monkeypatch, backg
         failed()
 
 
-def test_a_background_result_never_asked_for_leaves_no_process(monkeypatch):
+def test_a_background_result_never_asked_for_leaves_no_process(monkeypatch, tmp_path):
     import gc
     import time
 
@@ -92,8 +92,20 @@ def test_a_background_result_never_asked_for_leaves_no_process(monkeypatch):
     if not sys.platform.startswith("linux"):
         pytest.skip("the background process is forked on Linux only")
     monkeypatch.setattr(batched, "BACKGROUND", True)
-    done = batched.in_background(time.sleep, 30)
+    mark = tmp_path / "pid"
+
+    def task():
+        mark.write_text(str(os.getpid()))
+        time.sleep(30)
+    done = batched.in_background(task)
+    for _ in range(200):                       # until the child has started
+        if mark.exists() and mark.read_text():
+            break
+        time.sleep(0.05)
+    pid = int(mark.read_text())
     del done
     gc.collect()
-    with pytest.raises(ChildProcessError):      # stopped and waited for: no child left
-        os.waitpid(-1, os.WNOHANG)
+    with pytest.raises(ChildProcessError):      # stopped and waited for: not our child any more
+        os.waitpid(pid, os.WNOHANG)
+    with pytest.raises(ProcessLookupError):     # and gone
+        os.kill(pid, 0)
