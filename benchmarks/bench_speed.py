@@ -5,6 +5,8 @@
    the fitted model as ``deltatwin diagnose`` runs it (the fitted values kept when converged on
    the data: one Jacobian, then the candidates), against 3 s; beside them their floors: the fit's
    a Gauss-Newton of 3 steps at 3 evaluations each (9 evaluations), the diagnosis' one Jacobian;
+   then ``deltatwin diagnose`` of the model ``deltatwin fit`` wrote, as a whole process (its
+   wall time against the 3 s; the CPU time counts its second process, models.batched);
 1. one physics-model evaluation (``PhysicsModel.predict_path``) at full scale: paper-thermal,
    28,492 rows, the seven model effects (geometric_errors thermal_expansion gravity_sag
    magnetic_force loop_drift air_refraction beam_misalignment), against 0.07 s;
@@ -64,14 +66,23 @@ def load() -> str:
     return f"load average {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else ""
 
 
+def children_cpu() -> float:
+    """CPU time (user + system, s) of this process' finished children: a diagnosis' attribution
+    runs in one (models.batched.in_background), and its time is the diagnosis' too."""
+    import resource
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def timed(fun, repeats: int):
-    """(median wall s, median CPU s, last result) of ``repeats`` calls."""
+    """(median wall s, median CPU s of this process and the children it waited for, last
+    result) of ``repeats`` calls."""
     wall, cpu, out = [], [], None
     for _ in range(repeats):
-        c0, t0 = time.process_time(), time.perf_counter()
+        c0, t0 = time.process_time() + children_cpu(), time.perf_counter()
         out = fun()
         wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
+        cpu.append(time.process_time() + children_cpu() - c0)
     return float(np.median(wall)), float(np.median(cpu)), out
 
 
@@ -94,8 +105,8 @@ def full_loop(df, meta, repeats: int) -> None:
         kept = PhysicsFit(list(SEVEN), start=fit.model_.values()).fit(
             df, meta, keep_converged_start=True, start_directions=fit.identified_directions_,
             fitted_on=fit.data_sha256_)         # as `deltatwin diagnose` does from the file
-        c0 = time.process_time()
-        return kept, diagnose(kept), time.process_time() - c0
+        c0 = time.process_time() + children_cpu()
+        return kept, diagnose(kept), time.process_time() + children_cpu() - c0
     w_diag, c_diag, (kept, diagnosis, c_diagnosis) = timed(diagnose_fitted, repeats)
     model = PhysicsModel(SEVEN, values=fit.model_.values())
     meas = measurements(df, meta, model.params)
@@ -113,6 +124,23 @@ def full_loop(df, meta, repeats: int) -> None:
               f"{floor:5.2f} s CPU, ratio {cpu / floor:5.1f}  ({note})")
     print(f"   one Jacobian {c_jac:.2f} s CPU ({c_jac / c_eval:.0f} evaluations' worth, "
           f"{model.n_free} parameters), one evaluation {c_eval:.3f} s CPU")
+
+
+def cli_diagnose(data: Path, repeats: int) -> None:
+    """``deltatwin diagnose`` of the model ``deltatwin fit`` wrote, as a researcher runs it
+    (whole process: imports, reading, the kept model's Jacobian, the diagnosis; the attribution
+    in a second process where there are two cores), against the 3 s target in wall time."""
+    model = data.with_name("seven-effects.toml")
+    known = ",".join(str(x) for x in FRAME_ARM["loop_drift"]["frame_arm_m"])
+    _run_children([["fit", str(data), "--effects", ",".join(SEVEN), "--set",
+                    f"loop_drift.frame_arm_m={known}", "-o", str(model), "-q"]], True)
+    runs = [_run_children([["diagnose", str(data), "--model", str(model), "--json", "-q"]], True)
+            for _ in range(repeats)]
+    wall, cpu = np.median(runs, axis=0)
+    print(f"   deltatwin diagnose (whole process, {data.name}): {wall:.2f} s wall, target <= "
+          f"{DIAGNOSE_TARGET_S} s: ratio {wall / DIAGNOSE_TARGET_S:.2f} "
+          f"{'MET' if wall <= DIAGNOSE_TARGET_S else 'NOT MET'}; CPU {cpu:.2f} s with its "
+          f"second process   [{load()}]")
 
 
 def evaluation(df, meta, repeats: int) -> None:
@@ -244,17 +272,18 @@ def main(argv=None) -> int:
     repeats = 1 if args.quick else 3
     scales = (0.1, 0.2, 0.4) if args.quick else (0.25, 0.5, 1.0)
     df, meta = Scenario.load("paper-thermal").simulate(0.25 if args.quick else 1.0)
-    if not args.only_side_by_side:
-        if not args.skip_full_loop:
-            full_loop(df, meta, 1)
-        evaluation(df, meta, repeats)
-        scaling_with_rows(scales, repeats)
-        scaling_with_parameters(scales[0], repeats)
-        demo(repeats)
-    if not args.skip_side_by_side:
-        with tempfile.TemporaryDirectory() as tmp:
-            data = Path(tmp) / "paper-thermal.parquet"
-            write_dataset(df, meta, data)
+    with tempfile.TemporaryDirectory() as tmp:
+        data = Path(tmp) / "paper-thermal.parquet"
+        write_dataset(df, meta, data)
+        if not args.only_side_by_side:
+            if not args.skip_full_loop:
+                full_loop(df, meta, 1)
+                cli_diagnose(data, repeats)
+            evaluation(df, meta, repeats)
+            scaling_with_rows(scales, repeats)
+            scaling_with_parameters(scales[0], repeats)
+            demo(repeats)
+        if not args.skip_side_by_side:
             side_by_side(data, 2 if args.quick else 3)
     return 0
 

@@ -8,6 +8,12 @@ both oversubscribe the cores when commands run side by side: two processes each 
 BLAS thread per core slowed each other by 75-240 % (issue 21).  So a command uses one thread
 of each unless told otherwise by ``DELTATWIN_THREADS`` (a number, or ``auto``: every core this
 process may use) or an explicit ``set_threads(n)``.
+
+Apart from the pools, a command may run one whole independent task of a second or so in a
+second process (``models.batched.in_background``: ``diagnose``'s attribution beside its
+candidates).  It holds no lock and spins on nothing, so beside another command it only
+shares the cores as any process does: it is on when this process may use two cores or more,
+unless ``DELTATWIN_THREADS=1`` (or ``set_threads(1)``) asks for one core.
 """
 from __future__ import annotations
 
@@ -47,6 +53,9 @@ def set_threads(threads: int | None = None) -> int:
     n = threads_from_environment() if threads is None else int(threads)
     if n < 1:
         raise ValueError(f"threads = {threads!r}: expected a positive whole number")
+    # one core asked for explicitly (an argument, or the variable set to 1) keeps the
+    # background task here too; else it is on where a second core exists
+    one_core = n == 1 and (threads is not None or os.environ.get(ENVIRONMENT_VARIABLE))
     for variable in BLAS_VARIABLES:
         os.environ[variable] = str(n)
     from threadpoolctl import threadpool_limits
@@ -54,4 +63,5 @@ def set_threads(threads: int | None = None) -> int:
     from deltatwin.models import batched
     _blas_limit = threadpool_limits(limits=n, user_api="blas")
     batched.THREADS = n
+    batched.BACKGROUND = not one_core and batched.usable_cores() >= 2
     return n

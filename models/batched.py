@@ -7,6 +7,10 @@ poses at once, where ``np.sum(a * b, axis=-1)`` over a length-3 axis, ``np.cross
 from __future__ import annotations
 
 import os
+import pickle
+import signal
+import sys
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -32,6 +36,9 @@ def usable_cores() -> int:
 # by default, so that processes side by side do not oversubscribe the cores: an application
 # raises it once at start-up (deltatwin/threads.py, docs/performance.md)
 THREADS = 1
+# whether ``in_background`` may start a second process; off by default (a library user's
+# process computes where it is), on in a command where a second core exists (deltatwin/threads.py)
+BACKGROUND = False
 
 
 def map_chunks(fun, n_points: int, chunk: int | None = None) -> list:
@@ -44,6 +51,64 @@ def map_chunks(fun, n_points: int, chunk: int | None = None) -> list:
         return [fun(sl) for sl in chunks]
     with ThreadPoolExecutor(min(THREADS, len(chunks))) as pool:
         return list(pool.map(fun, chunks))
+
+
+def in_background(fun, *args, **kwargs):
+    """Start ``fun(*args, **kwargs)``; returns a function that waits for its result (or raises
+    its exception).  With BACKGROUND on Linux (where a fork is safe) it runs in a forked
+    child process, beside what the caller computes meanwhile: a second core for a whole
+    independent task of a second or so (a thread would hold the GIL for its Python between the
+    numpy calls; the child shares the caller's arrays copy-on-write and sends back only its
+    result, pickled).  Else it runs when its result is asked for.  Either way the result is
+    the same."""
+    if not BACKGROUND or not sys.platform.startswith("linux"):
+        return lambda: fun(*args, **kwargs)
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                 # the child: compute, send, leave at once
+        try:
+            os.close(read)
+            try:
+                done = pickle.dumps((True, fun(*args, **kwargs)), pickle.HIGHEST_PROTOCOL)
+            except BaseException as exc:
+                try:
+                    done = pickle.dumps((False, exc), pickle.HIGHEST_PROTOCOL)
+                except Exception:                # an exception that cannot be pickled
+                    done = pickle.dumps((False, RuntimeError(f"{type(exc).__name__}: {exc}")))
+            with os.fdopen(write, "wb") as out:
+                out.write(done)
+        finally:
+            os._exit(0)      # no exit handlers, no flush of the parent's buffered output
+    os.close(write)
+
+    def result():
+        abandoned.detach()
+        with os.fdopen(read, "rb") as channel:
+            data = channel.read()
+        os.waitpid(pid, 0)
+        if not data:
+            raise RuntimeError(f"the background process computing {fun.__name__} ended "
+                               "without a result")
+        return _outcome(pickle.loads(data))
+    # a result never asked for (the caller failed first): the child is stopped and waited for
+    abandoned = weakref.finalize(result, _stop, pid, read)
+    return result
+
+
+def _stop(pid: int, channel: int) -> None:
+    os.close(channel)
+    try:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    except (ProcessLookupError, ChildProcessError):
+        pass
+
+
+def _outcome(done: tuple):
+    ok, value = done
+    if not ok:
+        raise value
+    return value
 
 
 def dot(a, b):

@@ -49,6 +49,7 @@ from deltatwin.calibration.diagnosis.attribution import (
     Residual,
     attribute,
     laboratory_variables,
+    scan_together,
 )
 from deltatwin.calibration.diagnosis.compare import evaluate
 from deltatwin.calibration.diagnosis.conditions import (
@@ -73,6 +74,7 @@ from deltatwin.calibration.physics.model import (
     model_effects,
     residuals,
 )
+from deltatwin.models.batched import in_background
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.effects import EffectError
 from deltatwin.twin.instruments.optics import AXES
@@ -458,7 +460,7 @@ def _validation_p(before: np.ndarray, after: np.ndarray, val: np.ndarray) -> flo
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
                         form: bool | list = True, target: Residual | None = None,
                         variables: list | None = None, frame=None,
-                        extra_terms: tuple = ()) -> dict:
+                        extra_terms: tuple = (), attribution=None) -> dict:
     """What the residual (N,3) m still depends on: the laboratory variables ranked by the
     validation power each explains beyond the others (attribution.py) and, with ``form``, the
     proposed form of the missing term (term_form.py; a list: the form computed already, on a
@@ -466,9 +468,11 @@ def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val:
     both. ``target`` (``Residual.of`` the same) and ``variables`` (``laboratory_variables(df)``):
     when already made (their scans too); ``frame`` and ``extra_terms``: where the attribution
     fits and its terms beyond the variables' (on a physics model: model_form.JointFrame, the
-    load responses)."""
+    load responses); ``attribution``: a function that returns that attribution when it is
+    already under way (``diagnose``, models.batched.in_background)."""
     target = target or Residual.of(df, res, cal, val)
-    att = attribute(df, target, variables=variables, frame=frame, extra_terms=extra_terms)
+    att = (attribution() if attribution is not None else
+           attribute(df, target, variables=variables, frame=frame, extra_terms=extra_terms))
     out = {"depends_on": att["variables"], "explained_fraction": att["explained_fraction"],
            "val_rms_nm": att["val_rms_nm"]}
     if isinstance(form, list):
@@ -491,9 +495,11 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     k_m = fit.identifiability_["n_identified_directions"]
     # the model's identified directions on every row, made once for the form, the attribution
     # and every candidate
-    JS = fit.jacobian_ * fit.model_.scales @ fit.identified_directions_
-    Jm = (_projected(meas, cal, fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_
+    J_scaled = fit.jacobian_ * fit.model_.scales        # (N,3,p): made once, it is large
+    JS = J_scaled @ fit.identified_directions_
+    Jm = (_projected(meas, cal, J_scaled) @ fit.identified_directions_
           if k_m else np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
+    del J_scaled
     r0 = _projected(meas, cal, fit.residual_)
     # the reference is the model itself one linear step further (nothing if it converged): a
     # candidate must explain what the model's own directions cannot, even when the fit stopped
@@ -513,6 +519,14 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     variables = laboratory_variables(meas.df)
     frame = JointFrame(fit, Jm, JS, r0)
     loads = load_candidates(fit)
+    # the attribution depends on none of what follows: on a second core where the command has
+    # one (docs/performance.md), else computed where it is used; the periods and step moments
+    # it and the form both use are scanned first, once for both (when either has a residual
+    # to scan: an axis read, validation power left)
+    if frame.target.axes and frame.joint.axis_power(frame.joint.b).sum() > 0:
+        scan_together(variables, [frame.target])
+    attribution = in_background(attribute, meas.df, frame.target, variables=variables,
+                                frame=frame, extra_terms=load_terms(loads))
     form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, frame=frame,
                                             loads=loads)
     generic = (_projected(meas, cal, G), generic_explained, r0,
@@ -557,8 +571,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     best = next((c for c in ranking if c["significant"]), None)
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
                                      form=form if best is None else False,
-                                     target=frame.target, variables=variables, frame=frame,
-                                     extra_terms=load_terms(loads))
+                                     target=frame.target, attribution=attribution)
     if best:
         effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]

@@ -35,6 +35,8 @@ it).
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy import special
 
@@ -53,6 +55,7 @@ from deltatwin.calibration.diagnosis.term_form import (
 )
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
+    _as_slice,
     group_offsets,
     residuals,
 )
@@ -166,6 +169,25 @@ def _orthonormal(X: np.ndarray) -> np.ndarray:
     return u[:, s > max(s.max(initial=0.0), 1e-300) * 1e-10]
 
 
+class Placed(NamedTuple):
+    """Columns of one term or candidate on the reading axes, without the zeros an (N,3,width)
+    array of them would hold: ``blocks`` [(reading axis, its first column, X (N,w))], at most
+    one per axis. ``_Joint.columns`` takes it as it takes such an array."""
+    width: int
+    blocks: tuple
+
+    def dense(self, shape: tuple) -> np.ndarray:
+        """The (N,3,width) array (``shape``: (N,3)), zeros off the blocks."""
+        C = np.zeros(shape + (self.width,))
+        for k, start, X in self.blocks:
+            C[:, k, start:start + X.shape[1]] = X
+        return C
+
+
+def _width(C) -> int:
+    return C.width if isinstance(C, Placed) else C.shape[2]
+
+
 class _Joint:
     """Least squares on the residual a fitted physics model leaves, with the model's identified
     directions always re-adjusted (Frisch-Waugh: columns and residual taken orthogonal to them
@@ -236,26 +258,38 @@ class _Joint:
             P -= self.Qm @ (self.Qm_on_axis[k].T @ Pk)
         return P, D
 
-    def columns(self, Cs: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Each array of columns C (N,3,c) of ``Cs``: (on the calibration readings orthogonal
-        to the model's directions, the change of the validation residual per unit
-        coefficient). Linear in C, so each reading axis' nonzero columns of all of them are
-        projected together (``axis_columns``, in batches of COLUMNS_AT_ONCE: one pass of the
-        model's directions over the readings per batch instead of one per array) and summed
-        back."""
-        out = [(np.zeros((self.n_cal, C.shape[2])), np.zeros((self.n_val, C.shape[2])))
+    def columns(self, Cs: list) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each array of columns C (N,3,c) of ``Cs`` (or its ``Placed`` blocks): (on the
+        calibration readings orthogonal to the model's directions, the change of the
+        validation residual per unit coefficient). Linear in C, so each reading axis' nonzero
+        columns of all of them are projected together (``axis_columns``, in batches of
+        COLUMNS_AT_ONCE: one pass of the model's directions over the readings per batch
+        instead of one per array) and summed back."""
+        out = [(np.zeros((self.n_cal, _width(C))), np.zeros((self.n_val, _width(C))))
                for C in Cs]
         for k in range(3):
-            parts = [(i, cols) for i, C in enumerate(Cs)
-                     for cols in [np.flatnonzero(np.any(C[:, k] != 0, axis=0))] if cols.size]
+            # (array, its columns: a slice where they are a range, how many, their values)
+            parts = []
+            for i, C in enumerate(Cs):
+                if isinstance(C, Placed):
+                    for axis, first, X in C.blocks:
+                        cols = np.flatnonzero(np.any(X != 0, axis=0)) if axis == k else []
+                        if len(cols):
+                            parts.append((i, _as_slice(cols + first), cols.size,
+                                          X if cols.size == X.shape[1] else X[:, cols]))
+                    continue
+                cols = np.flatnonzero(np.any(C[:, k] != 0, axis=0))
+                if cols.size:
+                    sl = _as_slice(cols)
+                    parts.append((i, sl, cols.size, C[:, k, sl]))
             for start in range(0, len(parts), COLUMNS_AT_ONCE):
                 batch = parts[start:start + COLUMNS_AT_ONCE]
-                P, D = self.axis_columns(np.hstack([Cs[i][:, k, cols] for i, cols in batch]), k)
+                P, D = self.axis_columns(np.hstack([X for *_, X in batch]), k)
                 at = 0
-                for i, cols in batch:
-                    out[i][0][:, cols] += P[:, at:at + cols.size]
-                    out[i][1][:, cols] += D[:, at:at + cols.size]
-                    at += cols.size
+                for i, cols, width, _ in batch:   # a range's block added in place (a slice)
+                    out[i][0][:, cols] += P[:, at:at + width]
+                    out[i][1][:, cols] += D[:, at:at + width]
+                    at += width
         return out
 
     def least_squares(self, Ps: list) -> tuple[np.ndarray, int]:
@@ -272,8 +306,7 @@ class _Joint:
                 or any(a is not b for a, b in zip(lead, kept))):
             self._lead = (list(lead), *self._factorised(lead))
         _, Q, R, Qr, r_rest, norm_lead = self._lead
-        norm = np.linalg.norm(last, axis=0)
-        norm[norm == 0] = 1.0
+        norm = _column_norms(last)
         X = last / norm
         W = Q.T @ X
         Y = X - Q @ W
@@ -299,8 +332,7 @@ class _Joint:
             return (np.zeros((self.r.size, 0)), np.zeros((0, 0)), np.zeros(0), self.r,
                     np.zeros(0))
         X = np.hstack(Ps)
-        norm = np.linalg.norm(X, axis=0)
-        norm[norm == 0] = 1.0
+        norm = _column_norms(X)
         Q, R = np.linalg.qr(X / norm)
         Qr = Q.T @ self.r
         return Q, R, Qr, self.r - Q @ Qr, norm
@@ -316,6 +348,15 @@ class _Joint:
 
     def axis_power(self, e: np.ndarray) -> np.ndarray:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
+
+
+def _column_norms(X: np.ndarray) -> np.ndarray:
+    """The Euclidean norms of the columns of X (n,c), 1 for a zero column (a scale to divide
+    by): one pass over the rows (np.linalg.norm along axis 0 strides down each column, ~6x
+    slower on these tall, narrow blocks)."""
+    norm = np.sqrt(np.einsum("ij,ij->j", X, X))
+    norm[norm == 0] = 1.0
+    return norm
 
 
 def _times(blocks: list, coef: np.ndarray) -> np.ndarray:
@@ -353,15 +394,13 @@ class JointFrame:
                                        for t in terms[start:start + COLUMNS_AT_ONCE]])
         return out
 
-    def _placed(self, term: Term) -> np.ndarray:
+    def _placed(self, term: Term):
         X = term.columns
         if X.ndim != 2:
             return np.nan_to_num(X)
         X = np.where(np.all(np.isfinite(X), axis=1)[:, None], X, 0.0)
-        C = np.zeros(self.shape + (X.shape[1] * self.n_axes,))
-        for i, k in enumerate(self.axes):
-            C[:, k, i * X.shape[1]:(i + 1) * X.shape[1]] = X
-        return C
+        return Placed(X.shape[1] * self.n_axes,
+                      tuple((k, i * X.shape[1], X) for i, k in enumerate(self.axes)))
 
     def n_val(self) -> dict:
         return {k: int(np.sum(self.joint.axis_of == k)) for k in self.axes}
@@ -531,12 +570,11 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
             C[:, [k for k in range(3) if k not in axes]] = 0.0     # axes read too rarely
             layouts = [({k: slice(0, c) for k in axes}, C)]
         else:
-            layouts = []
+            layouts, X = [], np.nan_to_num(cand.columns)
             for group in ([axes] if _on_every_axis(cand) else [[k] for k in axes]):
-                C = np.zeros(meas.y.shape + (c * len(group),))
-                for i, k in enumerate(group):
-                    C[:, k, i * c:(i + 1) * c] = np.nan_to_num(cand.columns)
-                layouts.append(({k: slice(i * c, (i + 1) * c) for i, k in enumerate(group)}, C))
+                layouts.append(({k: slice(i * c, (i + 1) * c) for i, k in enumerate(group)},
+                                Placed(c * len(group),
+                                       tuple((k, i * c, X) for i, k in enumerate(group)))))
         tried += [(cand, layout, C) for layout, C in layouts]
     for start in range(0, len(tried), COLUMNS_AT_ONCE):
         batch = tried[start:start + COLUMNS_AT_ONCE]
@@ -568,7 +606,7 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
         return empty
     fit_of = lambda idx: joint.fit([pairs[j][3] for j in idx], [pairs[j][4] for j in idx])
     coefs, p_full, _, _ = fit_of(chosen)
-    per_term = np.split(coefs, np.cumsum([pairs[j][2].shape[2] for j in chosen])[:-1])
+    per_term = np.split(coefs, np.cumsum([_width(pairs[j][2]) for j in chosen])[:-1])
     shares = {}         # (term, axis): the share of the axis' power the term alone explains
     for j in chosen:
         without = fit_of([m for m in chosen if m != j])[1]
@@ -597,5 +635,6 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
                      "explained_fraction": 1.0 - p_full[k] / p0_axes[k],
                      "val_rms_nm": float(np.sqrt(p0_axes[k] / n_val) * 1e9),
                      "val_rms_after_nm": float(np.sqrt(p_full[k] / n_val) * 1e9)})
-    G = np.concatenate([pairs[j][2] for j in chosen], axis=2)
+    G = np.concatenate([C.dense(meas.y.shape) if isinstance(C, Placed) else C
+                        for C in (pairs[j][2] for j in chosen)], axis=2)
     return form, G, 1.0 - float(p_full.sum()) / p0

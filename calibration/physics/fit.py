@@ -124,12 +124,20 @@ class PhysicsFit:
         sigma = self.noise_nm * 1e-9
         A0, J0 = model.jacobian(meas, theta0)
         Js = _projected(meas, cal, J0 * S)
-        if p:
-            _, s, Vt = np.linalg.svd(Js, full_matrices=False)
+        # on the data it was fitted on, the start is kept in the directions it was fitted in
+        # (below): no SVD chooses directions here, V's report is made from Js alone
+        same_data = (fitted_on is not None and fitted_on == self.data_sha256_
+                     and start_directions is not None)
+        if same_data:
+            V = _checked_directions(start_directions, p)
+            s, Vt, keep = _directions_report(Js, V)
         else:
-            s, Vt = np.zeros(0), np.zeros((0, 0))
-        keep = (s > sigma / self.identifiable_ratio) & (s > s.max(initial=0) * 1e-12)
-        V = Vt[keep].T                                                   # (p, k)
+            if p:
+                _, s, Vt = np.linalg.svd(Js, full_matrices=False)
+            else:
+                s, Vt = np.zeros(0), np.zeros((0, 0))
+            keep = (s > sigma / self.identifiable_ratio) & (s > s.max(initial=0) * 1e-12)
+            V = Vt[keep].T                                               # (p, k)
         self.n_evaluations_, self.n_jacobians_ = p + 1, 1
         # directions the data cannot determine are held at the prior (the effects' starting
         # values), not at a warm start's values: a previous fit may have pushed them anywhere
@@ -163,16 +171,14 @@ class PhysicsFit:
         n_res = int(np.sum((meas.group >= 0) & cal[:, None]))
         dof = max(n_res - k - len(meas.groups), 1)
         self.solver_message_ = "nothing to fit: no identified direction"
-        P0 = _projected(meas, cal, J0 * S)
-        Jz0 = -P0 @ V * NM
+        Jz0 = -Js @ V * NM
         r0 = _projected(meas, cal, meas.y - A0) * NM
         # convergence of the start is judged in the directions it was fitted in, when given
-        V_test = V if start_directions is None else _checked_directions(start_directions, p)
-        same_data = (fitted_on is not None and fitted_on == self.data_sha256_
-                     and start_directions is not None)
+        V_test = (V if start_directions is None or same_data
+                  else _checked_directions(start_directions, p))
         keep_start = same_data or (
             keep_converged_start and V_test.shape[1] > 0
-            and _remaining_step_sigma(-P0 @ V_test * NM, r0,
+            and _remaining_step_sigma(-Js @ V_test * NM, r0,
                                       max(n_res - V_test.shape[1] - len(meas.groups), 1))
             <= STEP_SIGMA)
         if keep_start and V_test is not V:
@@ -197,7 +203,7 @@ class PhysicsFit:
                 self.n_evaluations_ += int((~seen).sum()) + 1
         model.set_theta(theta)          # the solver's last evaluation may have been a trial
         r = _projected(meas, cal, meas.y - A)
-        Jz = -_projected(meas, cal, J * S) @ V
+        Jz = -(Js if J is J0 else _projected(meas, cal, J * S)) @ V
         dof = max(n_res - V.shape[1] - len(meas.groups), 1)
         self.remaining_step_sigma_ = _remaining_step_sigma(Jz, r, dof)
         change = self.remaining_step_sigma_ * float(np.linalg.norm(r)) / np.sqrt(dof)
@@ -224,15 +230,16 @@ class PhysicsFit:
         self.val_ = figures_nm(self.residual_, meas.val)
         self.jacobian_ = J
         self.identified_directions_ = V
-        self._identifiability(model, s, Vt, keep, J * S, meas, r, V, theta, prior)
+        self._identifiability(model, s, Vt, keep, Jz, meas, r, V, theta, prior)
         return self
 
-    def _identifiability(self, model, s, Vt, keep, JS, meas, r, V, theta, theta0):
+    def _identifiability(self, model, s, Vt, keep, Jz, meas, r, V, theta, theta0):
+        """``Jz``: the projected calibration residual's Jacobian in the directions ``V``
+        (n, k; its sign does not matter here)."""
         p, k = model.n_free, int(keep.sum())
         labels = model.labels
         dof = max(r.size - k - len(meas.groups), 1)
         sigma_r = float(np.sqrt(np.sum(r ** 2) / dof))
-        Jz = _projected(meas, meas.cal, JS) @ V if k else np.zeros((r.size, 0))
         cov_z = np.linalg.pinv(Jz.T @ Jz) * sigma_r ** 2 if k else np.zeros((0, 0))
         S = model.scales
         cov = (S[:, None] * V) @ cov_z @ (S[:, None] * V).T if k else np.zeros((p, p))

@@ -382,3 +382,21 @@ def test_a_converged_fitted_model_is_kept_without_the_solver():
     fresh = PhysicsFit(["gravity_sag"]).fit(df, meta, keep_converged_start=True)
     assert "kept" not in fresh.solver_message_ and fresh.n_evaluations_ > fresh.model_.n_free + 1
     np.testing.assert_allclose(fresh.theta_, fit.theta_, rtol=1e-12)
+
+
+def test_the_attribution_in_a_second_process_gives_the_same_diagnosis(monkeypatch):
+    """diagnose's attribution beside the candidates (models.batched.in_background): forked or
+    computed in the process, the diagnosis is the same to the last bit."""
+    from deltatwin.models import batched
+
+    sc = Scenario.load("quiet/gravity-sag")
+    sc.effects.append(DraughtOnTheBeams())
+    sc.hidden = None
+    df, meta = sc.simulate(sc.reduced_scale)
+    fit = PhysicsFit(["gravity_sag"]).fit(df, meta)
+    diagnoses = []
+    for background in (False, True):
+        monkeypatch.setattr(batched, "BACKGROUND", background)
+        diagnoses.append(json.dumps(diagnose(fit), sort_keys=True, default=str))
+    assert diagnoses[0] == diagnoses[1]
+    assert '"depends_on": [{' in diagnoses[1]          # the attribution named a variable

@@ -44,3 +44,68 @@ def test_threads_from_the_environment(monkeypatch):
         monkeypatch.setenv(ENVIRONMENT_VARIABLE, bad)
         with pytest.raises(ValueError, match=f"{ENVIRONMENT_VARIABLE}='{bad}'"):
             threads_from_environment()
+
+
+@pytest.mark.parametrize("env, expected", [(None, "True"), ("1", "False"), ("2", "True")])
+def test_the_background_process_is_on_unless_one_core_is_asked_for(env, expected):
+    code = ("import os\n"
+            "os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:2])\n"
+            "from deltatwin.threads import set_threads\n"
+            "from deltatwin.models import batched\n"
+            "set_threads()\n"
+            "print(batched.BACKGROUND if batched.usable_cores() >= 2 else 'one core')\n")
+    if not hasattr(os, "sched_setaffinity"):
+        pytest.skip("no CPU affinity on this system")
+    r = _run(code, env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    if r.stdout.strip() == "one core":
+        pytest.skip("this machine has one core")
+    assert r.stdout.strip() == expected
+
+
+def _failing(message):
+    raise ValueError(message)
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_in_background_returns_the_result_or_raises_the_error(monkeypatch, background):
+    import numpy as np
+
+    from deltatwin.models import batched
+    monkeypatch.setattr(batched, "BACKGROUND", background)
+    parent = os.getpid()
+    x = np.arange(10.0)
+    done = batched.in_background(lambda a, b=0.0: (os.getpid(), a @ a + b), x, b=1.0)
+    pid, value = done()
+    assert value == 286.0
+    assert (pid != parent) == (background and sys.platform.startswith("linux"))
+    failed = batched.in_background(_failing, "bad input at row 3")
+    with pytest.raises(ValueError, match="bad input at row 3"):
+        failed()
+
+
+def test_a_background_result_never_asked_for_leaves_no_process(monkeypatch, tmp_path):
+    import gc
+    import time
+
+    from deltatwin.models import batched
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the background process is forked on Linux only")
+    monkeypatch.setattr(batched, "BACKGROUND", True)
+    mark = tmp_path / "pid"
+
+    def task():
+        mark.write_text(str(os.getpid()))
+        time.sleep(30)
+    done = batched.in_background(task)
+    for _ in range(200):                       # until the child has started
+        if mark.exists() and mark.read_text():
+            break
+        time.sleep(0.05)
+    pid = int(mark.read_text())
+    del done
+    gc.collect()
+    with pytest.raises(ChildProcessError):      # stopped and waited for: not our child any more
+        os.waitpid(pid, os.WNOHANG)
+    with pytest.raises(ProcessLookupError):     # and gone
+        os.kill(pid, 0)
