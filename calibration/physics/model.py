@@ -238,9 +238,10 @@ class PhysicsModel:
         ``temperatures`` (the part temperatures), or ``load_optics`` (the kinematics can be
         re-used); and ``part_scales``, the ``temperatures`` parameters that change nothing but
         the part temperatures the geometry is scaled by (a CTE factor: not what the sensors
-        read, nor where the motors sit)."""
+        read, nor where the motors sit); ``motor_angles``, the ``temperatures`` parameters that
+        change nothing but where the motors sit (a backlash, an encoder's periodic error)."""
         out = {k: np.zeros(self.n_free, bool)
-               for k in ("robot", "temperatures", "load_optics", "part_scales")}
+               for k in ("robot", "temperatures", "load_optics", "part_scales", "motor_angles")}
         for f in self.free:
             stages = self.classes[f.effect].model_stages()
             key = ("temperatures" if {"sensed_parts", "part_temperatures", "motor_angles"}
@@ -248,6 +249,7 @@ class PhysicsModel:
                    "robot" if "robot" in stages else "load_optics")
             out[key][f.sl] = True
             out["part_scales"][f.sl] = stages == ("part_temperatures",)
+            out["motor_angles"][f.sl] = stages == ("motor_angles",)
         return out
 
     # -- evaluation ---------------------------------------------------------------------------
@@ -396,7 +398,9 @@ class PhysicsModel:
         J = np.zeros(A.shape + (theta.size,))
         by = self.free_by_stage()
         wanted = np.ones(theta.size, bool) if columns is None else np.asarray(columns, bool)
-        pts, q = meas.points, meas.points.q
+        pts = meas.points
+        # where the motors sit: the encoders' readings, or those plus an effect's angle errors
+        q = motor_positions(self.effects, pts)
         # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
         # derivative at the fixed pose (N + S, 6, k), the home's (3, k) or None: it stays)
         moving = []
@@ -418,7 +422,11 @@ class PhysicsModel:
             moving.append((np.flatnonzero(scaling), d_rods, None))
             J[:, :, _as_slice(np.flatnonzero(scaling))] = self._counted(meas, direct, n_comp,
                                                                         derivative=True)
-        if np.any(wanted & ~by["robot"] & ~by["load_optics"] & ~by["part_scales"]):
+        motors = wanted & by["motor_angles"]
+        if motors.any():
+            moving.append((np.flatnonzero(motors), self._motor_derivatives(
+                meas, theta, stage, np.flatnonzero(motors), rods), None))
+        if np.any(wanted & ~by["robot"] & ~by["load_optics"] & ~by["part_scales"] & ~motors):
             # theta's rod equations (~0 at the solved pose) and readings: the third
             # difference that lets a nearly linear column keep three evaluations
             pts = self._stage_points(meas, stage)
@@ -426,7 +434,7 @@ class PhysicsModel:
                         A)
         optics_at = self._optics_at(meas, stage, truth) if np.any(wanted & by["load_optics"]) \
             else None
-        for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"]):
+        for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
                                                       response, n_comp, A, optics_at)
@@ -554,8 +562,7 @@ class PhysicsModel:
         g_base, g_arm, g_rod, g_plat = (g[:, 0], g[:, 1:4], g[:, 4:10].reshape(n, 3, 2, -1),
                                         g[:, 10])
         geom = stage.geom
-        q = motor_positions(self.effects, pts)         # (``rods``: at the encoders' readings)
-        rod, w = rods if q is pts.q else rod_vectors(geom, q, stage.kin)
+        rod, w = rods                                  # where the motors sit
         B, L, cube = ((geom.B, geom.L, geom.cube_offset) if geom.batched else
                       (geom.B[None], geom.L[None], geom.cube_offset[None]))   # (1|N, ...)
         B = B[:, :, None, :]
@@ -570,6 +577,35 @@ class PhysicsModel:
         direct = np.einsum("nai,ni->na", gradient[:, :, :3], cube)[..., None] * g_plat[:, None]
         return d_rods.reshape(n, 6, -1), direct
 
+    def _motor_derivatives(self, meas, theta, stage: Stage, cols, rods: tuple) -> np.ndarray:
+        """For the parameters ``cols`` that change nothing but where the motors sit: the rod
+        equations' derivative at the fixed pose (N + S, 6, k). A motor turning its arm by d
+        moves the elbow hinge A by (axis x (A - B)) d, so its two rod equations |P - A|^2 - L^2
+        change by -2 (P - A) . (axis x (A - B)) d (analytic); the motors' angles' derivative in
+        each parameter is a ``richardson_derivative`` of the effects' ``motor_angles`` hooks
+        alone (no kinematics). At the fixed pose the readings do not depend on where the motors
+        sit (the optics and the load read the pose), so these columns have no direct part."""
+        pts = self._stage_points(meas, stage)
+        rod, w = rods
+        geom = stage.geom
+        B, axis = (geom.B, geom.axis) if geom.batched else (geom.B[None], geom.axis[None])
+        arm = stage.kin.p[:, None, None, :] + w - rod - B[:, :, None, :]     # A - B
+        turn = np.cross(np.broadcast_to(axis[:, :, None, :], arm.shape), arm)
+        per_rad = -2 * (rod[..., 0] * turn[..., 0] + rod[..., 1] * turn[..., 1]
+                        + rod[..., 2] * turn[..., 2])                        # (N + S, 3, 2)
+        at_theta = (motor_positions(self.effects, pts),)
+
+        def angles(offset, j):
+            th = theta.copy()
+            th[j] += offset
+            self.set_theta(th)
+            return (motor_positions(self.effects, pts),)
+
+        d_angles = np.stack([richardson_derivative(lambda o, j=j: angles(o, j), self.scales[j],
+                                                   at_zero=at_theta)[0] for j in cols], axis=-1)
+        self.set_theta(theta)
+        return (per_rad[..., None] * d_angles[:, :, None, :]).reshape(rod.shape[0], 6, -1)
+
     def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps, rod: np.ndarray):
         """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
         (N + S, 6, k) and the home's (3, k). Each point's joint arrays are the robot's at its
@@ -577,8 +613,10 @@ class PhysicsModel:
         (models.geometry.part_scales), so their derivatives are too: the joint arrays are
         differenced once per parameter (the elbow hinges on the distinct motor coordinates),
         then every parameter's rod equations are formed at once from the points' rod vectors."""
-        pts, q = meas.points, meas.points.q
-        qu, inv = pts.unique_q()
+        pts = meas.points
+        q = motor_positions(self.effects, pts)     # with an effect's angle errors, where they sit
+        qu, inv = pts.unique_q() if q is pts.q else np.unique(q, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
         pts.node_T = stage.node_T
         temps = geometry_temperatures(self.effects, pts)
         s_base, s_arm, s_rod, s_plat = (
