@@ -86,8 +86,9 @@ GENERIC_SHARE = 0.5
 # the ladder's fits may evaluate this many points (PhysicsFit's default: 20): a model lacking an
 # effect is misspecified and slow to converge, and where a fit stops short its result depends
 # on its start's path (a force case's refit with magnetic force stopped at the limit at 126.7
-# or 58.8 nm validation error from two nearby starts; with 40 evaluations it converged to
-# 74.6 nm from both)
+# or 58.8 nm validation error from the previous fit with and without loop drift's fitted
+# expansion coefficients; with 40 evaluations the former converges, at 74.6 nm; 39 of 94
+# ladder fits on six seeds stopped at 20, 9 of 93 at 40)
 LADDER_EVALUATIONS = 40
 # a candidate's verdict when what its determined directions leave of its start is held off
 HELD_OFF = (" (its parameter combinations the data do not determine held at zero, not at "
@@ -556,7 +557,11 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     ``known``: the laboratory's constants ({effect: {parameter: value}}), given to every fit
     and to the candidates of every diagnosis. ``made``: fits already made on these rows (the
     achievable floor's: the complete model from the library's starting values is also the
-    last rung's first start), reused instead of refitted (``fit_from_starts``).
+    last rung's first start), reused instead of refitted (``fit_from_starts``). Each model
+    is fitted from the priors and from the previous model's values, the baseline from the
+    priors and from the baseline without each of its effects after the first; another start
+    than the priors is kept when it lowers the calibration cost beyond chance (ALPHA). The
+    fits may evaluate LADDER_EVALUATIONS points unless ``fit_options`` say otherwise.
 
     An effect is kept only if its refit lowers the validation error: a refit that predicts
     the validation rows worse than the model without the effect (its parameters taking
@@ -579,7 +584,9 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
         # each model starts from the effects' priors (a previous fit's values may lie outside
         # a parameter's physical range where they stood in for the missing effect) and, once
         # there is one, from the previous model's fitted values: the models have more than
-        # one basin (fit_from_starts), and the lower calibration cost is kept
+        # one basin (fit_from_starts), and another start's lower calibration cost is kept
+        # when it is lower beyond chance (fits the calibration rows cannot tell apart are not
+        # chosen between by round-off)
         starts = {"priors": {"start": known}}
         if fits:
             starts["previous fit"] = {"start": _with_known(fits[-1].model_.values(), known)}

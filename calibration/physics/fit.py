@@ -459,7 +459,8 @@ def calibration_cost(fit: PhysicsFit) -> float:
 def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None = None,
                     made=(), chance_alpha: float | None = None, **options) -> PhysicsFit:
     """Fit ``effects`` from each of ``starts`` ({label: PhysicsFit keyword arguments, e.g.
-    ``start`` and ``prior``}) and return the fit of lowest calibration cost, with
+    ``start`` and ``prior``}) and return the fit of lowest calibration cost (of the first
+    start unless another is lower beyond chance, with ``chance_alpha``), with
     ``start_label_`` (which start it came from), ``start_costs_`` ({label: calibration
     rms, nm}) and ``start_fits_`` ({label: the fit from that start}). ``made``: fits already
     made on the rows of ``df`` (another call's ``start_fits_`` values): a start whose fit is
@@ -482,6 +483,9 @@ def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None =
     validation error)."""
     if not starts:
         raise FitError("fit_from_starts: no start given")
+    if chance_alpha is not None and not 0 < chance_alpha < 1:
+        raise FitError(f"fit_from_starts: chance_alpha = {chance_alpha}: must be a probability "
+                       "between 0 and 1")
     best, costs, fits, meas = None, {}, {}, None
     for label, kwargs in starts.items():
         fit = PhysicsFit(effects, **{**options, **kwargs})

@@ -10,6 +10,7 @@ import pytest
 from deltatwin.calibration.diagnosis import diagnose as diagnosis
 from deltatwin.calibration.diagnosis.conditions import extrapolated_variables
 from deltatwin.calibration.diagnosis.floor import achievable_floor, true_model
+from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.cases import KNOWN, MODEL, Case, generate_cases
@@ -218,6 +219,8 @@ def test_a_later_start_is_kept_only_when_it_lowers_the_cost_beyond_chance():
                                        "priors": {}}, df, meta, chance_alpha=1e-3)
     assert better.start_label_ == "priors"
     assert better.start_costs_["priors"] < 0.5 * better.start_costs_["stopped"]
+    with pytest.raises(FitError, match="chance_alpha = 0"):
+        fit_from_starts(effects, starts, df, meta, chance_alpha=0)
 
 
 def _ar1(rng, n: int, rho: float) -> np.ndarray:
