@@ -590,18 +590,6 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
         starts = {"priors": {"start": known}}
         if fits:
             starts["previous fit"] = {"start": _with_known(fits[-1].model_.values(), known)}
-            named = next(c for c in diagnoses[-1]["ranking"] if c["effect"] == effects[-1])
-            off = (_switched_off(fits[-1], effects[-1], known)
-                   if named.get("held_at") == "off" else None)
-            if off is not None:
-                # the diagnosis found the effect significant switched off along what the data
-                # do not determine (``_held_at``): refitted from there, and held there (its
-                # prior), the refit is the model the diagnosis tested (a force case's loop
-                # drift at a third: held at the library's CTEs the refit predicted validation
-                # at 65 nm against the model's 45; held off, 38, the floor 36)
-                starts["previous fit, held off"] = {
-                    "start": _with_known({**fits[-1].model_.values(), effects[-1]: off}, known),
-                    "prior": _with_known({effects[-1]: off}, known)}
         else:
             # the baseline has no previous model: the baseline without each of its effects
             # after the first plays that part (a thermal null case's baseline from the priors
@@ -647,26 +635,6 @@ def _with_known(values: dict, known: dict | None) -> dict:
     values)."""
     known = known or {}
     return {e: {**values.get(e, {}), **known.get(e, {})} for e in {**values, **known}}
-
-
-def _switched_off(fit: PhysicsFit, name: str, known: dict | None) -> dict | None:
-    """The values of effect ``name`` with its free parameters at zero when that switches it
-    off: added so to ``fit``'s model, it leaves the predictions unchanged (to 1e-3 of the
-    noise); else None (zero is not off for every effect)."""
-    values = fit.model_.values()
-    model = PhysicsModel(fit.effects + [name], fit.model_.params,
-                         _with_known({**values, name: {}}, known))
-    theta = model.theta()
-    for f in model.free:
-        if f.effect == name:
-            theta[f.sl] = 0.0
-    try:
-        change = model.predict_path(fit.measurements_, theta) - fit.prediction_
-    except KinematicsError:
-        return None
-    if not np.nanmax(np.abs(change), initial=0.0) <= 1e-3 * fit.noise_nm * 1e-9:
-        return None
-    return model.values()[name]
 
 
 def _rejected_refit(refit: PhysicsFit, previous: PhysicsFit, diagnosis: dict) -> dict:
