@@ -56,7 +56,7 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolated_variables,
     extrapolation_message,
 )
-from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
+from deltatwin.calibration.diagnosis.floor import AT_FLOOR, LADDER_EVALUATIONS, floor_of
 from deltatwin.calibration.diagnosis.model_form import (
     JointFrame,
     joint_form,
@@ -86,15 +86,6 @@ GAP_CLOSED = 0.5   # or a candidate closes half the gap between the model and th
 # a candidate explaining less than this share of what generic functions of the laboratory
 # variables explain, and nothing beyond them, is a correlate of the missing term, not it
 GENERIC_SHARE = 0.5
-# the ladder's fits may evaluate this many points (PhysicsFit's default: 20): a model lacking an
-# effect is misspecified and slow to converge, and where a fit stops short its result depends
-# on its start's path (a force case's refit with magnetic force stopped at the limit at 126.7
-# or 58.8 nm validation error from the previous fit with and without loop drift's fitted
-# expansion coefficients; with 40 evaluations the former converges, at 74.6 nm; 39 of 94
-# ladder fits on six seeds stopped at 20, 9 of 93 at 40; a refit adding magnetic force at 10x
-# stopped at 40 at 56.5 nm calibration rms, 478 nm validation, and converged at 80: 20.4 nm,
-# 75.1 nm)
-LADDER_EVALUATIONS = 80
 # a candidate's verdict when what its determined directions leave of its start is held off
 HELD_OFF = (" (its parameter combinations the data do not determine held at zero, not at "
             "the library's starting values)")

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy import special
 
 from deltatwin.calibration.errors import FitError, TooFewPointsError
 from deltatwin.calibration.physics.measurements import (
@@ -507,7 +507,7 @@ def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None =
             first = cost
             chance = 0.0 if chance_alpha is None else cost / max(
                 n_res - fit.identifiability_["n_identified_directions"] - len(meas.groups),
-                1) * float(stats.chi2.isf(chance_alpha, 1))
+                1) * float(special.chdtri(1, chance_alpha))   # chi2.isf(alpha, 1)
         if best is None or (cost < best[0] and first - cost > chance):
             best = (cost, label, fit)
     _, label, fit = best
