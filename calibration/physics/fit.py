@@ -214,7 +214,12 @@ class PhysicsFit:
             f"not converged: a further step would still move the parameters by "
             f"{self.remaining_step_sigma_:.2g} of their uncertainty (limit {STEP_SIGMA}); "
             f"solver: {self.solver_message_}")
-        if not self.converged_:
+        if not self.converged_ and keep_start:
+            # nothing was iterated: the saved model is not converged, as when it was fitted
+            log.warning("the model of %s, kept as fitted on these data, is %s (calibration rms "
+                        "%.3g nm)", self.effects, self.status_,
+                        float(np.sqrt(np.mean(r ** 2))) * 1e9 if r.size else 0.0)
+        elif not self.converged_:
             log.warning("the fit of %s did not converge after %d model evaluations: %s; the best "
                         "fit found is returned (calibration rms %.3g nm)", self.effects,
                         self.n_evaluations_, self.status_,

@@ -197,7 +197,7 @@ def test_a_saved_converged_model_is_kept_in_the_directions_it_was_fitted_in(tmp_
 
 
 def test_a_saved_unconverged_model_is_diagnosed_as_fitted_on_its_own_data(tmp_path,
-                                                                           monkeypatch):
+                                                                           monkeypatch, caplog):
     """``deltatwin diagnose`` of a model that stopped short of converging: on the very data it
     was fitted on (the file's data_sha256) its values are kept as fitted (one Jacobian; its
     status still says not converged), so the diagnosis is of the file's model; on other data
@@ -210,9 +210,14 @@ def test_a_saved_unconverged_model_is_diagnosed_as_fitted_on_its_own_data(tmp_pa
     effects = ["geometric_errors", "magnetic_force"]
     fit = PhysicsFit(effects, max_evaluations=2).fit(df, meta)
     assert not fit.converged_
+    caplog.clear()
     seen, data, path = _diagnosed_from_its_file(tmp_path, monkeypatch, fit, df, meta)
     (kept,) = seen
     assert "kept as fitted" in kept.solver_message_ and kept.n_jacobians_ == 1
+    # its warning says the saved model is not converged, not that a fit ran out of evaluations
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("kept as fitted on these data, is not converged" in w for w in warned), warned
+    assert not any("did not converge after" in w for w in warned), warned
     np.testing.assert_array_equal(kept.theta_, fit.theta_)
     assert not kept.converged_
     np.testing.assert_allclose(kept.residual_, fit.residual_, rtol=0, atol=1e-15)
