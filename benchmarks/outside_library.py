@@ -77,9 +77,10 @@ TARGETS = {"unclaimed": 1.0, "named_first": 0.8, "form": 0.8, "floor_ratio": 1.1
 
 def _final(r: dict) -> dict:
     """The researcher's final val err90 (``final_err90_nm``: with the effect written from the
-    proposed form, or the baseline's where no form is proposed: nothing to add) and its ratio
-    to the achievable floor (``floor_ratio``), set in the case's result ``r``."""
-    r["final_err90_nm"] = r["proposed_err90_nm"] if r["form"] else r["baseline_err90_nm"]
+    proposed form, or the model kept where no form is proposed: the baseline with any library
+    effect claimed, nothing to add) and its ratio to the achievable floor (``floor_ratio``),
+    set in the case's result ``r``."""
+    r["final_err90_nm"] = r["proposed_err90_nm"] if r["form"] else r["kept_err90_nm"]
     r["floor_ratio"] = r["final_err90_nm"] / r["own_err90_nm"]
     return r
 

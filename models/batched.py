@@ -10,6 +10,7 @@ import os
 import pickle
 import signal
 import sys
+import traceback
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 
@@ -59,8 +60,9 @@ def in_background(fun, *args, **kwargs):
     child process, beside what the caller computes meanwhile: a second core for a whole
     independent task of a second or so (a thread would hold the GIL for its Python between the
     numpy calls; the child shares the caller's arrays copy-on-write and sends back only its
-    result, pickled).  Else it runs when its result is asked for.  Either way the result is
-    the same."""
+    result, pickled; its BLAS limited to one thread, the caller's own pool not doubled).  Else
+    it runs when its result is asked for.  The result is the same provided the caller does not
+    change the arguments meanwhile (the child computes on them as they were at the start)."""
     if not BACKGROUND or not sys.platform.startswith("linux"):
         return lambda: fun(*args, **kwargs)
     read, write = os.pipe()
@@ -69,34 +71,50 @@ def in_background(fun, *args, **kwargs):
         try:
             os.close(read)
             try:
+                from threadpoolctl import threadpool_limits
+                threadpool_limits(limits=1, user_api="blas")
                 done = pickle.dumps((True, fun(*args, **kwargs)), pickle.HIGHEST_PROTOCOL)
             except BaseException as exc:
+                # the exception itself where it pickles (the caller handles its type as it
+                # would here), and its text and the child's traceback (it arrives without one)
                 try:
-                    done = pickle.dumps((False, exc), pickle.HIGHEST_PROTOCOL)
-                except Exception:                # an exception that cannot be pickled
-                    done = pickle.dumps((False, RuntimeError(f"{type(exc).__name__}: {exc}")))
+                    raised = pickle.dumps(exc, pickle.HIGHEST_PROTOCOL)
+                except Exception:
+                    raised = None
+                done = pickle.dumps((False, raised, f"{type(exc).__name__}: {exc}",
+                                     traceback.format_exc()), pickle.HIGHEST_PROTOCOL)
             with os.fdopen(write, "wb") as out:
                 out.write(done)
         finally:
             os._exit(0)      # no exit handlers, no flush of the parent's buffered output
     os.close(write)
+    state = {"waited": False}
 
     def result():
-        abandoned.detach()
-        with os.fdopen(read, "rb") as channel:
-            data = channel.read()
-        os.waitpid(pid, 0)
+        if state["waited"]:
+            raise RuntimeError(f"the background result of {fun.__name__} was already taken")
+        state["waited"] = True
+        try:
+            with os.fdopen(read, "rb") as channel:
+                data = channel.read()
+            os.waitpid(pid, 0)
+        except BaseException:
+            _stop(pid, None)           # interrupted while waiting: the child is not left behind
+            raise
+        finally:
+            abandoned.detach()
         if not data:
             raise RuntimeError(f"the background process computing {fun.__name__} ended "
                                "without a result")
-        return _outcome(pickle.loads(data))
+        return _outcome(pickle.loads(data), fun.__name__)
     # a result never asked for (the caller failed first): the child is stopped and waited for
     abandoned = weakref.finalize(result, _stop, pid, read)
     return result
 
 
-def _stop(pid: int, channel: int) -> None:
-    os.close(channel)
+def _stop(pid: int, channel: int | None) -> None:
+    if channel is not None:
+        os.close(channel)
     try:
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
@@ -104,11 +122,21 @@ def _stop(pid: int, channel: int) -> None:
         pass
 
 
-def _outcome(done: tuple):
-    ok, value = done
-    if not ok:
-        raise value
-    return value
+def _outcome(done: tuple, name: str):
+    if done[0]:
+        return done[1]
+    _, raised, what, where = done
+    note = f"raised in the background process computing {name}; its traceback:\n{where}"
+    try:
+        # an exception whose constructor takes other arguments than its message pickles but
+        # does not unpickle
+        exc = pickle.loads(raised) if raised is not None else None
+    except Exception:
+        exc = None
+    if exc is None:
+        raise RuntimeError(f"{what} ({note})")
+    exc.add_note(note)
+    raise exc
 
 
 def dot(a, b):

@@ -401,8 +401,9 @@ def _serial_inflation(meas, explained: np.ndarray, left: np.ndarray) -> float:
     ``left``: the candidate's residual; readings as ``_projected`` orders them, each (session,
     axis) group in time order) against the independent rows the F test assumes: Bartlett's
     factor 1 + 2 sum_l rho_e(l) rho_x(l) over lags l >= 1, the two series' autocorrelations
-    pooled over the groups, summed while the product stays positive (Geyer's initial positive
-    sequence: beyond, the estimates are noise). A thermometer's error through a lever and a
+    pooled over the groups, summed up to the first lag whose product is not positive (beyond,
+    the estimates are noise; a simpler cut than Geyer's initial positive sequence, which looks
+    at sums of adjacent lag pairs). A thermometer's error through a lever and a
     misfit's slow structure stay correlated over tens of rows (a null case's residual: 0.69 at
     lag 1, 0.60 at 5, 0.27 at 20), and a candidate whose change follows the temperatures as
     slowly looks significant on independent rows (air refraction at its start: p = 8e-15; the

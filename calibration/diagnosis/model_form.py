@@ -477,6 +477,9 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
                 trials[i] = (i, gain, Pn, kk, df2)
                 if best is None or gain > best[1]:
                     best = trials[i]
+        # the physical alternative in its place when the reading's term is not significantly
+        # better; should the alternative then fail the joining test, the term itself is tried
+        tries = [best] if best is not None else []
         alternatives = [trials[j] for j in physical.get(best[0], ()) if j in trials] if best \
             else []
         if alternatives:
@@ -485,15 +488,16 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
             extra = max(kk - alt[3], 1)
             if special.fdtrc(extra, df2, (gain - alt[1]) / extra / ((rss - gain) / df2)) \
                     >= limit:
-                best = alt
-        if best is not None:
-            i, gain, Pn, kk, df2 = best
+                tries = [alt, best]
+        best = None
+        for i, gain, Pn, kk, df2 in tries:
             trial = chosen + [i]
             vp = float(joint.fit([blocks[j][0] for j in trial],
                                  [blocks[j][1] for j in trial])[1].sum())
-            if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) >= limit
-                    or val_power - vp < min_share * p0):
-                best = None
+            if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) < limit
+                    and val_power - vp >= min_share * p0):
+                best = (i, gain, Pn, kk, df2)
+                break
         if best is None:
             if deferred:           # no condition qualifies: the rotations may
                 deferred = frozenset()

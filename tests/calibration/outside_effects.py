@@ -265,6 +265,8 @@ def run_case(case: tuple, workdir, scale: float | None = None, max_claims: int =
            "diagnosis": d, "floor_nm": max(floor.values()), "model": model}
     own = PhysicsFit(model + [cls], start={**start, cls.name: values}).fit(df, meta)
     out["own_err90_nm"] = own.val_["all"]["err_p90"]
+    # the model the researcher keeps where no form is proposed: the baseline with any claims
+    out["kept_err90_nm"] = fit.val_["all"]["err_p90"]
     out["proposed_err90_nm"] = float("nan")
     if form:
         name = f"proposed_{cls.name}"

@@ -477,14 +477,18 @@ def test_the_benchmark_keeps_the_baseline_where_no_form_is_proposed(capsys):
     spec = importlib.util.spec_from_file_location("outside_library_benchmark", script)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    row = lambda base, own, proposed, form, visible: bench._final(
+    row = lambda base, own, proposed, form, visible, kept=None: bench._final(
         {"baseline_err90_nm": base, "own_err90_nm": own, "proposed_err90_nm": proposed,
+         "kept_err90_nm": base if kept is None else kept,
          "form": form, "term_visible": visible, "claimed": [], "named_first": True,
          "form_explained": 0.9 if form else 0.0, "term_share": 1.0 if visible else np.nan})
     hidden = row(287.2, 291.8, np.nan, [], False)       # seed 523 g02's figures
     assert hidden["final_err90_nm"] == 287.2 and hidden["floor_ratio"] < 1.0
     lost = row(91.5, 39.4, np.nan, [], True)            # a visible term without a form
     assert lost["floor_ratio"] > 2.0
+    # a library effect claimed before the diagnosis ran out: the model kept is the one with it
+    claimed = row(91.5, 39.4, np.nan, [], True, kept=80.0)
+    assert claimed["final_err90_nm"] == 80.0
     written = row(91.5, 39.4, 67.2, [{"axis": "y"}], True)
     assert written["floor_ratio"] == pytest.approx(67.2 / 39.4)
     scores = bench._scores("set", [hidden, lost, written])
@@ -531,6 +535,25 @@ def test_a_load_replaces_a_force_polynomial_that_does_not_fit_significantly_bett
     assert gains[0] > gains[1] and _forward(joint, blocks, 1e-3, 0.02, take) == [0]
     assert _forward(joint, blocks, 1e-3, 0.02, take, physical={0: [1]}) == [chosen], gains
 
+
+
+def test_a_term_whose_physical_alternative_fails_on_validation_still_joins():
+    """model_form._forward with ``physical``: the alternative (block 1) is like the residual on
+    the calibration rows, so it takes the polynomial's place, but unrelated to it on the
+    validation rows, so it fails the joining test there; the polynomial (block 0), which passes,
+    joins instead of the selection ending with no form (before: [])."""
+    from deltatwin.calibration.diagnosis.model_form import _forward
+
+    rng = np.random.default_rng(16)
+    n_cal, n_val = 400, 200
+    poly, other, unrelated, noise = rng.standard_normal((4, n_cal + n_val))
+    r = 1e-9 * (poly + 0.5 * noise)
+    joint = _joint_of(r, n_cal)
+    alternative = np.concatenate([poly[:n_cal] + 0.05 * other[:n_cal], unrelated[n_cal:]])
+    blocks = [(1e-9 * x[:n_cal, None], 1e-9 * x[n_cal:, None], 0) for x in (poly, alternative)]
+    take = lambda chosen, i: not chosen          # one block at most
+    assert _forward(joint, blocks, 1e-3, 0.02, take) == [0]
+    assert _forward(joint, blocks, 1e-3, 0.02, take, physical={0: [1]}) == [0]
 
 def test_the_motor_probe_response_matches_central_differences():
     """model_form.MotorError (the form's probe of where a motor sits): the model's Jacobian

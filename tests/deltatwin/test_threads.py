@@ -109,3 +109,45 @@ def test_a_background_result_never_asked_for_leaves_no_process(monkeypatch, tmp_
         os.waitpid(pid, os.WNOHANG)
     with pytest.raises(ProcessLookupError):     # and gone
         os.kill(pid, 0)
+
+
+class _TwoArgumentError(Exception):
+    """Pickles, but does not unpickle (its constructor takes two arguments)."""
+
+    def __init__(self, instrument, reason):
+        super().__init__(f"{instrument}: {reason}")
+
+
+def _failing_oddly():
+    raise _TwoArgumentError("ifm", "no light")
+
+
+def _blas_threads():
+    from threadpoolctl import threadpool_info
+    return max((p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"),
+               default=1)
+
+
+def test_a_background_result_is_taken_once_and_its_errors_keep_their_traceback(monkeypatch):
+    """The forked child's error arrives with the child's traceback as a note (its own type where
+    it unpickles, else a RuntimeError naming it); a result taken twice is refused by name (the
+    second read would use a closed, maybe reused, file descriptor); the child's BLAS has one
+    thread (the caller's pool is not doubled)."""
+    from threadpoolctl import threadpool_limits
+
+    from deltatwin.models import batched
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the background process is forked on Linux only")
+    monkeypatch.setattr(batched, "BACKGROUND", True)
+    failed = batched.in_background(_failing, "bad input at row 3")
+    with pytest.raises(ValueError, match="bad input at row 3") as info:
+        failed()
+    assert any("in _failing" in n and "background process" in n
+               for n in getattr(info.value, "__notes__", [])), info.value
+    with pytest.raises(RuntimeError, match="_TwoArgumentError: ifm: no light.*_failing_oddly"):
+        batched.in_background(_failing_oddly)()
+    with threadpool_limits(limits=2, user_api="blas"):
+        done = batched.in_background(_blas_threads)
+        assert done() == 1
+    with pytest.raises(RuntimeError, match="already taken"):
+        done()
