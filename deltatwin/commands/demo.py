@@ -140,8 +140,8 @@ def run(args) -> int:
           "(the interferometers alone)")
     print("  achievable floor: " + ", ".join(f"{k} {v:.1f}" for k, v in achievable.items())
           + f" nm (the twin's complete model refitted on these data; at the floor: within "
-          f"{AT_FLOOR}x). No model gets below it: the model reads the robot's conditions through "
-          "the lab's instruments, whose errors no effect can remove")
+          f"{AT_FLOOR}x). No effect added brings a model much below it: the model reads the "
+          "robot's conditions through the lab's instruments, whose errors no effect can remove")
     # measured either way: the complete model's refit gives the interferometers' share and the
     # rest's; --measured-budget splits the rest per source (a twin run and refit per source)
     print("  the floor's budget, measured on the twin " + (
