@@ -111,15 +111,17 @@ def test_a_background_result_never_asked_for_leaves_no_process(monkeypatch, tmp_
         os.kill(pid, 0)
 
 
-class _TwoArgumentError(Exception):
-    """Pickles, but does not unpickle (its constructor takes two arguments)."""
+class _UnpicklableError(Exception):
+    """An error that cannot cross a pipe as itself (pickling it fails; an exception whose
+    constructor takes other arguments than its message may fail on unpickling the same way,
+    unless a library such as tblib has patched exception pickling)."""
 
-    def __init__(self, instrument, reason):
-        super().__init__(f"{instrument}: {reason}")
+    def __reduce__(self):
+        raise TypeError("cannot pickle this error")
 
 
 def _failing_oddly():
-    raise _TwoArgumentError("ifm", "no light")
+    raise _UnpicklableError("ifm: no light")
 
 
 def _blas_threads():
@@ -144,7 +146,7 @@ def test_a_background_result_is_taken_once_and_its_errors_keep_their_traceback(m
         failed()
     assert any("in _failing" in n and "background process" in n
                for n in getattr(info.value, "__notes__", [])), info.value
-    with pytest.raises(RuntimeError, match="_TwoArgumentError: ifm: no light.*_failing_oddly"):
+    with pytest.raises(RuntimeError, match="_UnpicklableError: ifm: no light.*_failing_oddly"):
         batched.in_background(_failing_oddly)()
     with threadpool_limits(limits=2, user_api="blas"):
         done = batched.in_background(_blas_threads)
