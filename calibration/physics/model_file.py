@@ -12,7 +12,7 @@ from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, _checked_directions, _or_nan
 from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.files import CONTENT_SHA256, content_damage, content_sha256, toml_text
-from deltatwin.twin.effects import EffectError, effect_class
+from deltatwin.twin.effects import EffectError, code_sha256, effect_class
 
 FORMAT = "deltatwin-physics-model"
 # 2: a fitted file carries content_sha256 (deltatwin.files), checked on reading; 1 is still read.
@@ -22,11 +22,14 @@ FORMAT_VERSION = 2
 
 def fitted_toml(fit: PhysicsFit, data: str) -> str:
     """The fitted model as TOML: effects and every parameter value (SI), the fit's figures."""
+    code = code_sha256(fit.model_.classes.values())
     doc = {"format": FORMAT, "format_version": FORMAT_VERSION,
            "model": {"effects": fit.model_.specs, "data": data,
                      # the fitted rows' fingerprint: a diagnosis on the very same data keeps
                      # the values as fitted (fit.py ``fitted_on``)
                      **({"data_sha256": fit.data_sha256_} if fit.data_sha256_ else {}),
+                     # ... by this code (an effect edited since is refined, not kept)
+                     **({"code_sha256": code} if code else {}),
                      "noise_nm": fit.noise_nm,
                      "identifiable_ratio": fit.identifiable_ratio,
                      # the sensor -> part map the temperatures were taken from (the data's metadata)
@@ -111,6 +114,16 @@ def saved_directions(doc: dict) -> np.ndarray | None:
         len(ident["directions"]), len(ident["parameters"])).T
 
 
+def fitted_on(doc: dict, model: PhysicsModel) -> str | None:
+    """The fingerprint of the data a file's values were fitted on (``PhysicsFit.fit``'s
+    ``fitted_on``), when the code that evaluates ``model`` now is the code that fitted them:
+    else None, and a diagnosis checks or refines the values instead of keeping them as fitted."""
+    code = doc["model"].get("code_sha256")
+    if code is None or code != code_sha256(model.classes.values()):
+        return None
+    return doc["model"].get("data_sha256")
+
+
 def _check_identification(path: Path, doc: dict, model: PhysicsModel) -> None:
     """[identification]: the model's parameters in its order, and directions over them."""
     ident = doc.get("identification")
@@ -164,9 +177,10 @@ def _check_layout(path: Path, doc: dict) -> None:
             fail(f"[fit] {key}", f"a number (nan: not evaluated), got {value!r}")
     if not isinstance(doc["model"].get("data", ""), str):
         fail("[model] data", f"the path of the fitted data, got {doc['model']['data']!r}")
-    sha = doc["model"].get("data_sha256")
-    if sha is not None and not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha)):
-        fail("[model] data_sha256", f"the fitted data's SHA-256 in hex, got {str(sha)[:80]!r}")
+    for key, what in (("data_sha256", "the fitted data's"), ("code_sha256", "the effects' code's")):
+        sha = doc["model"].get(key)
+        if sha is not None and not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha)):
+            fail(f"[model] {key}", f"{what} SHA-256 in hex, got {str(sha)[:80]!r}")
     for key in ("noise_nm", "identifiable_ratio"):
         value = doc["model"].get(key, 1.0)
         if isinstance(value, bool) or not isinstance(value, (int, float)) \

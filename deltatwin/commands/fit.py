@@ -104,7 +104,7 @@ def run_fit(args) -> int:
 def run_diagnose(args) -> int:
     from deltatwin.calibration.diagnosis.diagnose import diagnose
     from deltatwin.calibration.physics.fit import PhysicsFit
-    from deltatwin.calibration.physics.model_file import load_fitted, saved_directions
+    from deltatwin.calibration.physics.model_file import fitted_on, load_fitted, saved_directions
     from deltatwin.twin.dataset import read_dataset
 
     df, meta = read_dataset(args.data)
@@ -112,14 +112,14 @@ def run_diagnose(args) -> int:
         return _diagnose_stepwise(args, df, meta)
     model, doc = load_fitted(args.model)
     # the file's values on this dataset (its zeros are new): kept as fitted when these are the
-    # data it was fitted on (its status says how converged), or when they are converged here in
+    # data it was fitted on by this code (its status says how converged), or when they are converged here in
     # the directions the fit determined (one Jacobian); else refined on its calibration rows
     fit = PhysicsFit(model.names, start={**doc.get("known", {}), **model.values()},
                      noise_nm=float(doc["model"].get("noise_nm", 5.0)),
                      progress=not args.json).fit(df, meta, where=str(args.data),
                                                  keep_converged_start=True,
                                                  start_directions=saved_directions(doc),
-                                                 fitted_on=doc["model"].get("data_sha256"))
+                                                 fitted_on=fitted_on(doc, model))
     d = diagnose(fit, str(args.data))
     if args.json:
         print(strict_json(d))

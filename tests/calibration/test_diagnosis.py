@@ -238,6 +238,49 @@ def test_a_saved_unconverged_model_is_diagnosed_as_fitted_on_its_own_data(tmp_pa
     assert "kept" not in moved.solver_message_
 
 
+RIPPLE = """
+import numpy as np
+from deltatwin.twin.effects import Effect, Parameter, shift_reading
+
+
+class Ripple(Effect):
+    name = "ripple_code"
+    summary = "X reads a ripple in q1"
+    parameters = (Parameter("amplitude_m", "m", 0.0, "amplitude", fit_scale=10e-9),)
+
+    def optics(self, points, optics):
+        shift_reading(optics, "x", {scale} * self.amplitude_m * np.sin(points.q[:, 0] / 2e-3))
+"""
+
+
+def test_a_saved_model_whose_effect_code_changed_is_refined_not_kept(tmp_path, monkeypatch):
+    """The file keeps a fingerprint of the effects' code (deltatwin's version, each effect's
+    source file): a researcher's effect edited since the fit makes its saved values a fit of
+    other code, so ``deltatwin diagnose`` on the very same data refines them instead of keeping
+    them as fitted."""
+    sc = Scenario.load("quiet/magnetic-force")
+    df, meta = sc.simulate(sc.reduced_scale)
+    user = tmp_path / "lab_ripple.py"
+    user.write_text(RIPPLE.format(scale="1.0"))
+    effects = ["geometric_errors", f"{user}:Ripple"]
+    fit = PhysicsFit(effects, max_evaluations=2).fit(df, meta)
+    seen, data, path = _diagnosed_from_its_file(tmp_path, monkeypatch, fit, df, meta)
+    assert "kept as fitted" in seen[-1].solver_message_
+    doc = tomllib.loads(path.read_text())
+    user.write_text(RIPPLE.format(scale="2.0"))       # the researcher doubles the term
+    from deltatwin.cli import main
+
+    assert main(["diagnose", str(data), "--model", str(path), "--json"]) == 0
+    assert "kept" not in seen[-1].solver_message_ and seen[-1].n_jacobians_ > 1
+    # a hand-edited file (its content_sha256 line removed) with a bad fingerprint: refused by name
+    bad = tmp_path / "bad.toml"
+    bad.write_text("\n".join(line for line in path.read_text().splitlines()
+                             if not line.startswith("content_sha256")).replace(
+        doc["model"]["code_sha256"], "nothex"))
+    with pytest.raises(FitError, match=r"code_sha256.*SHA-256"):
+        load_fitted(bad)
+
+
 def test_a_start_already_fitted_is_reused_not_refitted(monkeypatch):
     """fit_from_starts(made=...): a start whose problem (effects, starting values, prior,
     options) another call already solved on the same rows is taken from there (the demo's

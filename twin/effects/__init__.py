@@ -219,6 +219,28 @@ def effect_spec(cls: type[Effect]) -> str:
     return f"{Path(source).resolve()}:{cls.__qualname__}" if source else cls.name
 
 
+def code_sha256(classes) -> str | None:
+    """A fingerprint of the code that computes these effects (SHA-256, hex): deltatwin's version
+    and the source files of each class and of its Effect ancestors, in order. A fitted model keeps
+    it, so a diagnosis keeps the values as fitted only when the code that evaluates them is the
+    code that fitted them (a researcher's effect edited since the fit is refined, not trusted).
+    The kinematics and optics the effects build on are covered by the version alone. None (never
+    equal to a file's) when a class's source cannot be read (defined in a notebook or a REPL)."""
+    from deltatwin import __version__
+
+    h = hashlib.sha256(__version__.encode())
+    for cls in classes:
+        h.update(b"\0" + effect_spec(cls).encode())
+        for c in cls.__mro__:
+            if not (isinstance(c, type) and issubclass(c, Effect)) or c is Effect:
+                continue
+            try:
+                h.update(b"\0" + Path(inspect.getsourcefile(c)).read_bytes())
+            except (TypeError, OSError):
+                return None
+    return h.hexdigest()
+
+
 def make_effect(spec, values: dict | None = None, where: str = "effects",
                 check_minimum: bool = True, base_dir=None) -> Effect:
     """The effect ``spec`` names (see ``effect_class``) with parameter ``values`` (validated; a
@@ -228,5 +250,5 @@ def make_effect(spec, values: dict | None = None, where: str = "effects",
     return cls(where=f"{where}.{cls.name}", check_minimum=check_minimum, **(values or {}))
 
 
-__all__ = ["ENTRY_POINT_GROUP", "LIBRARY", "Effect", "EffectError", "Parameter", "effect_class",
-           "effect_spec", "make_effect", "shift_reading"]
+__all__ = ["ENTRY_POINT_GROUP", "LIBRARY", "Effect", "EffectError", "Parameter", "code_sha256",
+           "effect_class", "effect_spec", "make_effect", "shift_reading"]
