@@ -360,7 +360,7 @@ class _Joint:
         a small residual jump (a 230 nm Z step on a force campaign, seed 12345 g09: 18 nm in
         the residual) whose moment the residual alone misplaces; its gain lies in how little
         of it the model can take. Steps the model spans to within 1e-6 are not counted."""
-        taus, gains = [], []
+        times, gains = [], []
         for k in sorted({g[0] for g in self.groups}):
             idx = np.concatenate([np.arange(self.n_cal)[sl] for a, _, sl, _, _ in self.groups
                                   if a == k])
@@ -378,15 +378,19 @@ class _Joint:
             hh = np.sum(after_by_group * (1.0 - after_by_group / n_g), axis=1)
             pp = hh - np.sum(tail(Qk) ** 2, axis=1)
             gain = np.where(pp > 1e-6 * hh, tail(rk) ** 2 / np.maximum(pp, 1e-300), 0.0)
-            taus.append(0.5 * (tk[:-1] + tk[1:]))
+            times.append(tk)
             gains.append(gain)
-        if not taus:
+        every = np.unique(np.concatenate(times)) if times else np.zeros(0)
+        if every.size < 2:
             return None
-        every = np.unique(np.concatenate(taus))
+        every = 0.5 * (every[:-1] + every[1:])       # between two calibration times
         total = np.zeros(every.size)
-        for tt, g in zip(taus, gains):
-            total += g[np.clip(np.searchsorted(tt, every), 0, tt.size - 1)]
-        return float(every[np.argmax(total)]) if total.size else None
+        for tk, gain in zip(times, gains):
+            # gain[j]: the step after the axis' first j + 1 readings
+            j = np.searchsorted(tk, every, side="right") - 1
+            inside = (j >= 0) & (j < gain.size)
+            total[inside] += gain[j[inside]]
+        return float(every[np.argmax(total)])
 
 
 def _column_norms(X: np.ndarray) -> np.ndarray:
