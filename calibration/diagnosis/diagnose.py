@@ -49,7 +49,6 @@ from deltatwin.calibration.diagnosis.attribution import (
     Residual,
     attribute,
     laboratory_variables,
-    scan_together,
 )
 from deltatwin.calibration.diagnosis.compare import evaluate
 from deltatwin.calibration.diagnosis.conditions import (
@@ -525,7 +524,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     # it and the form both use are scanned first, once for both (when either has a residual
     # to scan: an axis read, validation power left)
     if frame.target.axes and frame.joint.axis_power(frame.joint.b).sum() > 0:
-        scan_together(variables, [frame.target])
+        frame.scan(variables)
     attribution = in_background(attribute, meas.df, frame.target, variables=variables,
                                 frame=frame, extra_terms=load_terms(loads))
     form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, frame=frame,

@@ -44,3 +44,60 @@ def test_least_squares_is_numpys_with_and_without_the_kept_factorisation():
                                        rtol=0, atol=1e-12)
     # the leading blocks' factorisation was kept between the calls that share them
     assert len(joint._lead[0]) == 4 and joint._lead[0][3] is blocks[3]
+
+
+def _stepped_joint(rng):
+    """A _Joint of two reading axes' calibration readings (axis 2 in two sessions, axis 0 in
+    one) whose model spans a drift in time (t and t^2 in each session, their means out), the
+    residual a 40 nm step on axis 2 at 1300 s with the drift's part taken out (what a fitted
+    model leaves: its drift has followed the step), plus 1 nm noise."""
+    n = 240
+    t = np.sort(rng.uniform(0.0, 3600.0, 2 * n))
+    rows2 = rng.permutation(2 * n)[:n]                   # axis 2's readings in any order
+    rows0 = np.setdiff1d(np.arange(2 * n), rows2)
+    session = (np.arange(2 * n) % 2).astype(int)
+    groups, place = [], 0
+    for k, rows in ((2, rows2), (0, rows0)):
+        for s in ((0, 1) if k == 2 else (None,)):
+            cal_g = rows[session[rows] == s] if s is not None else rows
+            groups.append((k, cal_g, slice(place, place + cal_g.size), None, None))
+            place += cal_g.size
+    all_rows = np.concatenate([g[1] for g in groups])
+    demean = np.zeros((place, place))
+    for g in groups:
+        idx = np.arange(place)[g[2]]
+        demean[np.ix_(idx, idx)] = np.eye(idx.size) - 1.0 / idx.size
+    tt = t[all_rows] / 3600.0
+    drift = np.column_stack([(tt ** p) * np.isin(all_rows, rows2) for p in (1, 2)]
+                            + [(tt ** p) * np.isin(all_rows, rows0) for p in (1, 2)])
+    Qm = np.linalg.qr(demean @ drift)[0]
+    step = 40e-9 * (t[all_rows] > 1300.0) * np.isin(all_rows, rows2)
+    r = demean @ (step + 1e-9 * rng.normal(size=place))
+    r -= Qm @ (Qm.T @ r)
+    joint = object.__new__(_Joint)
+    joint.r, joint.Qm, joint.groups, joint.n_cal = r, Qm, groups, place
+    return joint, t, demean
+
+
+def test_the_step_scan_fits_the_step_with_the_models_drift_readjusted():
+    """``_Joint.best_step`` is the brute-force argmax of the step's gain with the model's
+    directions re-adjusted (each candidate moment's indicator projected explicitly, each
+    session's mean out), and finds the step the model's drift has followed."""
+    joint, t, demean = _stepped_joint(np.random.default_rng(12))
+    tau = joint.best_step(t)
+    taus = np.unique(t)
+    taus = 0.5 * (taus[:-1] + taus[1:])
+    brute = []
+    for cand in taus:
+        total = 0.0
+        for k in (2, 0):
+            h = np.zeros(joint.n_cal)
+            for g in joint.groups:
+                if g[0] == k:
+                    h[g[2]] = t[g[1]] > cand
+            h = demean @ h
+            P = h - joint.Qm @ (joint.Qm.T @ h)
+            total += (joint.r @ h) ** 2 / (P @ P) if P @ P > 1e-6 * (h @ h) else 0.0
+        brute.append(total)
+    assert tau == taus[int(np.argmax(brute))]
+    assert abs(tau - 1300.0) < 30.0
