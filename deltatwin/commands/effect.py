@@ -149,22 +149,32 @@ def _term_code(axis: str, term: dict, k: int) -> tuple[list[str], str, str | Non
     return params, expr, None
 
 
+def _first_of_each(terms: list[dict], keys: tuple[str, ...]) -> list[dict]:
+    """The first (strongest) of the proposed terms per value of ``keys``: a term seen on several
+    reading axes is written once."""
+    first = {}
+    for t in terms:
+        first.setdefault(tuple(t[k] for k in keys), t)
+    return list(first.values())
+
+
+def _proposed(term: dict) -> list[str]:
+    """The proposed term's formula as comment lines of a hook's body."""
+    return textwrap.wrap(f"proposed: {term['formula']}", 92, initial_indent="        # ",
+                         subsequent_indent="        # ")
+
+
 def _load_code(terms: list[dict]) -> tuple[list[str], list[str]]:
     """(parameter lines, wrench body lines) of the proposed load terms (model_form.py): one
     force parameter per direction and power of the current, whichever axes it was seen on (the
     first, strongest, gives its starting value)."""
-    params, body, seen = [], [], set()
-    for t in terms:
-        key = (t["direction"], t["power"])
-        if key in seen:
-            continue
-        seen.add(key)
+    params, body = [], []
+    for t in _first_of_each(terms, ("direction", "power")):
         tag = f"f{t['direction']}{t['power']}_N"
         size = max(abs(t["force_N"]), 1e-3)
         params.append(f'Parameter("{tag}", "N", {_num(t["force_N"])}, "force along '
                       f'{t["direction"]} per (I / 1 A)^{t["power"]}", fit_scale={_num(size)}),')
-        body += textwrap.wrap(f"proposed: {t['formula']}", 92, initial_indent="        # ",
-                              subsequent_indent="        # ")
+        body += _proposed(t)
         body.append(f"        w[:, {'xyz'.index(t['direction'])}] += self.{tag} * current"
                     + (f" ** {t['power']}" if t["power"] > 1 else ""))
     return params, body
@@ -182,15 +192,10 @@ def _motor_code(terms: list[dict]) -> tuple[list[str], list[str]]:
     from deltatwin.calibration.diagnosis.model_form import MotorError
 
     size = {p.name: p.fit_scale for p in MotorError.parameters}
-    params, body, seen = [], [], set()
-    for t in terms:
-        key = (t["kind"], t["motor"])
-        if key in seen:
-            continue
-        seen.add(key)
+    params, body = [], []
+    for t in _first_of_each(terms, ("kind", "motor")):
         m = t["motor"]
-        body += textwrap.wrap(f"proposed: {t['formula']}", 92, initial_indent="        # ",
-                              subsequent_indent="        # ")
+        body += _proposed(t)
         if t["kind"] == "motor_sign":
             params.append(f'Parameter("q{m}_backlash_rad", "rad", {_num(t["backlash_rad"])}, '
                           f'"motor {m} sits this far along its last move", '
