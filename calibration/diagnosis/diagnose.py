@@ -59,6 +59,7 @@ from deltatwin.calibration.diagnosis.conditions import (
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, LADDER_EVALUATIONS, floor_of
 from deltatwin.calibration.diagnosis.model_form import (
     JointFrame,
+    ModelSpan,
     joint_form,
     load_candidates,
     load_terms,
@@ -495,21 +496,24 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     cal = meas.cal
     k_m = fit.identifiability_["n_identified_directions"]
     # the model's identified directions on every row, made once for the form, the attribution
-    # and every candidate
-    J_scaled = fit.jacobian_ * fit.model_.scales        # (N,3,p): made once, it is large
-    JS = J_scaled @ fit.identified_directions_
-    Jm = (_projected(meas, cal, J_scaled) @ fit.identified_directions_
-          if k_m else np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
-    del J_scaled
+    # and every candidate: one (3N, p) x (p, k) product (the (N,3,p) Jacobian scaled first and
+    # multiplied as a stack of N (3, p) matrices took 4x longer), then on the calibration
+    # readings (the projection is linear: k columns projected instead of p)
+    J = fit.jacobian_
+    JS = (J.reshape(-1, J.shape[2]) @ (fit.model_.scales[:, None] * fit.identified_directions_)
+          ).reshape(J.shape[:2] + (-1,))
+    Jm = (_projected(meas, cal, JS) if k_m else
+          np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
+    span = ModelSpan(Jm)            # one factorisation of Jm for what follows (model_form.py)
     r0 = _projected(meas, cal, fit.residual_)
     # the reference is the model itself one linear step further (nothing if it converged): a
     # candidate must explain what the model's own directions cannot, even when the fit stopped
     # short of its minimum (a misspecified model's slow valley)
-    coef_m = np.linalg.lstsq(Jm, r0, rcond=None)[0] if k_m else np.zeros(0)
+    coef_m = span.lstsq(r0) if k_m else np.zeros(0)
     e0 = r0 - Jm @ coef_m
     before = _val_after(meas, fit, JS @ coef_m if k_m else 0.0)
     n = r0.size
-    Qm = np.linalg.qr(Jm)[0]                        # the model's span, once for all candidates
+    Qm = span.U                                     # the model's span, once for all candidates
     candidates = [e for e in model_effects() if e not in fit.effects]
     floor, floor_kind = floor_of(fit.meta_)
     floor_all = (floor.get("all") or max(floor[a] for a in AXES if a in floor)) if floor else None
@@ -518,7 +522,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     # the frame both the form and the attribution fit in (the model's directions re-adjusted,
     # attribution.py): the scans, the load responses and the projections made once
     variables = laboratory_variables(meas.df)
-    frame = JointFrame(fit, Jm, JS, r0)
+    frame = JointFrame(fit, Jm, JS, r0, span)
     loads = load_candidates(fit)
     # the attribution depends on none of what follows: on a second core where the command has
     # one (docs/performance.md), else computed where it is used; the periods and step moments

@@ -99,7 +99,8 @@ def load_candidates(fit) -> list[Candidate]:
     new = np.zeros(model.n_free, bool)
     for f in model.free:
         new[f.sl] = f.effect == CurrentLoad.name
-    _, J = model.jacobian(meas, model.theta(), columns=new)
+    # at zero force the probe changes nothing: the fitted model's stage is re-used
+    _, J = model.jacobian(meas, model.theta(), columns=new, extends=fit.model_)
     response = J[:, :, new]                                   # (N,3,9) m per N
     return [Candidate("load", "F_N", response[:, :, 3 * i + j, None], power=power,
                       extra={"direction": direction})
@@ -148,7 +149,8 @@ def motor_candidates(fit, variables: list, target) -> list[Candidate]:
     new = np.zeros(model.n_free, bool)
     for f in model.free:
         new[f.sl] = f.effect == MotorError.name
-    _, J = model.jacobian(meas, model.theta(), columns=new)
+    # the motors where their encoders say: the fitted model's stage is re-used
+    _, J = model.jacobian(meas, model.theta(), columns=new, extends=fit.model_)
     response = J[:, :, new]                   # (N,3,9) m per rad: backlash, sin, cos x motor
     out = []
     for m in range(3):
@@ -167,6 +169,33 @@ def _orthonormal(X: np.ndarray) -> np.ndarray:
         return X
     u, s, _ = np.linalg.svd(X, full_matrices=False)
     return u[:, s > max(s.max(initial=0.0), 1e-300) * 1e-10]
+
+
+class ModelSpan:
+    """The model's identified directions on the calibration readings, Jm (n, k), factorised once
+    per diagnosis (one SVD, U s Vt): its orthonormal bases, least squares and pseudo-inverse,
+    each with the rank rule of the numpy routine it stands for (before, a QR, two SVDs and a
+    least squares of the same Jm)."""
+
+    def __init__(self, Jm: np.ndarray):
+        self.n = Jm.shape[0]
+        self.U, self.s, self.Vt = np.linalg.svd(Jm, full_matrices=False)
+        self.top = self.s.max(initial=0.0)
+
+    def orthonormal(self) -> np.ndarray:
+        """As ``_orthonormal(Jm)``: the singular vectors above 1e-10 of the largest."""
+        return self.U[:, self.s > max(self.top, 1e-300) * 1e-10]
+
+    def lstsq(self, r: np.ndarray) -> np.ndarray:
+        """As ``np.linalg.lstsq(Jm, r, rcond=None)[0]``: singular values above eps max(n, k)
+        of the largest count."""
+        keep = self.s > np.finfo(float).eps * max(self.n, self.s.size) * self.top
+        return self.Vt[keep].T @ ((self.U[:, keep].T @ r) / self.s[keep])
+
+    def pinv(self) -> np.ndarray:
+        """As ``np.linalg.pinv(Jm)`` (k, n): singular values above 1e-15 of the largest."""
+        keep = self.s > 1e-15 * self.top
+        return (self.Vt[keep].T / self.s[keep]) @ self.U[:, keep].T
 
 
 class Placed(NamedTuple):
@@ -198,11 +227,13 @@ class _Joint:
     # r - Q Q^T r, their column norms); none yet
     _lead: tuple = (None,)
 
-    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
+    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray,
+                 span: ModelSpan | None = None):
         meas = self.meas = fit.measurements_
-        self.Qm = _orthonormal(Jm)
+        span = ModelSpan(Jm) if span is None else span
+        self.Qm = span.orthonormal()
         self.r = r0 - self.Qm @ (self.Qm.T @ r0)
-        self.pinv = np.linalg.pinv(Jm) if Jm.shape[1] else np.zeros((0, r0.size))
+        self.pinv = span.pinv() if Jm.shape[1] else np.zeros((0, r0.size))
         # the model one linear step further: the reference every column is judged against
         change = JS @ (self.pinv @ r0) if Jm.shape[1] else 0.0
         pred = fit.prediction_ + change
@@ -376,8 +407,9 @@ class JointFrame:
     follows the motor coordinate, the temperatures a drift in time). ``target``: the residual
     of the model one linear step further (``Residual``), whose scans the terms use."""
 
-    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
-        self.joint = _Joint(fit, Jm, JS, r0)
+    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray,
+                 span: ModelSpan | None = None):
+        self.joint = _Joint(fit, Jm, JS, r0, span)
         meas = fit.measurements_
         self.target = Residual.of(meas.df, self.joint.before, meas.cal, meas.val)
         self.axes = [k for k, _, _ in self.target.axes]

@@ -132,6 +132,29 @@ class Stage(NamedTuple):
     node_T: dict
 
 
+class Linearisation(NamedTuple):
+    """What ``PhysicsModel.jacobian`` computed at its parameters that no column owns: the stage,
+    what the instruments look at, the counted readings A and the compensation index, where the
+    motors sit and the rods, the paths' derivatives in the deflected pose and the wrench, and
+    (when it had columns that move the pose) the paths' pose sensitivities and the rod
+    equations' adjoint. Kept with the model's values and robot parameters it holds for, on
+    ``meas``: a probe of the diagnosis (an effect appended at values where it changes nothing)
+    re-uses it instead of recomputing the model's stage (``jacobian``'s ``extends``)."""
+    meas: Measurements
+    params: RobotParams
+    classes: dict
+    values: dict
+    stage: Stage
+    truth: Truth
+    A: np.ndarray
+    n_comp: np.ndarray
+    q: np.ndarray
+    rods: tuple | None
+    gradient: np.ndarray
+    response: np.ndarray
+    sensitivity: tuple | None
+
+
 @dataclass(frozen=True)
 class FreeParameter:
     effect: str
@@ -368,9 +391,15 @@ class PhysicsModel:
             self.set_theta(theta)
         return self._observe(meas, self._kinematics(meas))
 
-    def jacobian(self, meas: Measurements, theta: np.ndarray, columns: np.ndarray | None = None):
+    def jacobian(self, meas: Measurements, theta: np.ndarray, columns: np.ndarray | None = None,
+                 extends: PhysicsModel | None = None):
         """(A, J): the prediction (N,3) and its derivative (N,3,p) with respect to theta (only
-        the ``columns`` mask when given, zeros elsewhere).
+        the ``columns`` mask when given, zeros elsewhere). ``extends``: a model whose effects
+        this one's begin with, its last Jacobian made on ``meas`` (a fitted model, for a probe
+        of the diagnosis): where that Jacobian's values and robot parameters are this model's
+        and the effects appended change nothing at ``theta`` (``_linearisation_of``), its
+        stage, readings and pose sensitivities are re-used (the same numbers: the appended
+        effects add zeros), else all is computed here.
 
         A parameter that changes the geometry (the robot, or the part temperatures that scale
         it) moves the kinematic pose: the rod equations' partial derivatives at each point's
@@ -390,23 +419,30 @@ class PhysicsModel:
         5e-17 m round-off set steps this large). Checked against central differences of the
         whole prediction to 1e-7 of each column in tests/calibration/test_physics_model.py."""
         self.set_theta(theta)
-        stage = self._kinematics(meas)
-        truth = self._truth(meas, stage)
-        path = np.stack([truth.optical_path_m[a] for a in AXES], axis=1)
-        n_comp = np.stack([truth.n_comp[a] for a in AXES], axis=1)
-        A = self._counted(meas, path, n_comp)
-        J = np.zeros(A.shape + (theta.size,))
         by = self.free_by_stage()
         wanted = np.ones(theta.size, bool) if columns is None else np.asarray(columns, bool)
         pts = meas.points
-        # where the motors sit: the encoders' readings, or those plus an effect's angle errors
-        q = motor_positions(self.effects, pts)
+        base = self._linearisation_of(extends, meas)
+        if base is not None:
+            stage, truth, A, n_comp, rods = base.stage, base.truth, base.A, base.n_comp, base.rods
+            self._stage_points(meas, stage)
+            q = motor_positions(self.effects, pts)
+        else:
+            stage = self._kinematics(meas)
+            truth = self._truth(meas, stage)
+            path = np.stack([truth.optical_path_m[a] for a in AXES], axis=1)
+            n_comp = np.stack([truth.n_comp[a] for a in AXES], axis=1)
+            A = self._counted(meas, path, n_comp)
+            # where the motors sit: the encoders' readings, or those plus an effect's errors
+            q = motor_positions(self.effects, pts)
+            rods = None
+        J = np.zeros(A.shape + (theta.size,))
         # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
         # derivative at the fixed pose (N + S, 6, k), the home's (3, k) or None: it stays)
         moving = []
         # the rods (P - A) and platform hinges (R P0) at the points, (N + S, 3, 2, 3) each
-        rods = rod_vectors(stage.geom, q, stage.kin) if np.any(wanted & ~by["load_optics"]) \
-            else None
+        if rods is None and np.any(wanted & ~by["load_optics"]):
+            rods = rod_vectors(stage.geom, q, stage.kin)
         robot = wanted & by["robot"]
         if robot.any():
             moving.append((np.flatnonzero(robot), *self._robot_derivatives(
@@ -414,7 +450,8 @@ class PhysicsModel:
                 rods[0])))
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
-        gradient, response = self._pose_gradients(meas, stage, truth)
+        gradient, response = ((base.gradient, base.response) if base is not None else
+                              self._pose_gradients(meas, stage, truth))
         scaling = wanted & by["part_scales"]
         if scaling.any():
             d_rods, direct = self._part_scale_derivatives(meas, theta, stage, truth, gradient,
@@ -432,8 +469,10 @@ class PhysicsModel:
             pts = self._stage_points(meas, stage)
             at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
                         A)
-        optics_at = self._optics_at(meas, stage, truth) if np.any(wanted & by["load_optics"]) \
-            else None
+        # the optics a step re-uses, for the optics columns wanted (a load's wrench needs none)
+        optics_at = (self._optics_at(meas, stage, truth) if any(
+            "optics" in self.classes[f.effect].model_stages() and wanted[f.sl].any()
+            and by["load_optics"][f.sl].any() for f in self.free) else None)
         for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
@@ -455,18 +494,78 @@ class PhysicsModel:
                 evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M, at_zero=at_theta)
             moving.append((np.array([j]), d_rods[..., None], None))
         self.set_theta(theta)
+        sensitivity = base.sensitivity if base is not None else None
         if moving:
-            d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient, response)
-            # the chain rule per point: the paths' derivative through the kinematic pose
-            # (adjoint: three right-hand sides, not one per parameter), block by block (no
-            # (N + S, 6, k) array of every column), and the home's (one product)
-            adjoint = pose_adjoint(stage.geom, q, stage.kin, d_kin, rods)
+            if sensitivity is None:
+                d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient,
+                                                            response)
+                # the chain rule per point: the paths' derivative through the kinematic pose
+                # (adjoint: three right-hand sides, not one per parameter)
+                sensitivity = (d_home_path, pose_adjoint(stage.geom, q, stage.kin, d_kin, rods))
+            d_home_path, adjoint = sensitivity
+            # block by block (no (N + S, 6, k) array of every column), and the home's (one
+            # product)
             for cols, d_rods, d_home in moving:
                 out = -(adjoint @ d_rods)
                 if d_home is not None:
                     out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)
                 J[:, :, _as_slice(cols)] += self._counted(meas, out, n_comp, derivative=True)
+        self._linearised = Linearisation(
+            meas, self.params, dict(self.classes),
+            {e.name: {k: np.array(v) for k, v in e.values.items()} for e in self.effects},
+            stage, truth, A, n_comp, q, rods, gradient, response, sensitivity)
         return A, J
+
+    def _linearisation_of(self, extends: PhysicsModel | None,
+                          meas: Measurements) -> Linearisation | None:
+        """``extends``' last Jacobian's linearisation where it holds for this model at its
+        current values on ``meas``: the same measurements, robot parameters, effect classes and
+        values for the effects this model begins with; the effects appended act only through
+        where the motors sit and the wrench, and change neither at the stage (the motors'
+        positions equal, every appended wrench zero at the kinematic pose and at the moved
+        poses and homes ``_pose_sensitivity`` differences). None otherwise."""
+        base = getattr(extends, "_linearised", None)
+        if base is None or base.meas is not meas or base.params is not self.params:
+            return None
+        n = len(base.classes)
+        if (list(self.classes)[:n] != list(base.classes)
+                or any(self.classes[k] is not c for k, c in base.classes.items())):
+            return None
+        for e in self.effects[:n]:
+            kept = base.values[e.name]
+            if set(kept) != set(e.values) or not all(np.array_equal(kept[k], np.asarray(v))
+                                                      for k, v in e.values.items()):
+                return None
+        added = self.effects[n:]
+        stages = {s for e in added for s in self.classes[e.name].model_stages()}
+        if not stages <= {"motor_angles", "wrench"}:
+            return None
+        pts = self._stage_points(meas, base.stage)
+        if not np.array_equal(motor_positions(self.effects, pts), base.q):
+            return None
+        loads = [e for e in added if "wrench" in self.classes[e.name].model_stages()]
+        if loads:
+            kin, home = base.stage.kin, base.stage.home
+            try:
+                for d in range(9):
+                    for sign in (1.0, -1.0):
+                        step = np.zeros(3)
+                        step[d % 3] = sign * POSE_STEP
+                        pts.pose, pts.home_p = kin, home
+                        if d < 3:
+                            pts.pose = Pose(kin.p + step, kin.R)
+                        elif d < 6:
+                            pts.pose = Pose(kin.p, Rotation.from_rotvec(step).as_matrix() @ kin.R)
+                        else:
+                            pts.home_p = home + step
+                        if np.any(platform_wrench(loads, pts)):
+                            return None
+                pts.pose, pts.home_p = kin, home
+                if np.any(platform_wrench(loads, pts)):
+                    return None
+            finally:
+                pts.pose, pts.home_p = kin, home
+        return base
 
     def _pose_gradients(self, meas: Measurements, stage: Stage,
                         truth: Truth) -> tuple[np.ndarray, np.ndarray]:
