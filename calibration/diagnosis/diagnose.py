@@ -69,6 +69,7 @@ from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsEr
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
+    _as_slice,
     _projected,
     figures_nm,
     group_offsets,
@@ -274,14 +275,16 @@ def _effect_spans(fit: PhysicsFit) -> dict:
     """Per effect of the fitted model, an orthonormal basis of its own Jacobian columns (at
     their parameters' typical size) on the calibration readings, session means out: what
     ``_absorbed`` compares every candidate with, made once per diagnosis."""
-    meas, JS = fit.measurements_, fit.jacobian_ * fit.model_.scales
+    meas, scales = fit.measurements_, fit.model_.scales
     out = {}
     for e in fit.effects:
         cols = np.concatenate([np.arange(f.sl.start, f.sl.stop) for f in fit.model_.free
                                if f.effect == e] or [np.zeros(0, int)])
         if not cols.size:
             continue
-        Pe = _projected(meas, meas.cal, JS[:, :, cols])
+        # the effect's own columns scaled (not a scaled copy of the whole Jacobian)
+        cols = _as_slice(cols)
+        Pe = _projected(meas, meas.cal, fit.jacobian_[:, :, cols] * scales[cols])
         u, sv, _ = np.linalg.svd(Pe, full_matrices=False)
         out[e] = u[:, sv > sv.max(initial=0) * 1e-9]
     return out

@@ -167,6 +167,12 @@ def _orthonormal(X: np.ndarray) -> np.ndarray:
     """An orthonormal basis of the columns of X (rank by singular values, relative 1e-10)."""
     if not X.shape[1]:
         return X
+    if X.shape[1] == 1:
+        # one column (most of the forward selection's blocks): itself at unit norm, the SVD's
+        # vector up to its sign, at a tenth of its cost; a zero (or underflowing) one the SVD's
+        norm = float(np.sqrt(X[:, 0] @ X[:, 0]))
+        if norm > 0 and np.isfinite(norm):
+            return X / norm
     u, s, _ = np.linalg.svd(X, full_matrices=False)
     return u[:, s > max(s.max(initial=0.0), 1e-300) * 1e-10]
 
