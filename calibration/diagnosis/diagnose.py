@@ -36,7 +36,6 @@ import numpy as np
 import pandas as pd
 from scipy import special
 
-from deltatwin.calibration.blackbox.estimator import base_variables, thermal_sensors
 from deltatwin.calibration.blackbox.features import (
     JOINT_INPUTS,
     FeatureSet,
@@ -51,7 +50,6 @@ from deltatwin.calibration.diagnosis.attribution import (
     laboratory_variables,
     scan_together,
 )
-from deltatwin.calibration.diagnosis.compare import evaluate
 from deltatwin.calibration.diagnosis.conditions import (
     extrapolated_variables,
     extrapolation_message,
@@ -719,6 +717,10 @@ def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "D
     with terms in the model can still be significant: stepwise left some of its terms out.
     ``unexplained`` lists the recorded variables the residual depends on, as for a physics
     model."""
+    # the black-box view's modules, here: a physics model's diagnosis needs none of them
+    from deltatwin.calibration.blackbox.estimator import base_variables, thermal_sensors
+    from deltatwin.calibration.diagnosis.compare import evaluate
+
     ev = evaluate(df, meta, model)
     meas = ev.meas
     res = -ev.residual_m                                   # measurement minus model (m)
