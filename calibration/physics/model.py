@@ -749,7 +749,8 @@ class PhysicsModel:
         turning = np.array([not all(np.array_equal(getattr(geoms[2 * i], f),
                                                    getattr(geoms[2 * i + 1], f))
                                     for f in arm_arrays) for i in range(cols.size)], bool)
-        d_arm = np.zeros((qu.shape[0], 3, 2, 3, cols.size))
+        n, k = q.shape[0], cols.size
+        d_rods = np.zeros((n, 3, 2, k))
         if turning.any():
             moved = [g for i in np.flatnonzero(turning) for g in geoms[2 * i:2 * i + 2]]
             axis, arm_vec, theta_zero = (np.stack([getattr(g, f) for g in moved])
@@ -758,18 +759,19 @@ class PhysicsModel:
                                      (qu[None] + theta_zero[:, None])[..., None],
                                      arm_vec[:, None])             # (2 k', M, 3, 2, 3)
             step = 2 * steps[cols[turning]]
-            d_arm[..., turning] = np.moveaxis((arms[0::2] - arms[1::2])
-                                              / step[:, None, None, None, None], 0, -1)
-        n, k = q.shape[0], cols.size
-        # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL, each
-        # hinge its part's factor times the robot's: the elbow hinges first, each point's rod
-        # against its motor coordinates' row of d_arm (a sparse product, three entries per
-        # rod equation, instead of an (N, 6, 3, k) gather)
-        rows = scipy.sparse.csr_matrix(
-            ((-rod * s_arm[..., None, None]).reshape(-1),
-             (inv[:, None] * 18 + np.arange(18)).reshape(-1),         # (motor coordinates, rod,
-             np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))   # component)
-        d_rods = (rows @ d_arm.reshape(-1, k)).reshape(n, 3, 2, k)
+            d_arm = np.moveaxis((arms[0::2] - arms[1::2]) / step[:, None, None, None, None],
+                                0, -1)                             # (M, 3, 2, 3, k')
+            # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL,
+            # each hinge its part's factor times the robot's: the elbow hinges first, each
+            # point's rod against its motor coordinates' row of d_arm (a sparse product, three
+            # entries per rod equation, instead of an (N, 6, 3, k') gather), for the turning
+            # parameters alone (the others' are zero: a quarter of the product)
+            rows = scipy.sparse.csr_matrix(
+                ((-rod * s_arm[..., None, None]).reshape(-1),
+                 (inv[:, None] * 18 + np.arange(18)).reshape(-1),     # (motor coordinates,
+                 np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))  # rod, component)
+            d_rods[..., _as_slice(np.flatnonzero(turning))] = (
+                rows @ d_arm.reshape(-1, d_arm.shape[-1])).reshape(n, 3, 2, -1)
         # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
         # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
         point_terms = np.concatenate(
