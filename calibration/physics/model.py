@@ -48,6 +48,8 @@ DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving 
 # a reading's round-off over the evaluations a difference combines (the 0.3 m paths carry
 # ~5e-17 m each): a column's change over its step below this is noise, 1e-6 nm
 READING_ROUNDOFF_M = 1e-15
+# rows in fewer runs of one session than this are counted run by run (PhysicsModel._counted)
+SESSION_RUNS = 64
 
 
 def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
@@ -376,8 +378,16 @@ class PhysicsModel:
         """What the interferometers count from their session's zero, (n L - n0 L0) / n_comp, as
         the data show it (cosine corrected or not): (N, 3, ...) from paths (N + S, 3, ...).
         ``derivative``: paths are derivatives, so the correction's constant term drops out."""
-        n = meas.n
-        counted = path[:n] - path[meas.zero_row]
+        n, zero = meas.n, meas.zero_row
+        # the rows come in runs of one session (a campaign's sessions follow each other): each
+        # run less its zero's row, broadcast (a gather of every row's zero copies (N, 3, ...))
+        starts = np.flatnonzero(zero[1:] != zero[:-1]) + 1
+        if n and starts.size < SESSION_RUNS:
+            counted = np.empty((n,) + path.shape[1:])
+            for a, b in zip([0, *starts], [*starts, n]):
+                np.subtract(path[a:b], path[zero[a]], out=counted[a:b])
+        else:
+            counted = path[:n] - path[zero]
         f = meas.cos_scale / n_comp[:n]
         counted *= f.reshape(f.shape + (1,) * (counted.ndim - 2))   # in place: (N, 3, p) is big
         return counted if derivative else counted + meas.cos_offset
