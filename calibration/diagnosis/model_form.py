@@ -77,11 +77,19 @@ class CurrentLoad(Effect):
                             "per power of the mean current 1, 2, 3: the force along x, y, z",
                             fit_scale=0.01),)
 
+    # (the coils' currents, the powers of their mean) last computed: the probe's Jacobian asks
+    # for the wrench ~50 times on the same rows (its columns' stencils, the pose's)
+    _powers = (None, None)
+
     def wrench(self, points):
-        current = np.mean(points.currents_A, axis=1)
-        w = np.zeros((current.shape[0], 6))
-        for k, power in enumerate(POWERS):
-            w[:, :3] += current[:, None] ** power * self.force_N[k]
+        currents, powers = self._powers
+        if currents is not points.currents_A:
+            current = np.mean(points.currents_A, axis=1)
+            currents, powers = points.currents_A, [current[:, None] ** p for p in POWERS]
+            self._powers = (currents, powers)
+        w = np.zeros((powers[0].shape[0], 6))
+        for k, power in enumerate(powers):
+            w[:, :3] += power * self.force_N[k]
         return w
 
 
@@ -123,10 +131,17 @@ class MotorError(Effect):
                             fit_scale=1e-6),
                   Parameter("period_rad", "rad", (1.0,) * 3, "per motor: period in qm"))
 
+    # (the encoders' readings, the periods, sin and cos of the phase) last computed: the
+    # probe's Jacobian asks for the angles ~30 times at one period (its columns' stencils)
+    _phase = (None, None, None, None)
+
     def motor_angles(self, points):
-        phase = 2 * np.pi * points.q / self.period_rad
-        return (self.backlash_rad * points.move_direction + self.sin_rad * np.sin(phase)
-                + self.cos_rad * np.cos(phase))
+        q, period, sin, cos = self._phase
+        if q is not points.q or not np.array_equal(period, self.period_rad):
+            phase = 2 * np.pi * points.q / self.period_rad
+            q, period, sin, cos = points.q, np.array(self.period_rad), np.sin(phase), np.cos(phase)
+            self._phase = (q, period, sin, cos)
+        return self.backlash_rad * points.move_direction + self.sin_rad * sin + self.cos_rad * cos
 
 
 def motor_candidates(fit, variables: list, target) -> list[Candidate]:
