@@ -501,8 +501,9 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     # multiplied as a stack of N (3, p) matrices took 4x longer), then on the calibration
     # readings (the projection is linear: k columns projected instead of p)
     J = fit.jacobian_
-    JS = (J.reshape(-1, J.shape[2]) @ (fit.model_.scales[:, None] * fit.identified_directions_)
-          ).reshape(J.shape[:2] + (-1,))
+    JS = (J.reshape(J.shape[0] * J.shape[1], J.shape[2])
+          @ (fit.model_.scales[:, None] * fit.identified_directions_)
+          ).reshape(J.shape[:2] + (fit.identified_directions_.shape[1],))
     Jm = (_projected(meas, cal, JS) if k_m else
           np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
     span = ModelSpan(Jm)            # one factorisation of Jm for what follows (model_form.py)
