@@ -775,7 +775,7 @@ class PhysicsModel:
             # each hinge its part's factor times the robot's: the elbow hinges first, each
             # point's rod against its motor coordinates' row of d_arm (a sparse product, three
             # entries per rod equation, instead of an (N, 6, 3, k') gather), for the turning
-            # parameters alone (the others' are zero: a quarter of the product)
+            # parameters alone (the others' are zero: half the product here, 30 of 63)
             rows = scipy.sparse.csr_matrix(
                 ((-rod * s_arm[..., None, None]).reshape(-1),
                  (inv[:, None] * 18 + np.arange(18)).reshape(-1),     # (motor coordinates,
