@@ -556,23 +556,20 @@ class PhysicsModel:
         loads = [e for e in added if "wrench" in self.classes[e.name].model_stages()]
         if loads:
             kin, home = base.stage.kin, base.stage.home
+            places = [(kin, home)]                       # the stage, then the moved ones
+            for d in range(9):
+                for sign in (1.0, -1.0):
+                    step = np.zeros(3)
+                    step[d % 3] = sign * POSE_STEP
+                    places.append(
+                        (Pose(kin.p + step, kin.R), home) if d < 3 else
+                        (Pose(kin.p, Rotation.from_rotvec(step).as_matrix() @ kin.R), home)
+                        if d < 6 else (kin, home + step))
             try:
-                for d in range(9):
-                    for sign in (1.0, -1.0):
-                        step = np.zeros(3)
-                        step[d % 3] = sign * POSE_STEP
-                        pts.pose, pts.home_p = kin, home
-                        if d < 3:
-                            pts.pose = Pose(kin.p + step, kin.R)
-                        elif d < 6:
-                            pts.pose = Pose(kin.p, Rotation.from_rotvec(step).as_matrix() @ kin.R)
-                        else:
-                            pts.home_p = home + step
-                        if np.any(platform_wrench(loads, pts)):
-                            return None
-                pts.pose, pts.home_p = kin, home
-                if np.any(platform_wrench(loads, pts)):
-                    return None
+                for pose, home_p in places:
+                    pts.pose, pts.home_p = pose, home_p
+                    if np.any(platform_wrench(loads, pts)):
+                        return None
             finally:
                 pts.pose, pts.home_p = kin, home
         return base
