@@ -19,7 +19,13 @@ import pandas as pd
 from tqdm import tqdm
 
 from deltatwin.twin.instruments.interface import InstrumentError, InstrumentSet
-from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES, cosine_correction, cosine_factor
+from deltatwin.twin.instruments.optics import (
+    AC_CHANNELS,
+    AXES,
+    COSINE_ANGLES,
+    cosine_correction,
+    cosine_factor,
+)
 from deltatwin.twin.instruments.simulated import (
     InstrumentSettings,
     SimulatedLab,
@@ -29,9 +35,6 @@ from deltatwin.twin.instruments.simulated import (
     scan_temperatures,
 )
 from deltatwin.twin.world import Schedule, Twin
-
-# autocollimator channels giving the tilts of each interferometer's mirror face
-COSINE_ANGLES = {"x": ("ac1_ry", "ac1_rz"), "y": ("ac2_rx", "ac2_rz"), "z": ("ac2_rx", "ac1_ry")}
 
 
 @dataclass(frozen=True)

@@ -78,11 +78,19 @@ class CurrentLoad(Effect):
                             "per power of the mean current 1, 2, 3: the force along x, y, z",
                             fit_scale=0.01),)
 
+    # (the coils' currents, the powers of their mean) last computed: the probe's Jacobian asks
+    # for the wrench ~50 times on the same rows (its columns' stencils, the pose's)
+    _powers = (None, None)
+
     def wrench(self, points):
-        current = np.mean(points.currents_A, axis=1)
-        w = np.zeros((current.shape[0], 6))
-        for k, power in enumerate(POWERS):
-            w[:, :3] += current[:, None] ** power * self.force_N[k]
+        currents, powers = self._powers
+        if currents is not points.currents_A:
+            current = np.mean(points.currents_A, axis=1)
+            currents, powers = points.currents_A, [current[:, None] ** p for p in POWERS]
+            self._powers = (currents, powers)
+        w = np.zeros((powers[0].shape[0], 6))
+        for k, power in enumerate(powers):
+            w[:, :3] += power * self.force_N[k]
         return w
 
 
@@ -100,7 +108,8 @@ def load_candidates(fit) -> list[Candidate]:
     new = np.zeros(model.n_free, bool)
     for f in model.free:
         new[f.sl] = f.effect == CurrentLoad.name
-    _, J = model.jacobian(meas, model.theta(), columns=new)
+    # at zero force the probe changes nothing: the fitted model's stage is re-used
+    _, J = model.jacobian(meas, model.theta(), columns=new, extends=fit.model_)
     response = J[:, :, new]                                   # (N,3,9) m per N
     return [Candidate("load", "F_N", response[:, :, 3 * i + j, None], power=power,
                       extra={"direction": direction})
@@ -123,10 +132,17 @@ class MotorError(Effect):
                             fit_scale=1e-6),
                   Parameter("period_rad", "rad", (1.0,) * 3, "per motor: period in qm"))
 
+    # (the encoders' readings, the periods, sin and cos of the phase) last computed: the
+    # probe's Jacobian asks for the angles ~30 times at one period (its columns' stencils)
+    _phase = (None, None, None, None)
+
     def motor_angles(self, points):
-        phase = 2 * np.pi * points.q / self.period_rad
-        return (self.backlash_rad * points.move_direction + self.sin_rad * np.sin(phase)
-                + self.cos_rad * np.cos(phase))
+        q, period, sin, cos = self._phase
+        if q is not points.q or not np.array_equal(period, self.period_rad):
+            phase = 2 * np.pi * points.q / self.period_rad
+            q, period, sin, cos = points.q, np.array(self.period_rad), np.sin(phase), np.cos(phase)
+            self._phase = (q, period, sin, cos)
+        return self.backlash_rad * points.move_direction + self.sin_rad * sin + self.cos_rad * cos
 
 
 def motor_candidates(fit, variables: list, target) -> list[Candidate]:
@@ -149,7 +165,8 @@ def motor_candidates(fit, variables: list, target) -> list[Candidate]:
     new = np.zeros(model.n_free, bool)
     for f in model.free:
         new[f.sl] = f.effect == MotorError.name
-    _, J = model.jacobian(meas, model.theta(), columns=new)
+    # the motors where their encoders say: the fitted model's stage is re-used
+    _, J = model.jacobian(meas, model.theta(), columns=new, extends=fit.model_)
     response = J[:, :, new]                   # (N,3,9) m per rad: backlash, sin, cos x motor
     out = []
     for m in range(3):
@@ -166,8 +183,41 @@ def _orthonormal(X: np.ndarray) -> np.ndarray:
     """An orthonormal basis of the columns of X (rank by singular values, relative 1e-10)."""
     if not X.shape[1]:
         return X
+    if X.shape[1] == 1:
+        # one column (most of the forward selection's blocks): itself at unit norm, the SVD's
+        # vector up to its sign, at a tenth of its cost; a zero (or underflowing) one the SVD's
+        norm = float(np.sqrt(X[:, 0] @ X[:, 0]))
+        if norm > 0 and np.isfinite(norm):
+            return X / norm
     u, s, _ = np.linalg.svd(X, full_matrices=False)
     return u[:, s > max(s.max(initial=0.0), 1e-300) * 1e-10]
+
+
+class ModelSpan:
+    """The model's identified directions on the calibration readings, Jm (n, k), factorised once
+    per diagnosis (one SVD, U s Vt): its orthonormal bases, least squares and pseudo-inverse,
+    each with the rank rule of the numpy routine it stands for (before, a QR, two SVDs and a
+    least squares of the same Jm)."""
+
+    def __init__(self, Jm: np.ndarray):
+        self.n = Jm.shape[0]
+        self.U, self.s, self.Vt = np.linalg.svd(Jm, full_matrices=False)
+        self.top = self.s.max(initial=0.0)
+
+    def orthonormal(self) -> np.ndarray:
+        """As ``_orthonormal(Jm)``: the singular vectors above 1e-10 of the largest."""
+        return self.U[:, self.s > max(self.top, 1e-300) * 1e-10]
+
+    def lstsq(self, r: np.ndarray) -> np.ndarray:
+        """As ``np.linalg.lstsq(Jm, r, rcond=None)[0]``: singular values above eps max(n, k)
+        of the largest count."""
+        keep = self.s > np.finfo(float).eps * max(self.n, self.s.size) * self.top
+        return self.Vt[keep].T @ ((self.U[:, keep].T @ r) / self.s[keep])
+
+    def pinv(self) -> np.ndarray:
+        """As ``np.linalg.pinv(Jm)`` (k, n): singular values above 1e-15 of the largest."""
+        keep = self.s > 1e-15 * self.top
+        return (self.Vt[keep].T / self.s[keep]) @ self.U[:, keep].T
 
 
 class Placed(NamedTuple):
@@ -199,11 +249,13 @@ class _Joint:
     # r - Q Q^T r, their column norms); none yet
     _lead: tuple = (None,)
 
-    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
+    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray,
+                 span: ModelSpan | None = None):
         meas = self.meas = fit.measurements_
-        self.Qm = _orthonormal(Jm)
+        span = ModelSpan(Jm) if span is None else span
+        self.Qm = span.orthonormal()
         self.r = r0 - self.Qm @ (self.Qm.T @ r0)
-        self.pinv = np.linalg.pinv(Jm) if Jm.shape[1] else np.zeros((0, r0.size))
+        self.pinv = span.pinv() if Jm.shape[1] else np.zeros((0, r0.size))
         # the model one linear step further: the reference every column is judged against
         change = JS @ (self.pinv @ r0) if Jm.shape[1] else 0.0
         pred = fit.prediction_ + change
@@ -419,8 +471,9 @@ class JointFrame:
     follows the motor coordinate, the temperatures a drift in time). ``target``: the residual
     of the model one linear step further (``Residual``), whose scans the terms use."""
 
-    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray):
-        self.joint = _Joint(fit, Jm, JS, r0)
+    def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray,
+                 span: ModelSpan | None = None):
+        self.joint = _Joint(fit, Jm, JS, r0, span)
         meas = fit.measurements_
         self.target = Residual.of(meas.df, self.joint.before, meas.cal, meas.val)
         self.axes = [k for k, _, _ in self.target.axes]

@@ -12,11 +12,11 @@ from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsEr
 from deltatwin.calibration.streams import causal_fit
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.params import RobotParams
-from deltatwin.twin.campaign import COSINE_ANGLES
 from deltatwin.twin.dataset import temperature_columns
 from deltatwin.twin.effects import effect_class
 from deltatwin.twin.instruments.optics import (
     AXES,
+    COSINE_ANGLES,
     cosine_correction,
     cosine_factor,
     nominal_dead_path,

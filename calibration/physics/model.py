@@ -48,6 +48,8 @@ DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving 
 # a reading's round-off over the evaluations a difference combines (the 0.3 m paths carry
 # ~5e-17 m each): a column's change over its step below this is noise, 1e-6 nm
 READING_ROUNDOFF_M = 1e-15
+# rows in fewer runs of one session than this are counted run by run (PhysicsModel._counted)
+SESSION_RUNS = 64
 
 
 def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
@@ -130,6 +132,29 @@ class Stage(NamedTuple):
     home: np.ndarray
     cube_home: np.ndarray
     node_T: dict
+
+
+class Linearisation(NamedTuple):
+    """What ``PhysicsModel.jacobian`` computed at its parameters that no column owns: the stage,
+    what the instruments look at, the counted readings A and the compensation index, where the
+    motors sit and the rods, the paths' derivatives in the deflected pose and the wrench, and
+    (when it had columns that move the pose) the paths' pose sensitivities and the rod
+    equations' adjoint. Kept with the model's values and robot parameters it holds for, on
+    ``meas``: a probe of the diagnosis (an effect appended at values where it changes nothing)
+    re-uses it instead of recomputing the model's stage (``jacobian``'s ``extends``)."""
+    meas: Measurements
+    params: RobotParams
+    classes: dict
+    values: dict
+    stage: Stage
+    truth: Truth
+    A: np.ndarray
+    n_comp: np.ndarray
+    q: np.ndarray
+    rods: tuple | None
+    gradient: np.ndarray
+    response: np.ndarray
+    sensitivity: tuple | None
 
 
 @dataclass(frozen=True)
@@ -353,8 +378,16 @@ class PhysicsModel:
         """What the interferometers count from their session's zero, (n L - n0 L0) / n_comp, as
         the data show it (cosine corrected or not): (N, 3, ...) from paths (N + S, 3, ...).
         ``derivative``: paths are derivatives, so the correction's constant term drops out."""
-        n = meas.n
-        counted = path[:n] - path[meas.zero_row]
+        n, zero = meas.n, meas.zero_row
+        # the rows come in runs of one session (a campaign's sessions follow each other): each
+        # run less its zero's row, broadcast (a gather of every row's zero copies (N, 3, ...))
+        starts = np.flatnonzero(zero[1:] != zero[:-1]) + 1
+        if n and starts.size < SESSION_RUNS:
+            counted = np.empty((n,) + path.shape[1:])
+            for a, b in zip([0, *starts], [*starts, n]):
+                np.subtract(path[a:b], path[zero[a]], out=counted[a:b])
+        else:
+            counted = path[:n] - path[zero]
         f = meas.cos_scale / n_comp[:n]
         counted *= f.reshape(f.shape + (1,) * (counted.ndim - 2))   # in place: (N, 3, p) is big
         return counted if derivative else counted + meas.cos_offset
@@ -368,9 +401,15 @@ class PhysicsModel:
             self.set_theta(theta)
         return self._observe(meas, self._kinematics(meas))
 
-    def jacobian(self, meas: Measurements, theta: np.ndarray, columns: np.ndarray | None = None):
+    def jacobian(self, meas: Measurements, theta: np.ndarray, columns: np.ndarray | None = None,
+                 extends: PhysicsModel | None = None):
         """(A, J): the prediction (N,3) and its derivative (N,3,p) with respect to theta (only
-        the ``columns`` mask when given, zeros elsewhere).
+        the ``columns`` mask when given, zeros elsewhere). ``extends``: a model whose effects
+        this one's begin with, its last Jacobian made on ``meas`` (a fitted model, for a probe
+        of the diagnosis): where that Jacobian's values and robot parameters are this model's
+        and the effects appended change nothing at ``theta`` (``_linearisation_of``), its
+        stage, readings and pose sensitivities are re-used (the same numbers: the appended
+        effects add zeros), else all is computed here.
 
         A parameter that changes the geometry (the robot, or the part temperatures that scale
         it) moves the kinematic pose: the rod equations' partial derivatives at each point's
@@ -390,23 +429,30 @@ class PhysicsModel:
         5e-17 m round-off set steps this large). Checked against central differences of the
         whole prediction to 1e-7 of each column in tests/calibration/test_physics_model.py."""
         self.set_theta(theta)
-        stage = self._kinematics(meas)
-        truth = self._truth(meas, stage)
-        path = np.stack([truth.optical_path_m[a] for a in AXES], axis=1)
-        n_comp = np.stack([truth.n_comp[a] for a in AXES], axis=1)
-        A = self._counted(meas, path, n_comp)
-        J = np.zeros(A.shape + (theta.size,))
         by = self.free_by_stage()
         wanted = np.ones(theta.size, bool) if columns is None else np.asarray(columns, bool)
         pts = meas.points
-        # where the motors sit: the encoders' readings, or those plus an effect's angle errors
-        q = motor_positions(self.effects, pts)
+        base = self._linearisation_of(extends, meas)
+        if base is not None:
+            stage, truth, A, n_comp, rods = base.stage, base.truth, base.A, base.n_comp, base.rods
+            self._stage_points(meas, stage)
+            q = motor_positions(self.effects, pts)
+        else:
+            stage = self._kinematics(meas)
+            truth = self._truth(meas, stage)
+            path = np.stack([truth.optical_path_m[a] for a in AXES], axis=1)
+            n_comp = np.stack([truth.n_comp[a] for a in AXES], axis=1)
+            A = self._counted(meas, path, n_comp)
+            # where the motors sit: the encoders' readings, or those plus an effect's errors
+            q = motor_positions(self.effects, pts)
+            rods = None
+        J = np.zeros(A.shape + (theta.size,))
         # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
         # derivative at the fixed pose (N + S, 6, k), the home's (3, k) or None: it stays)
         moving = []
         # the rods (P - A) and platform hinges (R P0) at the points, (N + S, 3, 2, 3) each
-        rods = rod_vectors(stage.geom, q, stage.kin) if np.any(wanted & ~by["load_optics"]) \
-            else None
+        if rods is None and np.any(wanted & ~by["load_optics"]):
+            rods = rod_vectors(stage.geom, q, stage.kin)
         robot = wanted & by["robot"]
         if robot.any():
             moving.append((np.flatnonzero(robot), *self._robot_derivatives(
@@ -414,7 +460,8 @@ class PhysicsModel:
                 rods[0])))
         owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
                  for j in range(f.sl.start, f.sl.stop)}
-        gradient, response = self._pose_gradients(meas, stage, truth)
+        gradient, response = ((base.gradient, base.response) if base is not None else
+                              self._pose_gradients(meas, stage, truth))
         scaling = wanted & by["part_scales"]
         if scaling.any():
             d_rods, direct = self._part_scale_derivatives(meas, theta, stage, truth, gradient,
@@ -432,8 +479,10 @@ class PhysicsModel:
             pts = self._stage_points(meas, stage)
             at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
                         A)
-        optics_at = self._optics_at(meas, stage, truth) if np.any(wanted & by["load_optics"]) \
-            else None
+        # the optics a step re-uses, for the optics columns wanted (a load's wrench needs none)
+        optics_at = (self._optics_at(meas, stage, truth) if any(
+            "optics" in self.classes[f.effect].model_stages() and wanted[f.sl].any()
+            and by["load_optics"][f.sl].any() for f in self.free) else None)
         for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
@@ -455,18 +504,75 @@ class PhysicsModel:
                 evaluate, self.scales[j], roundoff=READING_ROUNDOFF_M, at_zero=at_theta)
             moving.append((np.array([j]), d_rods[..., None], None))
         self.set_theta(theta)
+        sensitivity = base.sensitivity if base is not None else None
         if moving:
-            d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient, response)
-            # the chain rule per point: the paths' derivative through the kinematic pose
-            # (adjoint: three right-hand sides, not one per parameter), block by block (no
-            # (N + S, 6, k) array of every column), and the home's (one product)
-            adjoint = pose_adjoint(stage.geom, q, stage.kin, d_kin, rods)
+            if sensitivity is None:
+                d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient,
+                                                            response)
+                # the chain rule per point: the paths' derivative through the kinematic pose
+                # (adjoint: three right-hand sides, not one per parameter)
+                sensitivity = (d_home_path, pose_adjoint(stage.geom, q, stage.kin, d_kin, rods))
+            d_home_path, adjoint = sensitivity
+            # block by block (no (N + S, 6, k) array of every column), and the home's (one
+            # product)
             for cols, d_rods, d_home in moving:
                 out = -(adjoint @ d_rods)
                 if d_home is not None:
                     out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)
                 J[:, :, _as_slice(cols)] += self._counted(meas, out, n_comp, derivative=True)
+        self._linearised = Linearisation(
+            meas, self.params, dict(self.classes),
+            {e.name: {k: np.array(v) for k, v in e.values.items()} for e in self.effects},
+            stage, truth, A, n_comp, q, rods, gradient, response, sensitivity)
         return A, J
+
+    def _linearisation_of(self, extends: PhysicsModel | None,
+                          meas: Measurements) -> Linearisation | None:
+        """``extends``' last Jacobian's linearisation where it holds for this model at its
+        current values on ``meas``: the same measurements, robot parameters, effect classes and
+        values for the effects this model begins with; the effects appended act only through
+        where the motors sit and the wrench, and change neither at the stage (the motors'
+        positions equal, every appended wrench zero at the kinematic pose and at the moved
+        poses and homes ``_pose_sensitivity`` differences). None otherwise."""
+        base = getattr(extends, "_linearised", None)
+        if base is None or base.meas is not meas or base.params is not self.params:
+            return None
+        n = len(base.classes)
+        if (list(self.classes)[:n] != list(base.classes)
+                or any(self.classes[k] is not c for k, c in base.classes.items())):
+            return None
+        for e in self.effects[:n]:
+            kept = base.values[e.name]
+            if set(kept) != set(e.values) or not all(np.array_equal(kept[k], np.asarray(v))
+                                                      for k, v in e.values.items()):
+                return None
+        added = self.effects[n:]
+        stages = {s for e in added for s in self.classes[e.name].model_stages()}
+        if not stages <= {"motor_angles", "wrench"}:
+            return None
+        pts = self._stage_points(meas, base.stage)
+        if not np.array_equal(motor_positions(self.effects, pts), base.q):
+            return None
+        loads = [e for e in added if "wrench" in self.classes[e.name].model_stages()]
+        if loads:
+            kin, home = base.stage.kin, base.stage.home
+            places = [(kin, home)]                       # the stage, then the moved ones
+            for d in range(9):
+                for sign in (1.0, -1.0):
+                    step = np.zeros(3)
+                    step[d % 3] = sign * POSE_STEP
+                    places.append(
+                        (Pose(kin.p + step, kin.R), home) if d < 3 else
+                        (Pose(kin.p, Rotation.from_rotvec(step).as_matrix() @ kin.R), home)
+                        if d < 6 else (kin, home + step))
+            try:
+                for pose, home_p in places:
+                    pts.pose, pts.home_p = pose, home_p
+                    if np.any(platform_wrench(loads, pts)):
+                        return None
+            finally:
+                pts.pose, pts.home_p = kin, home
+        return base
 
     def _pose_gradients(self, meas: Measurements, stage: Stage,
                         truth: Truth) -> tuple[np.ndarray, np.ndarray]:
@@ -650,7 +756,8 @@ class PhysicsModel:
         turning = np.array([not all(np.array_equal(getattr(geoms[2 * i], f),
                                                    getattr(geoms[2 * i + 1], f))
                                     for f in arm_arrays) for i in range(cols.size)], bool)
-        d_arm = np.zeros((qu.shape[0], 3, 2, 3, cols.size))
+        n, k = q.shape[0], cols.size
+        d_rods = np.zeros((n, 3, 2, k))
         if turning.any():
             moved = [g for i in np.flatnonzero(turning) for g in geoms[2 * i:2 * i + 2]]
             axis, arm_vec, theta_zero = (np.stack([getattr(g, f) for g in moved])
@@ -659,18 +766,19 @@ class PhysicsModel:
                                      (qu[None] + theta_zero[:, None])[..., None],
                                      arm_vec[:, None])             # (2 k', M, 3, 2, 3)
             step = 2 * steps[cols[turning]]
-            d_arm[..., turning] = np.moveaxis((arms[0::2] - arms[1::2])
-                                              / step[:, None, None, None, None], 0, -1)
-        n, k = q.shape[0], cols.size
-        # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL, each
-        # hinge its part's factor times the robot's: the elbow hinges first, each point's rod
-        # against its motor coordinates' row of d_arm (a sparse product, three entries per
-        # rod equation, instead of an (N, 6, 3, k) gather)
-        rows = scipy.sparse.csr_matrix(
-            ((-rod * s_arm[..., None, None]).reshape(-1),
-             (inv[:, None] * 18 + np.arange(18)).reshape(-1),         # (motor coordinates, rod,
-             np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))   # component)
-        d_rods = (rows @ d_arm.reshape(-1, k)).reshape(n, 3, 2, k)
+            d_arm = np.moveaxis((arms[0::2] - arms[1::2]) / step[:, None, None, None, None],
+                                0, -1)                             # (M, 3, 2, 3, k')
+            # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL,
+            # each hinge its part's factor times the robot's: the elbow hinges first, each
+            # point's rod against its motor coordinates' row of d_arm (a sparse product, three
+            # entries per rod equation, instead of an (N, 6, 3, k') gather), for the turning
+            # parameters alone (the others' are zero: half the product here, 30 of 63)
+            rows = scipy.sparse.csr_matrix(
+                ((-rod * s_arm[..., None, None]).reshape(-1),
+                 (inv[:, None] * 18 + np.arange(18)).reshape(-1),     # (motor coordinates,
+                 np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))  # rod, component)
+            d_rods[..., _as_slice(np.flatnonzero(turning))] = (
+                rows @ d_arm.reshape(-1, d_arm.shape[-1])).reshape(n, 3, 2, -1)
         # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
         # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
         point_terms = np.concatenate(

@@ -101,3 +101,51 @@ def test_the_step_scan_fits_the_step_with_the_models_drift_readjusted():
         brute.append(total)
     assert tau == taus[int(np.argmax(brute))]
     assert abs(tau - 1300.0) < 30.0
+
+
+def test_model_span_keeps_the_rank_rule_of_each_routine_it_stands_for():
+    """model_form.ModelSpan (one SVD of the model's directions for the diagnosis) gives what
+    _orthonormal, np.linalg.pinv and np.linalg.lstsq give, each with its own rank rule: singular
+    values a decade either side of 1e-10, 1e-15 and eps max(n, k) of the largest."""
+    from deltatwin.calibration.diagnosis.model_form import ModelSpan, _orthonormal
+
+    rng = np.random.default_rng(31)
+    n = 400
+    eps_n = np.finfo(float).eps * n
+    s = np.array([1.0, 0.3, 1e-9, 1e-11, 10 * eps_n, 0.1 * eps_n, 1e-17])
+    U = np.linalg.qr(rng.normal(size=(n, s.size)))[0]
+    V = np.linalg.qr(rng.normal(size=(s.size, s.size)))[0]
+    Jm = (U * s) @ V.T
+    r = rng.normal(size=n)
+    span = ModelSpan(Jm)
+    Q, Q_svd = span.orthonormal(), _orthonormal(Jm)
+    assert Q.shape == Q_svd.shape == (n, 3)
+    np.testing.assert_allclose(Q @ Q.T, Q_svd @ Q_svd.T, atol=1e-12)
+    want = np.linalg.pinv(Jm)
+    got = span.pinv()
+    assert np.linalg.matrix_rank(got @ Jm, tol=0.5) == 6      # 1e-15 of the largest keeps six
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    want = np.linalg.lstsq(Jm, r, rcond=None)
+    got = span.lstsq(r)
+    assert want[2] == 5                                        # eps max(n, k): five
+    along = V.T @ got                     # the solution along each singular direction
+    assert abs(along[4]) > 1e11 and abs(along[5]) < 1e-4 * abs(along[4])   # five, not six
+    assert abs((V.T @ span.pinv() @ r)[5]) > 1e13                           # pinv's six
+    # equal to LAPACK's to its own round-off along a 1e-12 direction (condition 1e12)
+    assert np.linalg.norm(got - want[0]) < 1e-3 * np.linalg.norm(want[0])
+    assert span.U.shape == (n, s.size)         # the model's span, as QR's Q: every column
+
+
+def test_one_column_is_normalised_as_the_svd_would():
+    """_orthonormal of one column is the column at unit norm (the SVD's vector up to its sign);
+    a zero column has no basis, and one whose squares underflow goes to the SVD."""
+    from deltatwin.calibration.diagnosis.model_form import _orthonormal
+
+    x = np.random.default_rng(5).normal(size=(300, 1))
+    u = np.linalg.svd(x, full_matrices=False)[0]
+    got = _orthonormal(x)
+    np.testing.assert_allclose(np.abs(got), np.abs(u), atol=1e-15)
+    assert _orthonormal(np.zeros((300, 1))).shape == (300, 0)
+    tiny = _orthonormal(x * 1e-170)
+    assert tiny.shape == (300, 1)
+    np.testing.assert_allclose(np.abs(tiny), np.abs(u), atol=1e-14)

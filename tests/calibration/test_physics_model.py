@@ -253,3 +253,50 @@ def test_an_optics_step_re_uses_the_earlier_effects_optics_bit_for_bit():
                 assert any(np.any(w != a) for w, a in zip(whole, at_theta)), model.labels[j]
                 checked.add(f.effect)
     assert checked == {"loop_drift", "air_refraction", "beam_misalignment"}
+
+
+def test_a_probe_re_uses_the_fitted_models_linearisation_only_where_it_holds():
+    """A diagnosis' probe (an effect appended at values where it changes nothing: where the
+    motors sit, a load at zero force) re-uses the stage, readings and pose sensitivities of the
+    model it extends (``jacobian(..., extends=)``): its columns equal those computed afresh, and
+    the linearisation is refused where it does not hold (the base's values moved since its
+    Jacobian, a probe that moves the motors, other measurements)."""
+    from deltatwin.calibration.diagnosis.model_form import CurrentLoad, MotorError
+
+    effects = ["geometric_errors", "thermal_expansion", "magnetic_force", "loop_drift"]
+    df, meta = Scenario.load("quiet/magnetic-force").simulate(0.02)
+    base = PhysicsModel(effects)
+    meas = measurements(df, meta, base.params)
+    assert np.ptp(meas.points.currents_A) > 0                 # the load probe sees currents
+    theta = base.theta() + 0.3 * base.scales * np.random.default_rng(7).standard_normal(
+        base.n_free)
+    base.jacobian(meas, theta)
+
+    def probe(cls, values, extends):
+        model = PhysicsModel(effects + [cls], base.params, {**base.values(), cls.name: values})
+        new = np.array([lab.startswith(cls.name) for lab in model.labels])
+        reused = model._linearisation_of(extends, meas) is not None
+        A, J = model.jacobian(meas, model.theta(), columns=new, extends=extends)
+        return reused, A, J[:, :, new]
+
+    for cls, values in ((MotorError, {"period_rad": (0.7, 1.1, 1.9)}), (CurrentLoad, {})):
+        reused, A, J = probe(cls, values, base)
+        assert reused, cls.name
+        _, A_fresh, J_fresh = probe(cls, values, None)
+        np.testing.assert_array_equal(A, A_fresh)
+        size = np.max(np.abs(J_fresh), axis=(0, 1))
+        assert np.all(size > 0), cls.name
+        # the same numbers; to round-off only where the fresh kinematics take another path
+        # (per point where the motors' positions are an array of their own)
+        assert np.max(np.abs(J - J_fresh) / size) < 1e-12, cls.name
+    # a probe that moves the motors is not at the base's stage
+    assert not probe(MotorError, {"backlash_rad": (1e-6, 0.0, 0.0)}, base)[0]
+    # nor a load that pushes
+    assert not probe(CurrentLoad, {"force_N": ((0.0, 0.0, 1e-3),) + ((0.0,) * 3,) * 2},
+                     base)[0]
+    # other measurements (the same rows, another object)
+    other = PhysicsModel(effects + [MotorError], base.params, base.values())
+    assert other._linearisation_of(base, measurements(df, meta, base.params)) is None
+    # the base's values moved since its Jacobian
+    base.set_theta(theta + 0.1 * base.scales)
+    assert not probe(MotorError, {}, base)[0]

@@ -30,6 +30,8 @@ AXES = ("x", "y", "z")
 FACE_NORMALS = {"x": np.array([-1.0, 0.0, 0.0]), "y": np.array([0.0, -1.0, 0.0]),
                 "z": np.array([0.0, 0.0, -1.0])}
 AC_CHANNELS = ("ac1_ry", "ac1_rz", "ac2_rx", "ac2_rz")
+# autocollimator channels giving the tilts of each interferometer's mirror face
+COSINE_ANGLES = {"x": ("ac1_ry", "ac1_rz"), "y": ("ac2_rx", "ac2_rz"), "z": ("ac2_rx", "ac1_ry")}
 FOLD_TURN = np.array([0.0, 0.0, 1.0])   # direction of the Z beam after the fold mirror
 
 
