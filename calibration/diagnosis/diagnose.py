@@ -175,7 +175,7 @@ def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
                        max(n - k_m - k_c - len(meas.groups), 1), before, after, meas.val,
                        floor_all_nm, alpha, _serial_inflation(meas, e0 - e1, e1))
     if generic is not None:
-        verdict.update(_beyond_generic(r, X[:, k_m:], Jm, generic, k_c, n, len(meas.groups),
+        verdict.update(_beyond_generic(meas, r, X[:, k_m:], Jm, generic, k_c, n,
                                        verdict["explained_fraction"]))
         # only a candidate that would be claimed can be a correlate of the missing term, and
         # not one the validation rows confirm closing GAP_CLOSED of the gap to the floor: a
@@ -211,18 +211,18 @@ def _held_at(fit: PhysicsFit, X: np.ndarray, d0: np.ndarray) -> str | None:
     return "start"
 
 
-def _rss(X: np.ndarray, r: np.ndarray) -> float:
-    """Residual sum of squares of ``r`` after least squares on the columns X (each scaled to
-    unit norm first: the columns mix units and sizes)."""
+def _left_after(X: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """What least squares on the columns X (each scaled to unit norm first: the columns mix
+    units and sizes) leaves of ``r``."""
     if not X.shape[1]:
-        return float(r @ r)
+        return r
     norm = np.linalg.norm(X, axis=0)
     X = X[:, norm > 0] / norm[norm > 0]
-    return float(np.sum((r - X @ np.linalg.lstsq(X, r, rcond=None)[0]) ** 2))
+    return r - X @ np.linalg.lstsq(X, r, rcond=None)[0]
 
 
-def _beyond_generic(r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic: tuple, k_c: int,
-                    n: int, n_groups: int, explained: float) -> dict:
+def _beyond_generic(meas, r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic: tuple,
+                    k_c: int, n: int, explained: float) -> dict:
     """Whether a candidate's improvement is matched by generic functions of the laboratory
     variables (the missing term's sparse form, term_form.py): ``generic`` = (G, its explained
     fraction of the validation residual, r0, the share of the validation residual's power above
@@ -230,8 +230,10 @@ def _beyond_generic(r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic: tupl
     readings, session means out); ``r`` the residual with the candidate on at its
     starting values and ``Xc`` its own new directions. The candidate adds something beyond the
     generic terms when its directions (or its fixed change) still lower the calibration
-    residual significantly (F test, p < ALPHA) with the model's directions and the generic
-    terms already fitted. It is *matched* when it does not and it explains less than
+    residual significantly (F test, p < ALPHA, its statistic divided by the rows'
+    serial-correlation factor as the calibration test's, ``_serial_inflation`` on ``meas``'
+    (session, axis) groups) with the model's directions and the generic terms already fitted.
+    It is *matched* when it does not and it explains less than
     GENERIC_SHARE of what the generic terms explain of the validation residual (at most the
     share above the floor, ``_above_floor_share``): the residual's
     structure is then not this effect's signature; its directions merely correlate with a term
@@ -246,10 +248,15 @@ def _beyond_generic(r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic: tupl
     if not G.shape[1]:
         return out
     base = np.hstack([Jm, G])
-    rss_g, rss_gc = _rss(base, r0), _rss(np.hstack([base, Xc]), r)
-    df1, df2 = max(k_c, 1), max(n - base.shape[1] - k_c - n_groups, 1)
+    e_g, e_gc = _left_after(base, r0), _left_after(np.hstack([base, Xc]), r)
+    rss_g, rss_gc = float(e_g @ e_g), float(e_gc @ e_gc)
+    df1, df2 = max(k_c, 1), max(n - base.shape[1] - k_c - len(meas.groups), 1)
+    # the rows are as serially correlated here as in the calibration test (a candidate that
+    # follows the temperatures as slowly as the residual's leftover looks significant on
+    # independent rows)
+    inflation = _serial_inflation(meas, e_g - e_gc, e_gc)
     out["p_beyond_generic"] = (float(special.fdtrc(df1, df2, ((rss_g - rss_gc) / df1)
-                                                   / (rss_gc / df2)))
+                                                   / (rss_gc / df2) / inflation))
                                if 0 < rss_gc < rss_g else 1.0)
     out["matched_by_generic"] = bool(out["p_beyond_generic"] >= ALPHA
                                      and explained < GENERIC_SHARE

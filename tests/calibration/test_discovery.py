@@ -414,10 +414,45 @@ def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor
     above = diagnosis._above_floor_share(13.1, 10.84)
     assert above == pytest.approx(1 - (10.84 / 13.1) ** 2) and 0.3 < above < 0.33
     assert diagnosis._above_floor_share(10.0, 10.84) == diagnosis._above_floor_share(10, None) == 1
-    without = diagnosis._beyond_generic(r, Xc, Jm, (G, 0.41, r, 1.0), 1, 400, 1, 0.18)
+    meas = _one_group(400)
+    without = diagnosis._beyond_generic(meas, r, Xc, Jm, (G, 0.41, r, 1.0), 1, 400, 0.18)
     assert without["p_beyond_generic"] >= diagnosis.ALPHA and without["matched_by_generic"]
-    with_floor = diagnosis._beyond_generic(r, Xc, Jm, (G, 0.41, r, above), 1, 400, 1, 0.18)
+    with_floor = diagnosis._beyond_generic(meas, r, Xc, Jm, (G, 0.41, r, above), 1, 400, 0.18)
     assert not with_floor["matched_by_generic"]
+
+
+def _one_group(n: int) -> SimpleNamespace:
+    """The measurements' grouping of n calibration readings of one (session, axis) group."""
+    return SimpleNamespace(group=np.column_stack([np.zeros(n, int), np.full((n, 2), -1)]),
+                           groups=[(0, "x")], cal=np.ones(n, bool))
+
+
+def test_the_test_beyond_generic_terms_holds_its_level_on_correlated_rows():
+    """Under the null (a slow candidate column unrelated to a slow residual, AR(1) rho = 0.95,
+    with generic columns fitted first that hold none of either) the F test of what the
+    candidate adds beyond the generic terms is below ALPHA far more often than ALPHA on
+    independent rows' terms; with the rows' serial-correlation factor (as the calibration
+    test's) it comes near its level. A candidate that is the residual's slow structure still
+    adds beyond the generic terms at any level."""
+    rng = np.random.default_rng(41)
+    n = 400
+    meas, Jm = _one_group(n), np.zeros((n, 0))
+    p = []
+    for _ in range(200):
+        e, x = _ar1(rng, n, 0.95), _ar1(rng, n, 0.95)
+        G = rng.standard_normal((n, 2))
+        generic = (G, 0.5, e - e.mean(), 1.0)
+        p.append(diagnosis._beyond_generic(meas, e - e.mean(), (x - x.mean())[:, None], Jm,
+                                           generic, 1, n, 0.0)["p_beyond_generic"])
+    p = np.array(p)
+    assert np.mean(p < 0.01) <= 0.07 and np.mean(p < diagnosis.ALPHA) <= 0.03
+    # the naive F test on these draws: below 0.01 in a third or more (the test above)
+    x = _ar1(rng, n, 0.95)
+    r = x + 0.2 * rng.standard_normal(n)
+    found = diagnosis._beyond_generic(meas, r - r.mean(), (x - x.mean())[:, None], Jm,
+                                      (rng.standard_normal((n, 2)), 0.5, r - r.mean(), 1.0),
+                                      1, n, 0.0)
+    assert found["p_beyond_generic"] < 1e-6
 
 
 def test_the_benchmark_refuses_an_only_prefix_that_selects_no_case():
