@@ -402,6 +402,38 @@ def test_the_ladder_keeps_an_effect_only_if_its_refit_predicts_validation_better
     assert [r["val_err90_nm"] for r in ladder] == [45.0, 30.0]
 
 
+def test_the_ladder_tries_the_next_significant_effect_when_a_refit_is_rejected(monkeypatch):
+    """Two effects significant, the first named: its refit predicts validation worse and is not
+    kept; the second is refitted in its place and kept when it predicts better (each try
+    recorded). A not-significant candidate is never tried, and when every significant one is
+    rejected the ladder ends at the previous model."""
+    ranking = [{"effect": "magnetic_force", "significant": True},
+               {"effect": "air_refraction", "significant": False},
+               {"effect": "loop_drift", "significant": True}]
+    named = iter(["magnetic_force", None])
+    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data: {
+        "missing_effect": next(named), "ranking": ranking, "extrapolation": {}})
+    errors = iter([297.0, 299.0, 240.0])
+    fitted = []
+
+    def fake_fit(effects, *a, **k):
+        fitted.append(list(effects))
+        return _Fit(effects, next(errors))
+    monkeypatch.setattr(diagnosis, "fit_from_starts", fake_fit)
+    ladder, diagnoses, fits = diagnosis.effect_ladder(pd.DataFrame(), None, ["geometric_errors"])
+    assert fitted == [["geometric_errors"], ["geometric_errors", "magnetic_force"],
+                      ["geometric_errors", "loop_drift"]]
+    assert [r["added"] for r in ladder] == [None, "loop_drift"] and len(diagnoses) == 2
+    assert diagnoses[0]["refit_rejected"]["effect"] == "magnetic_force"
+    assert diagnoses[0]["tried_instead"] == [{"effect": "loop_drift", "kept": True,
+                                              "val_err90_nm": 240.0}]
+    named, errors, fitted[:] = iter(["magnetic_force"]), iter([297.0, 299.0, 301.0]), []
+    ladder, diagnoses, _ = diagnosis.effect_ladder(pd.DataFrame(), None, ["geometric_errors"])
+    assert len(fitted) == 3 and [r["added"] for r in ladder] == [None]
+    assert diagnoses[0]["tried_instead"] == [{"effect": "loop_drift", "kept": False,
+                                              "val_err90_nm": 301.0}]
+
+
 def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor():
     """Generic functions of the laboratory variables also fit the floor's own error: a
     candidate adding nothing beyond them, explaining 18 % where they explain 41 %, is a
