@@ -10,13 +10,10 @@ additions). Prints per case and then the issue's scores against its targets:
 * crashes (any exception in the loop): target 0;
 * detection rounds: the hidden effect named first, target >= 90 %. A round (one diagnosis of
   the ladder) is a detection round when a hidden effect still missing from its model is
-  *separable* (``separability``, decided from its candidate row, the model's error and the
-  complete model's fit before looking at the verdict): it adds a direction beyond the model's
-  span that the data determine (the fit's identifiability rule), the complete model fitted on
-  the same rows (the achievable floor's fit) identifies more directions than the round's model
-  (the data determine something the model lacks on the fit itself, not only in the candidate's
-  linearisation), and the model is above 1.1x the achievable floor (at the floor there is
-  nothing left to find);
+  *separable* (``separability``, decided from its candidate row and the model's error before
+  looking at the verdict): it adds a direction beyond the model's span that the data determine
+  (the fit's identifiability rule), and the model is above 1.1x the achievable floor (at the
+  floor there is nothing left to find);
 * hidden effects absorbed by the model in a round (no direction beyond its span, >= 90 % of
   their signature in it): reported as absorbed (or found significant: not reported as absent),
   target >= 90 %;
@@ -45,7 +42,7 @@ import numpy as np
 import pandas as pd
 
 from deltatwin.calibration.diagnosis.diagnose import ABSORBED, diagnose, effect_ladder
-from deltatwin.calibration.diagnosis.floor import AT_FLOOR, achievable_floor, true_fit
+from deltatwin.calibration.diagnosis.floor import AT_FLOOR, achievable_floor
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.twin.cases import FRAME_ARM_M, generate_cases
 from deltatwin.twin.scenario import Scenario
@@ -59,9 +56,7 @@ def run_case(case, directory: Path, max_added: int, dump: Path | None = None) ->
     path = directory / f"{case.name}.toml"
     path.write_text(case.toml())
     df, meta = Scenario.load(path).simulate(SCALE[case.kind])
-    complete = true_fit(df, meta)
-    floor = achievable_floor(df, meta, fit=complete)
-    floor["n_identified"] = complete.identifiability_["n_identified_directions"]
+    floor = achievable_floor(df, meta)
     meta["truth"]["achievable_floor_nm"] = floor["achievable_floor_nm"]
     ladder, diagnoses, _ = effect_ladder(df, meta, list(case.baseline), data=str(path),
                                          max_added=max_added, known=case.known)
@@ -76,15 +71,14 @@ def score(case, floor: dict, ladder: list, diagnoses: list, rows: int) -> dict:
     """One case's results and score flags from its achievable floor, ladder and diagnoses."""
     hidden = set(case.hidden_effects)
     rounds, absorbed, wrong, seen = [], [], [], collections.Counter()
-    for d, rung in zip(diagnoses, ladder):
+    for d in diagnoses:
         missing = hidden - set(d["effects"])
         if d["missing_effect"] and d["missing_effect"] not in hidden:
             wrong.append(d["missing_effect"])
         if not missing:
             continue
         by_effect = {c["effect"]: c for c in d["ranking"]}
-        beyond = floor["n_identified"] - rung["n_identified"]
-        kinds = {e: separability(by_effect[e], d["at_floor"], beyond) for e in missing}
+        kinds = {e: separability(by_effect[e], d["at_floor"]) for e in missing}
         seen.update(kinds.values())
         absorbed += [by_effect[e]["significant"] or any(v.startswith(f"{e}:") for v in d["absorbed"])
                      for e, k in kinds.items() if k == "absorbed"]
@@ -101,25 +95,15 @@ def score(case, floor: dict, ladder: list, diagnoses: list, rows: int) -> dict:
             "at_floor": final <= AT_FLOOR * floor["achievable_floor_nm"]["all"]}
 
 
-def separability(row: dict, at_floor: bool, complete_beyond: int) -> str:
+def separability(row: dict, at_floor: bool) -> str:
     """How a hidden effect still missing from a round's model stands on this campaign, from its
-    candidate row (the model linearised at its fit), the round's model error and
-    ``complete_beyond``, how many more directions the complete model's fit on the same rows
-    (the achievable floor's) identifies than the round's model, decided before looking at the
-    verdict:
+    candidate row (the model linearised at its fit) and the round's model error, decided before
+    looking at the verdict:
 
     * ``separable``: the candidate adds at least one direction beyond the span of the model's
       identified directions that the data determine (``new_directions``: the fit's own
-      identifiability rule, a singular value above noise / identifiable_ratio), the complete
-      model's fit identifies more directions than the round's model (``complete_beyond`` >= 1),
-      and the model is above AT_FLOOR (1.1x) the achievable floor: a detection round;
-    * ``undetermined``: the candidate's direction clears the rule where the round's model is
-      linearised, the model is above AT_FLOOR, but the complete model's fit identifies no more
-      directions than the round's model: the floor's lower error comes from the twin's true
-      values held along directions the data do not determine (the floor's fit starts there),
-      which no fit of these data finds (force cases, beam misalignment x1: the complete
-      model's calibration rms 21.11 nm against the baseline's 21.07, validation 90 against
-      103 nm);
+      identifiability rule, a singular value above noise / identifiable_ratio), and the model
+      is above AT_FLOOR (1.1x) the achievable floor: a detection round;
     * ``absorbed``: no such direction and >= ABSORBED (90 %) of its signature in the model's
       span: the model's parameters take its place on this campaign;
     * ``at floor``: it adds a determined direction, but the model is already within 1.1x the
@@ -131,9 +115,7 @@ def separability(row: dict, at_floor: bool, complete_beyond: int) -> str:
     if "failed" in row:
         return "failed"
     if row["new_directions"] >= 1:
-        if at_floor:
-            return "at floor"
-        return "separable" if complete_beyond >= 1 else "undetermined"
+        return "at floor" if at_floor else "separable"
     return "absorbed" if row["absorbed_fraction"] >= ABSORBED else "weak"
 
 
