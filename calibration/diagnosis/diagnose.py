@@ -21,7 +21,10 @@ parameters — or, when the calibration rows alone are not conclusive, when it c
 gap between the model and the achievable floor and the validation rows confirm it (a one-sided
 test of the change against the validation residual, its rows counted as an AR(1) process's
 effective number, combined with the calibration F test by Fisher's method: p < ``alpha``).
-Significant effects rank first, by BIC; the rest by explained fraction.
+Significant effects rank first, by BIC; the rest by explained fraction. Where the
+linearisation is a poor guide (a candidate with determined directions matched by the generic
+terms, or not significant though the validation rows confirm it with the model above the
+floor), the candidate is judged again on the model refitted with it (``_refitted``).
 
 The ``unexplained`` part names what the residual still depends on: the laboratory variables
 ranked by the validation residual each explains beyond the others (attribution.py) and, when no
