@@ -126,6 +126,9 @@ def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
         if d.get("refit_rejected"):
             lines += ["", f"Named: **{d['missing_effect']}**; "
                       + d["refit_rejected"]["message"] + "."]
+            lines += [f"Tried instead, also significant: **{t['effect']}** "
+                      f"({t['val_err90_nm']:.1f} nm: {'kept' if t['kept'] else 'not kept'})."
+                      for t in d["tried_instead"]]
         elif d["missing_effect"]:
             lines += ["", f"Missing effect: **{d['missing_effect']}**. Add it with "
                       f"`{d['next_command']}`."]

@@ -101,6 +101,9 @@ def run(args) -> int:
             say(f"  missing effect: {d['missing_effect']} -> {d['next_command']}")
             if d.get("refit_rejected"):
                 say("  " + d["refit_rejected"]["message"])
+                for t in d["tried_instead"]:
+                    say(f"  tried instead, also significant: {t['effect']} "
+                        f"({t['val_err90_nm']:.1f} nm: {'kept' if t['kept'] else 'not kept'})")
         else:
             say("  " + d["unexplained"]["message"])
     recording = None
