@@ -360,7 +360,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
         if evaluations >= max_evaluations:
             message = f"stopped at the limit of {max_evaluations} model evaluations"
             break
-        step, mu = _trust_region_step(basis.B, basis.c, radius)
+        step = _trust_region_step(basis.B, basis.c, radius)
         length = float(np.linalg.norm(step))
         predicted = cost - float(np.sum((basis.c + basis.B @ step) ** 2))
         evaluations += 1
@@ -382,37 +382,12 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
                       (cost - cost_new) / predicted if predicted > 0 else math.nan,
                       "exact" if exact else "re-used", length, radius,
                       100 * share[most] if step.size else 0.0, most + 1, step.size)
-        move = step
-        if (exact and math.isfinite(cost_new) and cost_new > cost - 0.25 * predicted
-                and evaluations < max_evaluations):
-            # a curved valley: the trial point's departure from the linear model,
-            # e = r(z + v) - r - J v, is the residual's second derivative along v (halved) at
-            # the step's own length; the correction -(J^T J + mu)^-1 J^T e with the step's
-            # damping brings the other directions back to the valley's floor (a geodesic
-            # acceleration measured by the trial point, not by an extra difference)
-            bend = _damped_step(basis.B, c_new - basis.c - basis.B @ step, mu)
-            if np.linalg.norm(bend) <= length:
-                evaluations += 1
-                try:
-                    r_bent, A_bent = fun(z + step + bend)
-                    c_bent = basis.coordinates(r_bent)
-                    cost_bent = float(c_bent @ c_bent)
-                except KinematicsError:
-                    cost_bent = math.inf
-                log.debug("evaluation %d: bent by %.3g: cost %.6g", evaluations,
-                          float(np.linalg.norm(bend)), cost_bent)
-                if cost_bent < cost_new:
-                    move, r_new, c_new, A_new, cost_new = (step + bend, r_bent, c_bent, A_bent,
-                                                           cost_bent)
-                else:
-                    c_new = basis.coordinates(r_new)   # in the basis as it now stands
         if math.isfinite(cost_new) and cost_new < cost:
             gain = (cost - cost_new) / predicted if predicted > 0 else 0.0
-            # Broyden's update: the Jacobian that reproduces the move's residual change
-            basis.B += np.outer((c_new - basis.c) - basis.B @ move,
-                                move / float(move @ move))
+            # Broyden's update: the Jacobian that reproduces the step's residual change
+            basis.B += np.outer((c_new - basis.c) - basis.B @ step, step / (length * length))
             basis.c = c_new
-            z, r, A, cost, exact, accepted = z + move, r_new, A_new, cost_new, False, length
+            z, r, A, cost, exact, accepted = z + step, r_new, A_new, cost_new, False, length
             if gain < 0.25:
                 radius = 0.5 * length
             elif gain > 0.75:
@@ -495,17 +470,16 @@ def _directions_report(Js: np.ndarray, V: np.ndarray):
     return s[order], Vt[order], keep[order]
 
 
-def _trust_region_step(Jz: np.ndarray, r: np.ndarray, radius: float):
-    """(dz, mu): the step dz minimising |r + Jz dz| with |dz| <= ``radius`` (fit scales): the
-    Gauss-Newton step (mu = 0) when it is that short, else the Levenberg-Marquardt step
-    ``_damped_step(Jz, r, mu)`` whose length is the radius (mu by bisection on its
-    logarithm)."""
+def _trust_region_step(Jz: np.ndarray, r: np.ndarray, radius: float) -> np.ndarray:
+    """The step dz minimising |r + Jz dz| with |dz| <= ``radius`` (fit scales): the
+    Gauss-Newton step when it is that short, else the Levenberg-Marquardt step
+    -(Jz^T Jz + mu)^-1 Jz^T r whose length is the radius (mu by bisection on its logarithm)."""
     U, s, Vt = np.linalg.svd(Jz, full_matrices=False)
     g = U.T @ r
     keep = s > s.max(initial=0.0) * 1e-12
     s, g, Vt = s[keep], g[keep], Vt[keep]
     if np.linalg.norm(g / s) <= radius:
-        return -Vt.T @ (g / s), 0.0
+        return -Vt.T @ (g / s)
     lo, hi = -40.0, 40.0          # log10 of mu / s_max^2: the step's length falls with mu
     s2 = s.max() ** 2
     for _ in range(60):
@@ -514,16 +488,7 @@ def _trust_region_step(Jz: np.ndarray, r: np.ndarray, radius: float):
             lo = mid
         else:
             hi = mid
-    mu = s2 * 10.0 ** hi
-    return -Vt.T @ (s * g / (s ** 2 + mu)), mu
-
-
-def _damped_step(Jz: np.ndarray, r: np.ndarray, mu: float) -> np.ndarray:
-    """-(Jz^T Jz + mu)^-1 Jz^T r (the minimum-norm least-squares step when mu = 0)."""
-    U, s, Vt = np.linalg.svd(Jz, full_matrices=False)
-    keep = s > s.max(initial=0.0) * 1e-12
-    s, Vt = s[keep], Vt[keep]
-    return -Vt.T @ (s * (U[:, keep].T @ r) / (s ** 2 + mu))
+    return -Vt.T @ (s * g / (s ** 2 + s2 * 10.0 ** hi))
 
 
 def _remaining_step_sigma(Jz: np.ndarray, r: np.ndarray, dof: int) -> float:
@@ -619,3 +584,5 @@ def _axis_p90(fig: dict) -> dict:
 
 def _or_nan(x):
     return math.nan if x is None else x
+
+
