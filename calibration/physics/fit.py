@@ -30,6 +30,9 @@ from deltatwin.twin.instruments.optics import AXES
 
 NM = 1e9   # the solver works on residuals in nm
 RADIUS_MIN = 1e-9   # fit scales: a trust region this small has only round-off left
+# two trust-region steps on one radius have lengths equal to this relative round-off (the
+# damping's bisection): "longer" is judged beyond it, not by round-off's sign
+LENGTH_ROUND_OFF = 1e-9
 # a parameter whose identified directions' weights are below this (squared, summed) is unseen by
 # the fit: its column changes the fitted directions' Jacobian by < 1e-8 of a fitted column
 UNSEEN_FRACTION = 1e-16
@@ -394,7 +397,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
                 radius = max(radius, 2.0 * length)
         elif exact:
             radius = 0.25 * length          # the exact Jacobian's model fails this far out
-        elif length > accepted:
+        elif length > (1.0 + LENGTH_ROUND_OFF) * accepted:
             radius = 0.5 * length           # a step longer than the last one that succeeded
         else:
             # no longer than a step that succeeded: the updated Jacobian is what failed (a
