@@ -437,7 +437,7 @@ class _ResidualBasis:
         rest -= self.Q @ a2
         a += a2
         norm = float(np.linalg.norm(rest))
-        if norm > 1e-13 * float(np.linalg.norm(r)):
+        if norm > 1e-13 * float(np.linalg.norm(r)):     # more than r's round-off: a new column
             self.Q = np.column_stack([self.Q, rest / norm])
             self.B = np.vstack([self.B, np.zeros((1, self.B.shape[1]))])
             self.c = np.append(self.c, 0.0)
