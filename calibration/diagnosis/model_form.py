@@ -417,7 +417,8 @@ class _Joint:
             idx = np.concatenate([np.arange(self.n_cal)[sl] for a, _, sl, _, _ in self.groups
                                   if a == k])
             rows = np.concatenate([cal_g for a, cal_g, _, _, _ in self.groups if a == k])
-            sizes = [cal_g.size for a, cal_g, _, _, _ in self.groups if a == k]
+            # a group without calibration readings (possible: _serial_inflation) has no mean
+            sizes = [cal_g.size for a, cal_g, _, _, _ in self.groups if a == k and cal_g.size]
             group = np.repeat(np.arange(len(sizes)), sizes)
             order = np.argsort(t[rows], kind="stable")
             tk, rk, Qk, gk = t[rows][order], self.r[idx][order], self.Qm[idx][order], \
@@ -442,6 +443,8 @@ class _Joint:
             j = np.searchsorted(tk, every, side="right") - 1
             inside = (j >= 0) & (j < gain.size)
             total[inside] += gain[j[inside]]
+        if not np.any(total > 0):
+            return None                  # no step counted: the residual's own scan stands
         return float(every[np.argmax(total)])
 
 

@@ -562,6 +562,9 @@ def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None =
         if best is None or (cost < best[0] and first - cost > chance):
             best = (cost, label, fit)
     _, label, fit = best
+    for other in fits.values():
+        if other.model_ is not fit.model_:
+            other.model_.drop_linearisation()  # a probe's cache: kept for the chosen fit only
     fit.start_label_, fit.start_costs_, fit.start_fits_ = label, costs, fits
     return fit
 

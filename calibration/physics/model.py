@@ -428,6 +428,7 @@ class PhysicsModel:
         ``richardson_derivative`` over one fit scale (the kinematics' 1e-15 m and the paths'
         5e-17 m round-off set steps this large). Checked against central differences of the
         whole prediction to 1e-7 of each column in tests/calibration/test_physics_model.py."""
+        self.drop_linearisation()        # the last one freed before this one is made
         self.set_theta(theta)
         by = self.free_by_stage()
         wanted = np.ones(theta.size, bool) if columns is None else np.asarray(columns, bool)
@@ -526,6 +527,11 @@ class PhysicsModel:
             stage, truth, A, n_comp, q, rods, gradient, response, sensitivity)
         return A, J
 
+    def drop_linearisation(self) -> None:
+        """Free the last Jacobian's linearisation (as large as the Jacobian: ~50 MB at full
+        scale), kept for a probe of this model's diagnosis (``jacobian``'s ``extends``)."""
+        self._linearised = None
+
     def _linearisation_of(self, extends: PhysicsModel | None,
                           meas: Measurements) -> Linearisation | None:
         """``extends``' last Jacobian's linearisation where it holds for this model at its
@@ -556,15 +562,9 @@ class PhysicsModel:
         loads = [e for e in added if "wrench" in self.classes[e.name].model_stages()]
         if loads:
             kin, home = base.stage.kin, base.stage.home
-            places = [(kin, home)]                       # the stage, then the moved ones
-            for d in range(9):
-                for sign in (1.0, -1.0):
-                    step = np.zeros(3)
-                    step[d % 3] = sign * POSE_STEP
-                    places.append(
-                        (Pose(kin.p + step, kin.R), home) if d < 3 else
-                        (Pose(kin.p, Rotation.from_rotvec(step).as_matrix() @ kin.R), home)
-                        if d < 6 else (kin, home + step))
+            # the stage, then the places _pose_sensitivity moves it to
+            places = [(kin, home)] + [(pose, home_p) for d in range(9)
+                                      for pose, home_p in _moved_places(kin, home, d)]
             try:
                 for pose, home_p in places:
                     pts.pose, pts.home_p = pose, home_p
@@ -813,19 +813,7 @@ class PhysicsModel:
         pts = self._stage_points(meas, stage)
         for d in range(0 if loads else 6, 9):       # without a load: only the home's optics
             sides = []
-            for sign in (1.0, -1.0):
-                moved, home = kin, stage.home
-                if d < 3:
-                    p = kin.p.copy()
-                    p[:, d] += sign * POSE_STEP
-                    moved = Pose(p, kin.R)
-                elif d < 6:
-                    w = np.zeros(3)
-                    w[d - 3] = sign * POSE_STEP
-                    moved = Pose(kin.p, Rotation.from_rotvec(w).as_matrix() @ kin.R)
-                else:
-                    home = stage.home.copy()
-                    home[d - 6] += sign * POSE_STEP
+            for moved, home in _moved_places(kin, stage.home, d):
                 pts.pose, pts.home_p = moved, home
                 sides.append(platform_wrench(loads, pts) if loads else None)
                 if d >= 6:                                   # the instruments aligned there
@@ -843,6 +831,21 @@ class PhysicsModel:
                 d_home_path[:, :, d - 6] += np.einsum("naj,nj->na", response,
                                                       (w_plus - w_minus) / (2 * POSE_STEP))
         return d_kin, d_home_path
+
+
+def _moved_places(kin: Pose, home: np.ndarray, d: int):
+    """The two places (kinematic pose, home), + then -, of ``PhysicsModel._pose_sensitivity``'s
+    central difference in pose coordinate ``d``: the position (0-2), the rotation vector applied
+    on the rotation (3-5) or the home (6-8), +-POSE_STEP (m or rad)."""
+    for sign in (1.0, -1.0):
+        step = np.zeros(3)
+        step[d % 3] = sign * POSE_STEP
+        if d < 3:
+            yield Pose(kin.p + step, kin.R), home
+        elif d < 6:
+            yield Pose(kin.p, Rotation.from_rotvec(step).as_matrix() @ kin.R), home
+        else:
+            yield kin, home + step
 
 
 # ---------------------------------------------------------------------------------------------

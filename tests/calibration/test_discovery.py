@@ -478,13 +478,14 @@ def test_a_candidate_matched_by_generic_terms_is_judged_again_refitted(tmp_path)
 
 
 @pytest.mark.slow
-def test_a_candidate_the_validation_rows_confirm_is_judged_again_refitted(tmp_path):
+def test_a_refit_that_determines_nothing_new_is_not_named_on_the_validation_rows_alone(tmp_path):
     """A generated force case hiding loop drift at the library's strength (seed 2222, its
-    second case): the calibration grid barely moves the temperatures (the candidate's
-    calibration p = 0.6-0.9) and its linearised change closes a fifth of the gap to the floor
-    though the validation rows confirm it (p = 8e-58 held off); refitted with the model it
-    closes more than half, the validation and calibration tests combined below ALPHA, and it
-    is named. Nothing else is."""
+    second case): the calibration grid barely moves the temperatures and the linearised change
+    closes a fifth of the gap to the floor though the validation rows confirm it (p = 2e-57).
+    Refitted with the model it is judged again only if the data determine it: here the refit
+    identifies no direction beyond the model's and leaves the calibration rows no better, so
+    only the library's starting values (the twin's own at x1) would carry it. It is not named,
+    and the row says why."""
     case = generate_cases(np.random.default_rng(2222), 12)[1]
     assert case.hidden == (("loop_drift", 1.0),) and case.kind == "force"
     path = tmp_path / "case.toml"
@@ -495,9 +496,9 @@ def test_a_candidate_the_validation_rows_confirm_is_judged_again_refitted(tmp_pa
                                               known=case.known)
     row = next(c for c in diagnoses[0]["ranking"] if c["effect"] == "loop_drift")
     assert row["p_validation_any"] < diagnosis.ALPHA and row["gap_closed"] < diagnosis.GAP_CLOSED
-    assert row["refit_gap_closed"] >= diagnosis.GAP_CLOSED > row["gap_closed"], row
-    assert row["refit_p_combined"] < diagnosis.ALPHA and row["significant"]
-    assert [c["effect"] for c in diagnoses[0]["ranking"] if c["significant"]] == ["loop_drift"]
+    assert row["new_directions"] >= 1 and "refit_p_combined" not in row
+    assert "determines 0 direction(s)" in row["refit_rejected"], row
+    assert not any(c["significant"] for c in diagnoses[0]["ranking"])
 
 
 def _one_group(n: int) -> SimpleNamespace:

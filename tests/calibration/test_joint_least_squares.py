@@ -101,6 +101,13 @@ def test_the_step_scan_fits_the_step_with_the_models_drift_readjusted():
         brute.append(total)
     assert tau == taus[int(np.argmax(brute))]
     assert abs(tau - 1300.0) < 30.0
+    # a session without calibration readings on the axis changes nothing (it has no mean)
+    joint.groups = joint.groups + [(2, np.zeros(0, int), slice(joint.n_cal, joint.n_cal),
+                                    None, None)]
+    assert joint.best_step(t) == tau
+    # no step the model does not span: no moment (the residual's own scan stands)
+    joint.r = np.zeros_like(joint.r)
+    assert joint.best_step(t) is None
 
 
 def test_model_span_keeps_the_rank_rule_of_each_routine_it_stands_for():

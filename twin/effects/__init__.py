@@ -221,21 +221,25 @@ def effect_spec(cls: type[Effect]) -> str:
 
 def code_sha256(classes) -> str | None:
     """A fingerprint of the code that computes these effects (SHA-256, hex): deltatwin's version
-    and the source files of each class and of its Effect ancestors, in order. A fitted model keeps
-    it, so a diagnosis keeps the values as fitted only when the code that evaluates them is the
-    code that fitted them (a researcher's effect edited since the fit is refined, not trusted).
-    The kinematics and optics the effects build on are covered by the version alone. None (never
-    equal to a file's) when a class's source cannot be read (defined in a notebook or a REPL)."""
+    and, per class in order, its name and the source files of it and of every class it inherits
+    from below ``Effect`` (mixins too). A fitted model keeps it, so a diagnosis keeps the values
+    as fitted only when the code that evaluates them is the code that fitted them (a
+    researcher's effect edited since the fit is refined, not trusted). Where the files lie does
+    not count (a project moved keeps its fingerprint). Not covered: modules an effect's file
+    imports (a helper module edited keeps the fingerprint), and the kinematics and optics the
+    effects build on, covered by the version alone. None (never equal to a file's) when a
+    class's source cannot be read (defined in a notebook or a REPL)."""
     from deltatwin import __version__
 
     h = hashlib.sha256(__version__.encode())
     for cls in classes:
-        h.update(b"\0" + effect_spec(cls).encode())
+        h.update(b"\0" + cls.__qualname__.encode())
         for c in cls.__mro__:
-            if not (isinstance(c, type) and issubclass(c, Effect)) or c is Effect:
+            if c is object or c in Effect.__mro__:
                 continue
             try:
-                h.update(b"\0" + Path(inspect.getsourcefile(c)).read_bytes())
+                h.update(b"\0" + c.__qualname__.encode() + b"\0"
+                         + Path(inspect.getsourcefile(c)).read_bytes())
             except (TypeError, OSError):
                 return None
     return h.hexdigest()

@@ -1,0 +1,47 @@
+"""The fingerprint of the effects' code a fitted model keeps (twin/effects ``code_sha256``)."""
+from deltatwin.twin.effects import LIBRARY, code_sha256, effect_class
+
+MIXIN = '''
+import numpy as np
+
+
+class Scale:
+    factor = {factor}
+'''
+
+EFFECT = '''
+import sys
+sys.path.insert(0, {folder!r})
+from deltatwin.twin.effects import Effect, Parameter, shift_reading
+from lab_mixin_{tag} import Scale
+
+
+class Tilt(Scale, Effect):
+    name = "tilt_{tag}"
+    summary = "X reads a tilt in q1"
+    parameters = (Parameter("slope_m", "m", 0.0, "slope", fit_scale=1e-9),)
+
+    def optics(self, points, optics):
+        shift_reading(optics, "x", self.factor * self.slope_m * points.q[:, 0])
+'''
+
+
+def _tilt(folder, tag, factor):
+    (folder / f"lab_mixin_{tag}.py").write_text(MIXIN.format(factor=factor))
+    (folder / f"lab_{tag}.py").write_text(EFFECT.format(folder=str(folder), tag=tag))
+    return effect_class(f"{folder / f'lab_{tag}.py'}:Tilt")
+
+
+def test_the_code_fingerprint_follows_the_effects_source_and_its_mixins(tmp_path):
+    library = [LIBRARY["geometric_errors"], LIBRARY["loop_drift"]]
+    assert code_sha256(library) == code_sha256(list(library))
+    assert code_sha256(library) != code_sha256(library[::-1])     # which effect is which
+    tilt = _tilt(tmp_path, "fp", 1.0)
+    before = code_sha256(library + [tilt])
+    assert before != code_sha256(library) and before == code_sha256(library + [tilt])
+    # the mixin the effect inherits its factor from, edited: other code
+    (tmp_path / "lab_mixin_fp.py").write_text(MIXIN.format(factor=2.0))
+    assert code_sha256(library + [tilt]) != before
+    # a class whose source cannot be read has no fingerprint
+    made = type("Made", (tilt,), {"__module__": "typed_in_a_repl"})
+    assert code_sha256([made]) is None
