@@ -422,6 +422,13 @@ def _in_words(c: dict, effects: list) -> str:
     if c["significant"]:
         return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
                 "the validation residual" + HELD_OFF * (c.get("held_at") == "off"))
+    if "refit_rejected" in c:
+        # the validation rows see it, the calibration rows cannot determine it: say so, with
+        # what would separate it, rather than a bare "not significant"
+        return (f"{c['effect']}: not claimed: the validation rows confirm its change (p = "
+                f"{c['p_validation_any']:.2g}), but {c['refit_rejected']}: the calibration "
+                "campaign cannot determine it (calibration points interleaved with the "
+                "validation ones, or a calibration that moves what it depends on, would)")
     if c["absorbed_fraction"] >= ABSORBED:
         return (f"{c['effect']}: {100 * c['absorbed_fraction']:.0f} % of its signature is "
                 f"absorbed by {c['absorbed_by'] or '+'.join(effects)} on this campaign: its "

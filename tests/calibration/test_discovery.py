@@ -498,6 +498,7 @@ def test_a_refit_that_determines_nothing_new_is_not_named_on_the_validation_rows
     assert row["p_validation_any"] < diagnosis.ALPHA and row["gap_closed"] < diagnosis.GAP_CLOSED
     assert row["new_directions"] >= 1 and "refit_p_combined" not in row
     assert "determines 0 direction(s)" in row["refit_rejected"], row
+    assert "cannot determine it" in row["verdict"] and "interleaved" in row["verdict"]
     assert not any(c["significant"] for c in diagnoses[0]["ranking"])
 
 
