@@ -453,6 +453,21 @@ def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor
     assert not with_floor["matched_by_generic"]
 
 
+def _loop_drift_x1(tmp_path, seed: int, index: int, kind: str, scale: float):
+    """(metadata, the first diagnosis of the ladder, loop drift's row in it) of generated case
+    ``index`` of ``seed``, a ``kind`` case hiding loop drift at the library's strength."""
+    case = generate_cases(np.random.default_rng(seed), 12)[index]
+    assert case.hidden == (("loop_drift", 1.0),) and case.kind == kind
+    path = tmp_path / "case.toml"
+    path.write_text(case.toml())
+    df, meta = Scenario.load(path).simulate(scale)
+    meta["truth"]["achievable_floor_nm"] = achievable_floor(df, meta)["achievable_floor_nm"]
+    _, diagnoses, _ = diagnosis.effect_ladder(df, meta, list(case.baseline), max_added=0,
+                                              known=case.known)
+    return meta, diagnoses, next(c for c in diagnoses[0]["ranking"]
+                                 if c["effect"] == "loop_drift")
+
+
 def test_a_candidate_matched_by_generic_terms_is_judged_again_refitted(tmp_path):
     """A generated thermal case hiding loop drift at the library's strength (seed 6502, its
     fifth case): the baseline's thermal parameters took part of the drift's place, and loop
@@ -460,15 +475,7 @@ def test_a_candidate_matched_by_generic_terms_is_judged_again_refitted(tmp_path)
     half of what generic functions of the laboratory variables explain above the floor: a
     correlate, by the linear test. Refitted with the model it explains more than that share,
     and it is named."""
-    case = generate_cases(np.random.default_rng(6502), 12)[4]
-    assert case.hidden == (("loop_drift", 1.0),) and case.kind == "thermal"
-    path = tmp_path / "case.toml"
-    path.write_text(case.toml())
-    df, meta = Scenario.load(path).simulate(0.02)
-    meta["truth"]["achievable_floor_nm"] = achievable_floor(df, meta)["achievable_floor_nm"]
-    _, diagnoses, _ = diagnosis.effect_ladder(df, meta, list(case.baseline), max_added=0,
-                                              known=case.known)
-    row = next(c for c in diagnoses[0]["ranking"] if c["effect"] == "loop_drift")
+    meta, diagnoses, row = _loop_drift_x1(tmp_path, 6502, 4, "thermal", 0.02)
     above = diagnosis._above_floor_share(diagnoses[0]["val_err90_nm"],
                                          meta["truth"]["achievable_floor_nm"]["all"])
     needed = diagnosis.GENERIC_SHARE * min(row["generic_explained_fraction"], above)
@@ -486,15 +493,7 @@ def test_a_refit_that_determines_nothing_new_is_not_named_on_the_validation_rows
     identifies no direction beyond the model's and leaves the calibration rows no better, so
     only the library's starting values (the twin's own at x1) would carry it. It is not named,
     and the row says why."""
-    case = generate_cases(np.random.default_rng(2222), 12)[1]
-    assert case.hidden == (("loop_drift", 1.0),) and case.kind == "force"
-    path = tmp_path / "case.toml"
-    path.write_text(case.toml())
-    df, meta = Scenario.load(path).simulate(0.3)
-    meta["truth"]["achievable_floor_nm"] = achievable_floor(df, meta)["achievable_floor_nm"]
-    _, diagnoses, _ = diagnosis.effect_ladder(df, meta, list(case.baseline), max_added=0,
-                                              known=case.known)
-    row = next(c for c in diagnoses[0]["ranking"] if c["effect"] == "loop_drift")
+    _, diagnoses, row = _loop_drift_x1(tmp_path, 2222, 1, "force", 0.3)
     assert row["p_validation_any"] < diagnosis.ALPHA and row["gap_closed"] < diagnosis.GAP_CLOSED
     assert row["new_directions"] >= 1 and "refit_p_combined" not in row
     assert "determines 0 direction(s)" in row["refit_rejected"], row
