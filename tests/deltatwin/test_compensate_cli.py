@@ -2,6 +2,8 @@
 true model), the robot reaches its targets to the readings' noise, far better than the nominal
 kinematics, though the run's temperatures leave the calibration range; a run stopped midway and
 resumed from its journal gives the same data."""
+import contextlib
+import io
 import json
 
 import numpy as np
@@ -37,18 +39,26 @@ def lab(tmp_path_factory):
     return d
 
 
-def _run(d, capsys, *extra):
-    code = main(["compensate", str(d / "lab.toml"), "--model", str(d / "true.toml"),
-                 "--data", str(d / "cal.parquet"), "--targets", str(TARGETS), "--seed", "3",
-                 "-o", str(d / "comp.parquet"), "--json", "--quiet", *extra])
-    out = capsys.readouterr().out
-    assert code == 0, out
-    return json.loads(out.strip().splitlines()[-1])
+def _run(d, *extra):
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["compensate", str(d / "lab.toml"), "--model", str(d / "true.toml"),
+                     "--data", str(d / "cal.parquet"), "--targets", str(TARGETS), "--seed", "3",
+                     "-o", str(d / "comp.parquet"), "--json", "--quiet", *extra])
+    assert code == 0, out.getvalue()
+    return json.loads(out.getvalue().strip().splitlines()[-1])
 
 
-def test_true_model_compensates_to_the_noise(lab, capsys):
-    rep = _run(lab, capsys, "--view", str(lab / "comp.rrd"), "--controller",
-               str(lab / "controller.json"))
+@pytest.fixture(scope="module")
+def compensated(lab):
+    """The first run's report: comp.parquet, its journal, the recording and the controller's
+    files in ``lab`` (a test selected alone still finds them)."""
+    return _run(lab, "--view", str(lab / "comp.rrd"), "--controller",
+                str(lab / "controller.json"))
+
+
+def test_true_model_compensates_to_the_noise(lab, compensated):
+    rep = compensated
     assert (lab / "comp.rrd").stat().st_size > 0 and rep["view"].endswith("comp.rrd")
     exported = controller_evaluator.load(lab / "controller.json")     # the controller's file
     assert exported["source"]["effects"] == MODEL_EFFECTS
@@ -74,7 +84,7 @@ def test_true_model_compensates_to_the_noise(lab, capsys):
     assert point["control"]["mode"] == "model" and len(point["q_cmd_rad"]) == 3
 
 
-def test_resume_continues_from_the_journal(lab, capsys):
+def test_resume_continues_from_the_journal(lab, compensated):
     """A run stopped after 7 points (and a torn line) resumes: the journaled points are kept as
     they were; the interferometers are zeroed again at home (the zero did not survive), and
     the controller takes that zero's conditions, so the resumed points are compensated as
@@ -84,7 +94,7 @@ def test_resume_continues_from_the_journal(lab, capsys):
     lines = journal.read_text().splitlines(keepends=True)
     journal.write_text("".join(lines[:1 + 7]) + lines[8][:40])    # 7 points + a torn line
     (lab / "comp.parquet").unlink()
-    rep = _run(lab, capsys, "--resume")
+    rep = _run(lab, "--resume")
     assert rep["resumed_with"] == 7
     again = pd.read_parquet(lab / "comp.parquet")
     pd.testing.assert_frame_equal(first.iloc[:7], again.iloc[:7])
