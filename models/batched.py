@@ -88,12 +88,10 @@ def in_background(fun, *args, **kwargs):
         finally:
             os._exit(0)      # no exit handlers, no flush of the parent's buffered output
     os.close(write)
-    state = {"waited": False}
 
     def result():
-        if state["waited"]:
+        if not abandoned.alive:        # detached when the result was taken
             raise RuntimeError(f"the background result of {fun.__name__} was already taken")
-        state["waited"] = True
         try:
             with os.fdopen(read, "rb") as channel:
                 data = channel.read()

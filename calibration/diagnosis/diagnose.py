@@ -325,12 +325,13 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
     r1 = _projected(meas, meas.cal, refit.residual_)
     k_refit = refit.identifiability_["n_identified_directions"]
     k = k_refit - base.identifiability_["n_identified_directions"]
-    if k < 1 or not float(r1 @ r1) < float(r0 @ r0):
+    rss0, rss1 = float(r0 @ r0), float(r1 @ r1)
+    if k < 1 or not rss1 < rss0:
         row["refit_rejected"] = (f"refitted, it determines {k} direction(s) beyond the model's "
                                  "and leaves the calibration rows "
-                                 + ("better" if float(r1 @ r1) < float(r0 @ r0) else "no better"))
+                                 + ("better" if rss1 < rss0 else "no better"))
         return
-    v = _verdict(float(r0 @ r0), float(r1 @ r1), k, r0.size,
+    v = _verdict(rss0, rss1, k, r0.size,
                  max(r0.size - k_refit - len(meas.groups), 1), base.residual_, refit.residual_,
                  meas.val, floor_all_nm, ALPHA, _serial_inflation(meas, r0 - r1, r1))
     row.update({"refit_explained_fraction": v["explained_fraction"],

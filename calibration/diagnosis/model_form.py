@@ -189,8 +189,7 @@ def _orthonormal(X: np.ndarray) -> np.ndarray:
         norm = float(np.sqrt(X[:, 0] @ X[:, 0]))
         if norm > 0 and np.isfinite(norm):
             return X / norm
-    u, s, _ = np.linalg.svd(X, full_matrices=False)
-    return u[:, s > max(s.max(initial=0.0), 1e-300) * 1e-10]
+    return ModelSpan(X).orthonormal()
 
 
 class ModelSpan:
