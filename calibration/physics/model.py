@@ -484,10 +484,11 @@ class PhysicsModel:
         optics_at = (self._optics_at(meas, stage, truth) if any(
             "optics" in self.classes[f.effect].model_stages() and wanted[f.sl].any()
             and by["load_optics"][f.sl].any() for f in self.free) else None)
+        exact = {}           # the load effects' exact wrench derivatives, asked once each
         for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
-                                                      response, n_comp, A, optics_at)
+                                                      response, n_comp, A, optics_at, exact)
                 continue
 
             def evaluate(offset, j=j):
@@ -593,15 +594,27 @@ class PhysicsModel:
 
     def _load_optics_column(self, meas: Measurements, theta, j: int, effect, stage: Stage,
                             truth: Truth, response: np.ndarray, n_comp: np.ndarray,
-                            A: np.ndarray, optics_at: dict) -> np.ndarray:
+                            A: np.ndarray, optics_at: dict, exact: dict) -> np.ndarray:
         """(N,3) the readings' derivative in the load or optics parameter ``j`` of ``effect``:
         its wrench's derivative through the compliance (``response``: the paths' derivative
-        in the wrench) plus its optics' derivative at the deflected pose. Each is a difference
-        of that effect's wrench, or of the optics alone (``_stepped_optics_paths``, from
-        ``optics_at``), never of a whole load stage."""
+        in the wrench) plus its optics' derivative at the deflected pose. The wrench's is the
+        effect's own exact derivative when it gives one (``Effect.wrench_derivatives``, asked
+        once per effect and kept in ``exact``); else each is a difference of that effect's
+        wrench, or of the optics alone (``_stepped_optics_paths``, from ``optics_at``), never
+        of a whole load stage."""
         stages = self.classes[effect.name].model_stages()
         pts = self._stage_points(meas, stage)
         n_rows = pts.t_s.shape[0]
+        if stages == ("wrench",):
+            if effect.name not in exact:
+                pts.pose = stage.kin
+                exact[effect.name] = effect.wrench_derivatives(pts) or {}
+            free = next(f for f in self.free if f.sl.start <= j < f.sl.stop)
+            if free.name in exact[effect.name]:
+                d_wrench = exact[effect.name][free.name].reshape(n_rows, 6, -1)
+                return self._counted(meas, np.einsum("nak,nk->na", response,
+                                                     d_wrench[:, :, j - free.sl.start]),
+                                     n_comp, derivative=True)
 
         def evaluate(offset):
             th = theta.copy()

@@ -167,6 +167,14 @@ class Effect:
         """Wrench (N,6) on the platform (N at the platform origin, N*m), world frame."""
         return None
 
+    def wrench_derivatives(self, points) -> dict | None:
+        """Model side, optional: the wrench's exact derivatives at the current values, by free
+        parameter name, each (N,6) + the parameter's shape (N and N*m per the parameter's
+        unit); a parameter not named, or None, has its wrench differenced by the physics model
+        (a Richardson stencil of ``wrench``, with halvings where it is nonlinear). Written with
+        a test against central differences of ``wrench``."""
+        return None
+
     def optics(self, points, optics) -> None:
         """Change the instruments' optics in place (beam origins/directions, air index)."""
 
