@@ -24,6 +24,7 @@ from deltatwin.models.kinematics import (
 )
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, effect_spec, make_effect
+from deltatwin.twin.effects.base import WrenchDerivatives
 from deltatwin.twin.instruments.optics import (
     AXES,
     Optics,
@@ -510,7 +511,7 @@ class PhysicsModel:
         if moving:
             if sensitivity is None:
                 d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient,
-                                                            response)
+                                                            response, exact)
                 # the chain rule per point: the paths' derivative through the kinematic pose
                 # (adjoint: three right-hand sides, not one per parameter)
                 sensitivity = (d_home_path, pose_adjoint(stage.geom, q, stage.kin, d_kin, rods))
@@ -598,20 +599,17 @@ class PhysicsModel:
         """(N,3) the readings' derivative in the load or optics parameter ``j`` of ``effect``:
         its wrench's derivative through the compliance (``response``: the paths' derivative
         in the wrench) plus its optics' derivative at the deflected pose. The wrench's is the
-        effect's own exact derivative when it gives one (``Effect.wrench_derivatives``, asked
-        once per effect and kept in ``exact``); else each is a difference of that effect's
-        wrench, or of the optics alone (``_stepped_optics_paths``, from ``optics_at``), never
-        of a whole load stage."""
+        effect's own exact derivative when it gives one (``_wrench_derivatives``); else each
+        is a difference of that effect's wrench, or of the optics alone
+        (``_stepped_optics_paths``, from ``optics_at``), never of a whole load stage."""
         stages = self.classes[effect.name].model_stages()
         pts = self._stage_points(meas, stage)
         n_rows = pts.t_s.shape[0]
         if stages == ("wrench",):
-            if effect.name not in exact:
-                pts.pose = stage.kin
-                exact[effect.name] = effect.wrench_derivatives(pts) or {}
+            derivatives = self._wrench_derivatives(meas, stage, effect, exact)
             free = next(f for f in self.free if f.sl.start <= j < f.sl.stop)
-            if free.name in exact[effect.name]:
-                d_wrench = exact[effect.name][free.name].reshape(n_rows, 6, -1)
+            if derivatives is not None and free.name in derivatives.parameters:
+                d_wrench = derivatives.parameters[free.name].reshape(n_rows, 6, -1)
                 return self._counted(meas, np.einsum("nak,nk->na", response,
                                                      d_wrench[:, :, j - free.sl.start]),
                                      n_comp, derivative=True)
@@ -648,6 +646,17 @@ class PhysicsModel:
         if "optics" in stages:
             column += d[-1]
         return column
+
+    def _wrench_derivatives(self, meas: Measurements, stage: Stage, effect,
+                            exact: dict) -> WrenchDerivatives | None:
+        """``effect``'s exact wrench derivatives at the stage's kinematic pose and the current
+        values (``Effect.wrench_derivatives``), asked once per Jacobian: kept in ``exact``
+        by effect name for its parameters' columns and the pose sensitivity."""
+        if effect.name not in exact:
+            pts = self._stage_points(meas, stage)
+            pts.pose, pts.home_p = stage.kin, stage.home
+            exact[effect.name] = effect.wrench_derivatives(pts)
+        return exact[effect.name]
 
     def _part_scale_derivatives(self, meas, theta, stage: Stage, truth: Truth, gradient,
                                 cols, rods: tuple) -> tuple[np.ndarray, np.ndarray]:
@@ -808,41 +817,49 @@ class PhysicsModel:
         return d_rods.reshape(n, 6, k), d_home
 
     def _pose_sensitivity(self, meas, stage: Stage, truth: Truth, gradient,
-                          response) -> tuple[np.ndarray, np.ndarray]:
+                          response, derivatives: dict) -> tuple[np.ndarray, np.ndarray]:
         """The paths' derivatives (N + S, 3, 6) and (N + S, 3, 3) with respect to the kinematic
         pose (position, rotation vector applied on its rotation) and the home. A kinematic pose change
         moves the deflected pose with it (``gradient``: the paths' analytic derivative there; its
         rotation carried through the deflection's) and changes the effects' wrench (a coil's
         force grows as the gap closes: ``response``, the paths' derivative in the wrench);
         the home moves the instruments aligned there and what is placed relative to it (the
-        coils). The wrench's and the instruments' derivatives are central differences of
-        those stages alone."""
+        coils). The wrench's derivatives are the loads' own exact ones where they give them
+        (``_wrench_derivatives``, kept in ``derivatives``), else central differences of the
+        wrench alone; the instruments' are central differences of the optics alone."""
         kin = stage.kin
         turn = batched.rotation_matrices(truth.deflection[:, 3:].T)    # (3, 3, N + S)
         d_kin = np.concatenate([gradient[:, :, :3],
                                 gradient[:, :, 3:] @ turn.transpose(2, 0, 1)], axis=2)
         d_home_path = np.zeros(d_kin.shape[:2] + (3,))
         loads = [e for e in self.effects if "wrench" in self.classes[e.name].model_stages()]
+        # the wrench's derivative in the pose and the home (N + S, 6, 9): the loads' own
+        # exact derivatives where they give them, the others' differenced below
+        exact = [self._wrench_derivatives(meas, stage, e, derivatives) for e in loads]
+        d_wrench = np.zeros(d_kin.shape[:1] + (6, 9))
+        for x in exact:
+            if x is not None and x.pose is not None:
+                d_wrench += x.pose
+        differenced = [e for e, x in zip(loads, exact) if x is None or x.pose is None]
         pts = self._stage_points(meas, stage)
-        for d in range(0 if loads else 6, 9):       # without a load: only the home's optics
-            sides = []
+        for d in range(0 if differenced else 6, 9):    # else only the home's optics
+            wrenches, paths = [], []
             for moved, home in _moved_places(kin, stage.home, d):
                 pts.pose, pts.home_p = moved, home
-                sides.append(platform_wrench(loads, pts) if loads else None)
+                if differenced:
+                    wrenches.append(platform_wrench(differenced, pts))
                 if d >= 6:                                   # the instruments aligned there
-                    sides[-1] = (sides[-1], self._optics_paths(
+                    paths.append(self._optics_paths(
                         meas, stage, truth.pose, stage.cube_home + (home - stage.home))[0])
             pts.pose, pts.home_p = kin, stage.home
-            if d < 6:
-                if loads:
-                    d_kin[:, :, d] += np.einsum("naj,nj->na", response,
-                                                (sides[0] - sides[1]) / (2 * POSE_STEP))
-                continue
-            (w_plus, path_plus), (w_minus, path_minus) = sides
-            d_home_path[:, :, d - 6] = (path_plus - path_minus) / (2 * POSE_STEP)
-            if loads:
-                d_home_path[:, :, d - 6] += np.einsum("naj,nj->na", response,
-                                                      (w_plus - w_minus) / (2 * POSE_STEP))
+            if differenced:
+                d_wrench[:, :, d] += (wrenches[0] - wrenches[1]) / (2 * POSE_STEP)
+            if paths:
+                d_home_path[:, :, d - 6] = (paths[0] - paths[1]) / (2 * POSE_STEP)
+        if loads:
+            d_by_pose = response @ d_wrench                  # (N + S, 3, 9)
+            d_kin += d_by_pose[:, :, :6]
+            d_home_path += d_by_pose[:, :, 6:]
         return d_kin, d_home_path
 
 

@@ -5,9 +5,10 @@ differences."""
 from types import SimpleNamespace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from deltatwin.models.geometry import build_geometry
-from deltatwin.models.kinematics import forward
+from deltatwin.models.kinematics import Pose, forward
 from deltatwin.models.mjcf import magnet_positions
 from deltatwin.models.params import load_params
 from deltatwin.twin.effects.beam_misalignment import _tilt
@@ -91,14 +92,24 @@ def test_dipole_gradient_matches_central_differences():
 
 
 def test_magnetic_wrench_derivatives_match_central_differences():
-    """``MagneticForce.wrench_derivatives`` (what a physics model's load columns use) against
-    central differences of ``wrench`` in every parameter (the coil offsets one by one), force
-    and moment each to 1e-8 of their largest; zero on the rows without current."""
+    """``MagneticForce.wrench_derivatives`` (what a physics model's load columns and pose
+    sensitivity use) against central differences of ``wrench``: in every parameter (the coil
+    offsets one by one), the platform's position, a rotation applied on its rotation and the
+    home; force and moment each to 1e-8 of their largest; zero on the rows without current."""
     rng = np.random.default_rng(11)
     points = _magnet_points(2000, rng)
     effect = MagneticForce(coil_offset_m=rng.normal(size=(3, 3)) * 1e-3)
     exact = effect.wrench_derivatives(points)
-    assert {p.name for p in MagneticForce.free_parameters()} <= set(exact)
+    assert {p.name for p in MagneticForce.free_parameters()} <= set(exact.parameters)
+
+    def agrees(column, sides, h, what):
+        reference = (sides[0] - sides[1]) / (2 * h)
+        for part in (slice(0, 3), slice(3, 6)):
+            size = np.abs(reference[:, part]).max()
+            assert size > 0, what
+            assert np.abs(column[:, part] - reference[:, part]).max() < 1e-8 * size, what
+        assert not np.any(column[::7]), what
+
     steps = {"magnet_moment_Am2": 1e-3, "coil_moment_per_A": 1e-4, "core_depth_m": 1e-7,
              "coil_offset_m": 1e-7}
     for name, h in steps.items():
@@ -111,13 +122,21 @@ def test_magnetic_wrench_derivatives_match_central_differences():
                 setattr(effect, name, moved if value.shape else float(moved))
                 sides.append(effect.wrench(points))
             setattr(effect, name, value if value.shape else float(value))
-            reference = (sides[0] - sides[1]) / (2 * h)
-            column = exact[name][(slice(None), slice(None)) + idx]
-            for part in (slice(0, 3), slice(3, 6)):
-                size = np.abs(reference[:, part]).max()
-                assert size > 0, (name, idx)
-                assert np.abs(column[:, part] - reference[:, part]).max() < 1e-8 * size, (name, idx)
-            assert not np.any(column[::7])
+            agrees(exact.parameters[name][(slice(None), slice(None)) + idx], sides, h,
+                   (name, idx))
+    pose, home, h = points.pose, points.home_p, 1e-7
+    for d in range(9):
+        sides = []
+        for sign in (1.0, -1.0):
+            step = np.zeros(3)
+            step[d % 3] = sign * h
+            points.pose, points.home_p = (
+                (Pose(pose.p + step, pose.R), home) if d < 3 else
+                (Pose(pose.p, Rotation.from_rotvec(step).as_matrix() @ pose.R), home) if d < 6
+                else (pose, home + step))
+            sides.append(effect.wrench(points))
+        points.pose, points.home_p = pose, home
+        agrees(exact.pose[:, :, d], sides, h, ("pose", d))
 
 
 def test_dipole_force_is_minus_the_energy_gradient():

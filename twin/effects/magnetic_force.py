@@ -13,7 +13,7 @@ import numpy as np
 
 from deltatwin.models import batched
 from deltatwin.models.layout import MAGNET_HALF_M, magnet_positions
-from deltatwin.twin.effects.base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, Parameter, WrenchDerivatives
 
 MU0 = 4e-7 * np.pi
 
@@ -137,28 +137,49 @@ class MagneticForce(Effect):
 
     def wrench_derivatives(self, points):
         """Exact: the wrench is bilinear in the two moments (the magnets' and the coils' per
-        ampere), and a coil's position moves the pairs it belongs to by minus their separation's
-        change (``dipole_force_torque_gradient``); the core depth lowers every coil."""
+        ampere); a coil's position moves the pairs it belongs to by minus their separation's
+        change (``dipole_force_torque_gradient``), the core depth lowers every coil. In the
+        pose: a move of the platform moves every magnet (minus every coil's move), the home
+        moves every coil; a rotation w (R -> exp(w) R) turns the magnets' levers and moments
+        (w x arm, w x m), and the moment's lever with them."""
         def pairs(out, p, R, currents, coils, magnets):
             arm, m_mag, m_coil = self._dipoles(R, currents, magnets, 1.0, 1.0)  # unit moments
             mag = (p.T[:, None] + arm)[:, :, None]
             F, tau = dipole_force_torque(m_coil, coils, m_mag, mag)
             dF, dtau = dipole_force_torque_gradient(m_coil, coils, m_mag, mag)
-            # the unit moments' wrench, and its derivative in each coil's position (minus the
-            # magnets': d r / d coil = -1), (3, 3 coils, m) per coordinate
-            F_mag = F.sum(axis=2)
-            out[:, 0, :3] = F_mag.sum(axis=1).T
-            out[:, 0, 3:] = (batched.cross(arm, F_mag) + tau.sum(axis=2)).sum(axis=1).T
-            for j in range(3):
-                force = -dF[:, j].sum(axis=1)
-                moment = -(batched.cross(arm[:, :, None], dF[:, j]) + dtau[:, j]).sum(axis=1)
-                out[:, 1 + 3 * np.arange(3) + j, :3] = force.transpose(2, 1, 0)
-                out[:, 1 + 3 * np.arange(3) + j, 3:] = moment.transpose(2, 1, 0)
+            lever = arm[:, :, None]                                   # (3,3 magnets,1,m)
 
-        unit = self._over_rows_with_current(points, (10, 6), pairs).transpose(0, 2, 1)
+            def wrench_of(force, torque, lever_change=None):
+                """Sums over the magnets (axis 1) of the pairs' force and moment, (6, coils, m)."""
+                moment = batched.cross(lever, force) + torque
+                if lever_change is not None:
+                    moment += batched.cross(lever_change, F)
+                return np.concatenate([force.sum(axis=1), moment.sum(axis=1)])
+
+            # the unit moments' wrench
+            out[:, :, 0] = wrench_of(F, tau).sum(axis=1).T
+            # each coil's position (minus the magnets'), per coordinate j: (6, coils, m)
+            by_coil = [-wrench_of(dF[:, j], dtau[:, j]) for j in range(3)]
+            for j in range(3):
+                out[:, :, 1 + 3 * np.arange(3) + j] = by_coil[j].transpose(2, 0, 1)
+                out[:, :, 10 + j] = -by_coil[j].sum(axis=1).T           # the platform's move
+            for k in range(3):                                           # a rotation about e_k
+                e = np.zeros((3, 1, 1, 1))
+                e[k] = 1.0
+                turned = batched.cross(e, lever)                         # w x arm
+                F_k, tau_k = dipole_force_torque(m_coil, coils, batched.cross(e, m_mag), mag)
+                for j in range(3):
+                    F_k += dF[:, j] * turned[j]
+                    tau_k += dtau[:, j] * turned[j]
+                out[:, :, 13 + k] = wrench_of(F_k, tau_k, turned).sum(axis=1).T
+
+        unit = self._over_rows_with_current(points, (6, 16), pairs)
         moments = self.magnet_moment_Am2 * self.coil_moment_per_A
-        by_coil = moments * unit[:, :, 1:].reshape(-1, 6, 3, 3)           # (N,6,coil,coordinate)
-        return {"magnet_moment_Am2": self.coil_moment_per_A * unit[:, :, 0],
-                "coil_moment_per_A": self.magnet_moment_Am2 * unit[:, :, 0],
-                "core_depth_m": -by_coil[:, :, :, 2].sum(axis=2),
-                "coil_offset_m": by_coil}
+        by_coil = moments * unit[:, :, 1:10].reshape(-1, 6, 3, 3)          # (N,6,coil,coordinate)
+        move = moments * unit[:, :, 10:13]
+        return WrenchDerivatives(
+            {"magnet_moment_Am2": self.coil_moment_per_A * unit[:, :, 0],
+             "coil_moment_per_A": self.magnet_moment_Am2 * unit[:, :, 0],
+             "core_depth_m": -by_coil[:, :, :, 2].sum(axis=2),
+             "coil_offset_m": by_coil},
+            np.concatenate([move, moments * unit[:, :, 13:16], -move], axis=2))
