@@ -466,7 +466,12 @@ class PhysicsModel:
             # where the motors sit: the encoders' readings, or those plus an effect's errors
             q = motor_positions(self.effects, pts)
             rods = None
-        J = np.zeros(A.shape + (theta.size,))
+        # a few columns asked for (a probe's, a candidate's): each column contiguous, so that the
+        # columns not computed stay untouched zero pages (written column by column, an (N,3,p)
+        # array in row order is touched throughout: ~70 MB at full scale, and every new page a
+        # process touches costs it); the same values and shape either way
+        J = (np.zeros((theta.size,) + A.shape).transpose(1, 2, 0)
+             if 2 * np.count_nonzero(wanted) < theta.size else np.zeros(A.shape + (theta.size,)))
         # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
         # derivative at the fixed pose (N + S, 6, k) or the function giving it at a slice of
         # the rows, the home's (3, k) or None: it stays)
