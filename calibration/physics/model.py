@@ -798,7 +798,8 @@ class PhysicsModel:
                                 0, -1).reshape(-1, int(turning.sum()))   # (M * 18, k')
         joint_terms = np.concatenate([dP0, np.broadcast_to(dB[:, None], (3, 2, 3, k)),
                                       dL[:, :, None]], axis=2)         # (3, 2, 7, k)
-        at_rows = lambda a, rows: a[rows] if np.ndim(a) and len(a) == q.shape[0] else a
+        # a part's factors (and the rod lengths) per point have one axis more than one part's
+        at_rows = lambda a, rows, part_ndim: a[rows] if np.ndim(a) > part_ndim else a
         L = stage.geom.L * s_rod
 
         def rods_at(rows: slice) -> np.ndarray:
@@ -813,7 +814,7 @@ class PhysicsModel:
                 # product, three entries per rod equation, instead of an (n, 6, 3, k') gather),
                 # for the turning parameters alone (the others' are zero: 30 of 63)
                 entries = scipy.sparse.csr_matrix(
-                    ((-rod_r * at_rows(s_arm, rows)[..., None, None]).reshape(-1),
+                    ((-rod_r * at_rows(s_arm, rows, 1)[..., None, None]).reshape(-1),
                      (inv_r[:, None] * 18 + np.arange(18)).reshape(-1),  # (motor coordinates,
                      np.arange(0, 18 * n + 1, 3)), shape=(6 * n, d_arm.shape[0]))  # rod, xyz)
                 d_rods[..., _as_slice(np.flatnonzero(turning))] = (
@@ -822,9 +823,9 @@ class PhysicsModel:
             # the rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
             point_terms = np.concatenate(
                 [(rod_r.reshape(n, 6, 3) @ stage.kin.R[rows]).reshape(n, 3, 2, 3)
-                 * at_rows(s_plat, rows)[..., None, None, None],
-                 -rod_r * at_rows(s_base, rows)[..., None, None, None],
-                 -np.broadcast_to(at_rows(L, rows), (n, 3, 2))[..., None]], axis=-1)
+                 * at_rows(s_plat, rows, 0)[..., None, None, None],
+                 -rod_r * at_rows(s_base, rows, 0)[..., None, None, None],
+                 -np.broadcast_to(at_rows(L, rows, 2), (n, 3, 2))[..., None]], axis=-1)
             for i in range(3):
                 for side in range(2):
                     d_rods[:, i, side] += point_terms[:, i, side] @ joint_terms[i, side]
