@@ -743,11 +743,11 @@ class PhysicsModel:
     def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps, rod: np.ndarray):
         """For the robot parameters ``cols``: the function giving the rod equations' derivative
         at the fixed pose at a slice of the N + S rows, (rows, 6, k), and the home's (3, k).
-        Each point's joint arrays are the robot's at its
-        parameters' temperatures times the parts' thermal factors at the point
-        (models.geometry.part_scales), so their derivatives are too: the joint arrays are
-        differenced once per parameter (the elbow hinges on the distinct motor coordinates),
-        then every parameter's rod equations are formed at once from the points' rod vectors."""
+        Each point's joint arrays are the robot's at its parameters' temperatures times the
+        parts' thermal factors at the point (models.geometry.part_scales), so their derivatives
+        are too: the joint arrays are differenced once per parameter (the elbow hinges on the
+        distinct motor coordinates), then every parameter's rod equations are formed at once
+        from the points' rod vectors, a slice of rows at a time (the caller's chunks)."""
         pts = meas.points
         q = motor_positions(self.effects, pts)     # with an effect's angle errors, where they sit
         qu, inv = pts.unique_q() if q is pts.q else np.unique(q, axis=0, return_inverse=True)
