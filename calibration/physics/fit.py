@@ -127,7 +127,7 @@ class PhysicsFit:
         S = model.scales
         sigma = self.noise_nm * 1e-9
         A0, J0 = model.jacobian(meas, theta0)
-        Js = _projected(meas, cal, J0 * S)
+        Js = _projected(meas, cal, J0, scale=S)
         # on the data it was fitted on, the start is kept in the directions it was fitted in
         # (below): no SVD chooses directions here, V's report is made from Js alone
         same_data = (fitted_on is not None and fitted_on == self.data_sha256_
@@ -169,7 +169,7 @@ class PhysicsFit:
             J = model.jacobian(meas, theta_of(z), seen)[1]
             self.n_evaluations_ += int(seen.sum()) + 1
             self.n_jacobians_ += 1
-            return -_projected(meas, cal, J * S) @ V * NM, J
+            return -_projected(meas, cal, J, scale=S) @ V * NM, J
 
         k = V.shape[1]
         n_res = int(np.sum((meas.group >= 0) & cal[:, None]))
@@ -207,7 +207,7 @@ class PhysicsFit:
                 self.n_evaluations_ += int((~seen).sum()) + 1
         model.set_theta(theta)          # the solver's last evaluation may have been a trial
         r = _projected(meas, cal, meas.y - A)
-        Jz = -(Js if J is J0 else _projected(meas, cal, J * S)) @ V
+        Jz = -(Js if J is J0 else _projected(meas, cal, J, scale=S)) @ V
         dof = meas.residual_dof(n_res, V.shape[1])
         self.remaining_step_sigma_ = _remaining_step_sigma(Jz, r, dof)
         change = self.remaining_step_sigma_ * float(np.linalg.norm(r)) / np.sqrt(dof)

@@ -51,6 +51,8 @@ DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving 
 READING_ROUNDOFF_M = 1e-15
 # rows in fewer runs of one session than this are counted run by run (PhysicsModel._counted)
 SESSION_RUNS = 64
+# rows per chunk where a block of Jacobian columns is formed row by row (PhysicsModel._add_counted)
+ROW_CHUNK = 2048
 
 
 def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
@@ -393,6 +395,23 @@ class PhysicsModel:
         counted *= f.reshape(f.shape + (1,) * (counted.ndim - 2))   # in place: (N, 3, p) is big
         return counted if derivative else counted + meas.cos_offset
 
+    @staticmethod
+    def _add_counted(meas: Measurements, J: np.ndarray, cols, n_comp: np.ndarray,
+                     path_rows) -> None:
+        """``J[:, :, cols] +=`` what the interferometers count of a paths' derivative
+        (``_counted(..., derivative=True)``, the same numbers), ``path_rows(rows)`` giving the
+        derivative (rows, 3, k) at a slice of the N + S rows: chunk by chunk of ROW_CHUNK rows,
+        so that no (N + S, 3, k) array is made (at full scale a block of 63 columns is 44 MB,
+        and every new page a process touches costs it; a chunk's few MB stay in cache)."""
+        n = meas.n
+        zeros = path_rows(slice(n, None))                 # the session zeros' rows, (S, 3, k)
+        for a in range(0, n, ROW_CHUNK):
+            rows = slice(a, min(a + ROW_CHUNK, n))
+            counted = path_rows(rows)
+            counted -= zeros[meas.zero_row[rows] - n]
+            counted *= (meas.cos_scale[rows] / n_comp[rows])[..., None]
+            J[rows, :, cols] += counted
+
     def _observe(self, meas: Measurements, stage, wrench: np.ndarray | None = None) -> np.ndarray:
         return self._counted(meas, *self._paths(meas, stage, wrench))
 
@@ -448,9 +467,15 @@ class PhysicsModel:
             # where the motors sit: the encoders' readings, or those plus an effect's errors
             q = motor_positions(self.effects, pts)
             rods = None
-        J = np.zeros(A.shape + (theta.size,))
+        # a few columns asked for (a probe's, a candidate's): each column contiguous, so that the
+        # columns not computed stay untouched zero pages (written column by column, an (N,3,p)
+        # array in row order is touched throughout: ~70 MB at full scale, and every new page a
+        # process touches costs it); the same values and shape either way
+        J = (np.zeros((theta.size,) + A.shape).transpose(1, 2, 0)
+             if 2 * np.count_nonzero(wanted) < theta.size else np.zeros(A.shape + (theta.size,)))
         # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
-        # derivative at the fixed pose (N + S, 6, k), the home's (3, k) or None: it stays)
+        # derivative at the fixed pose (N + S, 6, k) or the function giving it at a slice of
+        # the rows, the home's (3, k) or None: it stays)
         moving = []
         # the rods (P - A) and platform hinges (R P0) at the points, (N + S, 3, 2, 3) each
         if rods is None and np.any(wanted & ~by["load_optics"]):
@@ -517,12 +542,15 @@ class PhysicsModel:
                 sensitivity = (d_home_path, pose_adjoint(stage.geom, q, stage.kin, d_kin, rods))
             d_home_path, adjoint = sensitivity
             # block by block (no (N + S, 6, k) array of every column), and the home's (one
-            # product)
+            # product per chunk of rows)
             for cols, d_rods, d_home in moving:
-                out = -(adjoint @ d_rods)
-                if d_home is not None:
-                    out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)
-                J[:, :, _as_slice(cols)] += self._counted(meas, out, n_comp, derivative=True)
+                # the robot's block comes as a function of the rows (its (N + S, 6, 63) array
+                # would be 86 MB), the others as arrays
+                rods_at = d_rods if callable(d_rods) else d_rods.__getitem__
+                self._add_counted(meas, J, _as_slice(cols), n_comp,
+                                  lambda rows, rods_at=rods_at, d_home=d_home: _through_pose(
+                                      adjoint[rows], rods_at(rows),
+                                      None if d_home is None else d_home_path[rows], d_home))
         self._linearised = Linearisation(
             meas, self.params, dict(self.classes),
             {e.name: {k: np.array(v) for k, v in e.values.items()} for e in self.effects},
@@ -735,12 +763,13 @@ class PhysicsModel:
         return (per_rad[..., None] * d_angles[:, :, None, :]).reshape(rod.shape[0], 6, -1)
 
     def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps, rod: np.ndarray):
-        """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
-        (N + S, 6, k) and the home's (3, k). Each point's joint arrays are the robot's at its
-        parameters' temperatures times the parts' thermal factors at the point
-        (models.geometry.part_scales), so their derivatives are too: the joint arrays are
-        differenced once per parameter (the elbow hinges on the distinct motor coordinates),
-        then every parameter's rod equations are formed at once from the points' rod vectors."""
+        """For the robot parameters ``cols``: the function giving the rod equations' derivative
+        at the fixed pose at a slice of the N + S rows, (rows, 6, k), and the home's (3, k).
+        Each point's joint arrays are the robot's at its parameters' temperatures times the
+        parts' thermal factors at the point (models.geometry.part_scales), so their derivatives
+        are too: the joint arrays are differenced once per parameter (the elbow hinges on the
+        distinct motor coordinates), then every parameter's rod equations are formed at once
+        from the points' rod vectors, a slice of rows at a time (the caller's chunks)."""
         pts = meas.points
         q = motor_positions(self.effects, pts)     # with an effect's angle errors, where they sit
         qu, inv = pts.unique_q() if q is pts.q else np.unique(q, axis=0, return_inverse=True)
@@ -778,8 +807,7 @@ class PhysicsModel:
         turning = np.array([not all(np.array_equal(getattr(geoms[2 * i], f),
                                                    getattr(geoms[2 * i + 1], f))
                                     for f in arm_arrays) for i in range(cols.size)], bool)
-        n, k = q.shape[0], cols.size
-        d_rods = np.zeros((n, 3, 2, k))
+        k, d_arm = cols.size, None
         if turning.any():
             moved = [g for i in np.flatnonzero(turning) for g in geoms[2 * i:2 * i + 2]]
             axis, arm_vec, theta_zero = (np.stack([getattr(g, f) for g in moved])
@@ -789,32 +817,43 @@ class PhysicsModel:
                                      arm_vec[:, None])             # (2 k', M, 3, 2, 3)
             step = 2 * steps[cols[turning]]
             d_arm = np.moveaxis((arms[0::2] - arms[1::2]) / step[:, None, None, None, None],
-                                0, -1)                             # (M, 3, 2, 3, k')
-            # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL,
-            # each hinge its part's factor times the robot's: the elbow hinges first, each
-            # point's rod against its motor coordinates' row of d_arm (a sparse product, three
-            # entries per rod equation, instead of an (N, 6, 3, k') gather), for the turning
-            # parameters alone (the others' are zero: half the product here, 30 of 63)
-            rows = scipy.sparse.csr_matrix(
-                ((-rod * s_arm[..., None, None]).reshape(-1),
-                 (inv[:, None] * 18 + np.arange(18)).reshape(-1),     # (motor coordinates,
-                 np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))  # rod, component)
-            d_rods[..., _as_slice(np.flatnonzero(turning))] = (
-                rows @ d_arm.reshape(-1, d_arm.shape[-1])).reshape(n, 3, 2, -1)
-        # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
-        # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
-        point_terms = np.concatenate(
-            [(rod.reshape(n, 6, 3) @ stage.kin.R).reshape(n, 3, 2, 3)
-             * s_plat[..., None, None, None],
-             -rod * s_base[..., None, None, None],
-             -np.broadcast_to(stage.geom.L * s_rod, (n, 3, 2))[..., None]], axis=-1)
+                                0, -1).reshape(-1, int(turning.sum()))   # (M * 18, k')
         joint_terms = np.concatenate([dP0, np.broadcast_to(dB[:, None], (3, 2, 3, k)),
                                       dL[:, :, None]], axis=2)         # (3, 2, 7, k)
-        for i in range(3):
-            for side in range(2):
-                d_rods[:, i, side] += point_terms[:, i, side] @ joint_terms[i, side]
-        d_rods *= 2
-        return d_rods.reshape(n, 6, k), d_home
+        # a part's factors (and the rod lengths) per point have one axis more than one part's
+        at_rows = lambda a, rows, part_ndim: a[rows] if np.ndim(a) > part_ndim else a
+        L = stage.geom.L * s_rod
+
+        def rods_at(rows: slice) -> np.ndarray:
+            """The rod equations' derivative (rows, 6, k) at a slice of the points."""
+            rod_r, inv_r = rod[rows], inv[rows]
+            n = rod_r.shape[0]
+            d_rods = np.zeros((n, 3, 2, k))
+            if d_arm is not None:
+                # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod
+                # dL, each hinge its part's factor times the robot's: the elbow hinges first,
+                # each point's rod against its motor coordinates' row of d_arm (a sparse
+                # product, three entries per rod equation, instead of an (n, 6, 3, k') gather),
+                # for the turning parameters alone (the others' are zero: 30 of 63)
+                entries = scipy.sparse.csr_matrix(
+                    ((-rod_r * at_rows(s_arm, rows, 1)[..., None, None]).reshape(-1),
+                     (inv_r[:, None] * 18 + np.arange(18)).reshape(-1),  # (motor coordinates,
+                     np.arange(0, 18 * n + 1, 3)), shape=(6 * n, d_arm.shape[0]))  # rod, xyz)
+                d_rods[..., _as_slice(np.flatnonzero(turning))] = (
+                    entries @ d_arm).reshape(n, 3, 2, -1)
+            # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and
+            # the rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
+            point_terms = np.concatenate(
+                [(rod_r.reshape(n, 6, 3) @ stage.kin.R[rows]).reshape(n, 3, 2, 3)
+                 * at_rows(s_plat, rows, 0)[..., None, None, None],
+                 -rod_r * at_rows(s_base, rows, 0)[..., None, None, None],
+                 -np.broadcast_to(at_rows(L, rows, 2), (n, 3, 2))[..., None]], axis=-1)
+            for i in range(3):
+                for side in range(2):
+                    d_rods[:, i, side] += point_terms[:, i, side] @ joint_terms[i, side]
+            d_rods *= 2
+            return d_rods.reshape(n, 6, k)
+        return rods_at, d_home
 
     def _pose_sensitivity(self, meas, stage: Stage, truth: Truth, gradient,
                           response, derivatives: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -863,6 +902,18 @@ class PhysicsModel:
         return d_kin, d_home_path
 
 
+def _through_pose(adjoint: np.ndarray, d_rods: np.ndarray, d_home_path: np.ndarray | None,
+                  d_home: np.ndarray | None) -> np.ndarray:
+    """The paths' derivative (rows, 3, k) through the kinematic pose (the ``adjoint`` (rows, 3,
+    6) of the rod equations' derivative ``d_rods`` (rows, 6, k)) and through the home
+    (``d_home_path`` (rows, 3, 3) times the home's derivative ``d_home`` (3, k), or none)."""
+    out = adjoint @ d_rods
+    np.negative(out, out=out)
+    if d_home is not None:
+        out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)
+    return out
+
+
 def _moved_places(kin: Pose, home: np.ndarray, d: int):
     """The two places (kinematic pose, home), + then -, of ``PhysicsModel._pose_sensitivity``'s
     central difference in pose coordinate ``d``: the position (0-2), the rotation vector applied
@@ -897,16 +948,23 @@ def residuals(meas: Measurements, pred: np.ndarray, offsets: np.ndarray) -> np.n
     return meas.y - pred - off
 
 
-def _projected(meas: Measurements, rows: np.ndarray, v: np.ndarray) -> np.ndarray:
+def _projected(meas: Measurements, rows: np.ndarray, v: np.ndarray,
+               scale: np.ndarray | None = None) -> np.ndarray:
     """Values v (N,3,...) on the readings of ``rows`` with each group's mean removed:
-    (n_readings, ...)."""
-    out = []
-    for g in range(len(meas.groups)):
-        m = (meas.group == g) & rows[:, None]
-        if m.any():
-            x = v[m]
-            out.append(x - x.mean(axis=0))
-    return np.concatenate(out) if out else np.zeros((0,) + v.shape[2:])
+    (n_readings, ...). ``scale``: v times it (broadcast on each reading's values), the same
+    numbers as projecting ``v * scale`` without that (N,3,...) copy (a full-scale Jacobian's
+    is 66 MB, and every new page a process touches costs it)."""
+    masks = [m for m in ((meas.group == g) & rows[:, None] for g in range(len(meas.groups)))
+             if m.any()]
+    out = np.empty((sum(int(np.count_nonzero(m)) for m in masks),) + v.shape[2:])
+    start = 0
+    for m in masks:
+        x = v[m]
+        if scale is not None:
+            x *= scale
+        np.subtract(x, x.mean(axis=0), out=out[start:start + x.shape[0]])
+        start += x.shape[0]
+    return out
 
 
 def figures_nm(res: np.ndarray, rows: np.ndarray) -> dict:
