@@ -88,5 +88,8 @@ def _small_pages() -> None:
         return
     os.environ[HUGEPAGE_VARIABLE] = "0"
     if "numpy" in sys.modules:
-        from numpy._core.multiarray import _set_madvise_hugepage
-        _set_madvise_hugepage(False)
+        # numpy's own switch is private: a numpy without it keeps its default (only slower)
+        from numpy._core import multiarray
+        switch = getattr(multiarray, "_set_madvise_hugepage", None)
+        if switch is not None:
+            switch(False)
