@@ -44,8 +44,10 @@ from deltatwin.calibration.diagnosis.attribution import (
     Residual,
     Term,
     laboratory_variables,
+    best_step,
     scan_together,
     scans,
+    tail_sums,
 )
 from deltatwin.calibration.diagnosis.term_form import (
     ALPHA,
@@ -424,12 +426,11 @@ class _Joint:
                 group[order]
             if tk.size < 2:
                 continue
-            tail = lambda X: np.cumsum(X[::-1], axis=0)[::-1][1:]     # rows k.. for k >= 1
-            after_by_group = tail(np.eye(len(sizes))[gk])               # (n-1, groups)
+            after_by_group = tail_sums(np.eye(len(sizes))[gk])          # (n-1, groups)
             n_g = np.asarray(sizes, float)
             hh = np.sum(after_by_group * (1.0 - after_by_group / n_g), axis=1)
-            pp = hh - np.sum(tail(Qk) ** 2, axis=1)
-            gain = np.where(pp > 1e-6 * hh, tail(rk) ** 2 / np.maximum(pp, 1e-300), 0.0)
+            pp = hh - np.sum(tail_sums(Qk) ** 2, axis=1)
+            gain = np.where(pp > 1e-6 * hh, tail_sums(rk) ** 2 / np.maximum(pp, 1e-300), 0.0)
             times.append(tk)
             gains.append(gain)
         every = np.unique(np.concatenate(times)) if times else np.zeros(0)
@@ -481,7 +482,6 @@ class JointFrame:
         self.axes = [k for k, _, _ in self.target.axes]
         self.n_axes = len(self.axes)
         self.shape = meas.y.shape
-        self._steps_scanned: set = set()
 
     def blocks(self, terms: list[Term]) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each term's columns on the fit's readings (``_Joint.columns``): a term of (N,p)
@@ -507,15 +507,13 @@ class JointFrame:
     def scan(self, variables: list) -> None:
         """The scans of ``variables`` on ``target`` (attribution.scan_together), a step's
         moment in time scanned with the model's directions re-adjusted (``_Joint.best_step``),
-        as the terms are fitted here."""
-        scan_together(variables, [self.target])
-        for var in variables:
-            info = self.target.scans[var.name]
-            if "step_s" in info and var.name not in self._steps_scanned:
-                tau = self.joint.best_step(var.values)
-                if tau is not None:
-                    info["step_s"] = tau
-                self._steps_scanned.add(var.name)
+        as the terms are fitted here; where no step counts there (the model spans every one),
+        the residual's own scan."""
+        scan_together(variables, [self.target], step=self._step)
+
+    def _step(self, t: np.ndarray, target) -> float | None:
+        tau = self.joint.best_step(t)
+        return best_step(t, target) if tau is None else tau
 
     def fit(self, blocks: list) -> dict:
         """As attribution.AxisFrame.fit."""

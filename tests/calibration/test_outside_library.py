@@ -590,3 +590,42 @@ def test_the_motor_probe_response_matches_central_differences():
         assert np.nanmax(np.abs(coarse - reference)) < 1e-8 * size, model.labels[j]
         error = np.nanmax(np.abs(J[:, :, j] * scale - reference))
         assert error < 1e-7 * size, (model.labels[j], error / size)
+
+
+def test_the_joint_frames_step_scan_is_the_model_readjusted_one_made_once():
+    """model_form.JointFrame.scan gives attribution.scan_together the step scan with the model's
+    directions re-adjusted (``step=``), the residual's own where that counts no step: the scans
+    are bit for bit those of scanning on the residual and then replacing each time variable's
+    step moment by ``_Joint.best_step``'s (how it was done before, twice per time variable),
+    on a mirror step whose moment the model's drift shifts (the residual's scan misplaces it)."""
+    from deltatwin.calibration.diagnosis.attribution import laboratory_variables, scan_together
+    from deltatwin.calibration.diagnosis.model_form import JointFrame, ModelSpan
+    from deltatwin.calibration.physics.model import _projected
+    from tests.calibration.outside_effects import simulate_case
+
+    # seed 12345 g09: a 230 nm Z mirror step on the portal's force campaign (model_form's
+    # _Joint.best_step docstring)
+    case, scale = generate_cases(np.random.default_rng(12345), 10)[
+        "g09-mirror-step-force-portal"]
+    df, meta, baseline, known, _ = simulate_case(case, scale)
+    fit = PhysicsFit(baseline, start=known).fit(df, meta)
+    meas, J = fit.measurements_, fit.jacobian_
+    JS = (J.reshape(-1, J.shape[2]) @ (fit.model_.scales[:, None] * fit.identified_directions_)
+          ).reshape(J.shape[:2] + (fit.identified_directions_.shape[1],))
+    Jm = _projected(meas, meas.cal, JS)
+    r0 = _projected(meas, meas.cal, fit.residual_)
+    frames = [JointFrame(fit, Jm, JS, r0, ModelSpan(Jm)) for _ in range(2)]
+    variables = laboratory_variables(meas.df)
+    frames[0].scan(variables)
+    old = frames[1]
+    scan_together(variables, [old.target])
+    residual_only = {v: dict(info) for v, info in old.target.scans.items()}
+    for var in variables:
+        info = old.target.scans[var.name]
+        if "step_s" in info:
+            tau = old.joint.best_step(var.values)
+            if tau is not None:
+                info["step_s"] = tau
+    assert frames[0].target.scans == old.target.scans
+    steps = {v: info["step_s"] for v, info in old.target.scans.items() if "step_s" in info}
+    assert steps and steps != {v: residual_only[v]["step_s"] for v in steps}, steps
