@@ -43,8 +43,8 @@ from scipy import special
 from deltatwin.calibration.diagnosis.attribution import (
     Residual,
     Term,
-    laboratory_variables,
     best_step,
+    laboratory_variables,
     scan_together,
     scans,
     tail_sums,
