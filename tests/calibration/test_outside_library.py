@@ -555,6 +555,36 @@ def test_a_term_whose_physical_alternative_fails_on_validation_still_joins():
     assert _forward(joint, blocks, 1e-3, 0.02, take) == [0]
     assert _forward(joint, blocks, 1e-3, 0.02, take, physical={0: [1]}) == [0]
 
+@pytest.mark.parametrize("unlike, chosen", [(0.05, [1]), (0.3, [])])
+def test_a_block_the_calibration_rows_cannot_tell_from_a_failing_best_joins(unlike, chosen):
+    """model_form._forward: the block strongest on the calibration rows (block 0) is unrelated
+    to the residual on the validation rows, so it fails the joining test there; one the
+    calibration rows cannot tell from it (``unlike`` 0.05: 4 residual variances worse, below
+    the Bonferroni limit) and that follows the validation rows joins in its place (before: the
+    selection ended with no form); one significantly worse (0.3: 144) does not."""
+    from deltatwin.calibration.diagnosis.model_form import _forward
+
+    rng = np.random.default_rng(6161)
+    n_cal, n_val = 400, 200
+    term, other, unrelated, noise = rng.standard_normal((4, n_cal + n_val))
+    r = 1e-9 * (term + 0.5 * noise)
+    joint = _joint_of(r, n_cal)
+    # the other pattern without any part of the term or the residual on the calibration rows:
+    # the second block is weaker there by 400 * unlike^2 / 0.5^2 residual variances
+    basis = np.linalg.qr(np.column_stack([term[:n_cal], r[:n_cal]]))[0]
+    other[:n_cal] -= basis @ (basis.T @ other[:n_cal])
+    other[:n_cal] *= np.sqrt(n_cal) / np.linalg.norm(other[:n_cal])
+    strongest = np.concatenate([term[:n_cal], unrelated[n_cal:]])
+    blocks = [(1e-9 * x[:n_cal, None], 1e-9 * x[n_cal:, None], 0)
+              for x in (strongest, term + unlike * other)]
+    gains = [float(np.sum(b[0] * joint.r[:, None])) ** 2 / float(np.sum(b[0] ** 2))
+             for b in blocks]
+    assert gains[0] > gains[1], gains
+    take = lambda chosen, i: not chosen          # one block at most
+    assert _forward(joint, blocks[:1], 1e-3, 0.02, take) == []
+    assert _forward(joint, blocks, 1e-3, 0.02, take) == chosen
+
+
 def test_the_motor_probe_response_matches_central_differences():
     """model_form.MotorError (the form's probe of where a motor sits): the model's Jacobian
     columns of its backlash, sine and cosine amplitudes (the motor candidates' responses) agree
