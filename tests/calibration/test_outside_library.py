@@ -558,10 +558,11 @@ def test_a_term_whose_physical_alternative_fails_on_validation_still_joins():
 @pytest.mark.parametrize("unlike, chosen", [(0.05, [1]), (0.3, [])])
 def test_a_block_the_calibration_rows_cannot_tell_from_a_failing_best_joins(unlike, chosen):
     """model_form._forward: the block strongest on the calibration rows (block 0) is unrelated
-    to the residual on the validation rows, so it fails the joining test there; one the
-    calibration rows cannot tell from it (``unlike`` 0.05: 4 residual variances worse, below
-    the Bonferroni limit) and that follows the validation rows joins in its place (before: the
-    selection ended with no form); one significantly worse (0.3: 144) does not."""
+    to the residual on the validation rows, so it fails the joining test there; one of the
+    same variable the calibration rows cannot tell from it (``unlike`` 0.05: 4 residual
+    variances worse, below the Bonferroni limit) and that follows the validation rows joins in
+    its place (before: the selection ended with no form); one significantly worse (0.3: 144),
+    or of another variable, does not."""
     from deltatwin.calibration.diagnosis.model_form import _forward
 
     rng = np.random.default_rng(6161)
@@ -582,7 +583,9 @@ def test_a_block_the_calibration_rows_cannot_tell_from_a_failing_best_joins(unli
     assert gains[0] > gains[1], gains
     take = lambda chosen, i: not chosen          # one block at most
     assert _forward(joint, blocks[:1], 1e-3, 0.02, take) == []
-    assert _forward(joint, blocks, 1e-3, 0.02, take) == chosen
+    assert _forward(joint, blocks, 1e-3, 0.02, take, variable_of=["F_N", "F_N"]) == chosen
+    # another variable's block is another dependence: not tried in the strongest's place
+    assert _forward(joint, blocks, 1e-3, 0.02, take, variable_of=["F_N", "t_s"]) == []
 
 
 def test_the_motor_probe_response_matches_central_differences():
