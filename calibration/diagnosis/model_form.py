@@ -601,10 +601,10 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
         # is not significantly better than that
         tries = []
         if best is not None:
-            same = (lambda t: False) if variable_of is None else \
-                (lambda t: variable_of[t[0]] == variable_of[best[0]])
             alike = [t for t in sorted(trials.values(), key=lambda t: -t[1])
-                     if t is best or (same(t) and not _better(best, t, rss, limit))]
+                     if t is best or (variable_of is not None
+                                      and variable_of[t[0]] == variable_of[best[0]]
+                                      and not _better(best, t, rss, limit))]
             for t in alike:
                 alternatives = [trials[j] for j in physical.get(t[0], ()) if j in trials]
                 if alternatives:
