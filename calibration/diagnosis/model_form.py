@@ -512,6 +512,7 @@ class JointFrame:
         scan_together(variables, [self.target], step=self._step)
 
     def _step(self, t: np.ndarray, target) -> float | None:
+        """The moment (s) of a step in time ``t`` for ``scan_together``."""
         tau = self.joint.best_step(t)
         return best_step(t, target) if tau is None else tau
 

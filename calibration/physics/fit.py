@@ -330,10 +330,9 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     one may only have outrun the trust region), or when an updated one's step is accepted but
     lowers the cost by less than a quarter of its prediction: the updates are wrong in the
     directions the step went (Broyden's updates correct the Jacobian only along the steps
-    taken; in the weakly determined directions of a force case on the paper-force grid they
-    were 50-290 % off, and the fit crawled along them at gains of 0.03-0.4 until its
-    evaluations ran out, seed 99 g01: 42.8 nm val err90, 37.4 with this rule). Steps stay
-    within a trust
+    taken; in weakly determined directions it can be 50-290 % off, docs/performance.md; a
+    paper-force case's fit crawled along them at gains of 0.03-0.5 until its evaluations ran
+    out, seed 99 g01: 42.8 nm val err90, 37.4 with this rule). Steps stay within a trust
     region (fit scales) that a failed step shrinks and a well-predicted one widens (a curved
     valley of weakly determined directions: the Gauss-Newton step overshoots it); a model that
     cannot be evaluated at a trial point (its kinematics fail) counts as a failed step there.
