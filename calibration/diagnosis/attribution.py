@@ -353,6 +353,12 @@ def peak_periods(v: np.ndarray, jobs: list, nyquist_factor: float = 2.5) -> list
     return periods
 
 
+def tail_sums(X: np.ndarray) -> np.ndarray:
+    """The sums of the rows of ``X`` (n, ...) from row k to the last, for k = 1..n-1: a step
+    after the first k rows, scanned by cumulative sums."""
+    return np.cumsum(X[::-1], axis=0)[::-1][1:]
+
+
 def best_step(t: np.ndarray, target: Residual, fixed: np.ndarray | None = None) -> float | None:
     """The time (s) of the single step that best fits the residual (summed over axes,
     calibration rows, after ``fixed``): for a centred residual e and an indicator h of
@@ -368,7 +374,7 @@ def best_step(t: np.ndarray, target: Residual, fixed: np.ndarray | None = None) 
         tc, ec = tc[o], ec[o]
         n = tc.size
         k = np.arange(1, n)                          # rows after the step: n - k
-        tail = np.cumsum(ec[::-1])[::-1][1:]         # sum of e over rows k..n-1
+        tail = tail_sums(ec)                         # sum of e over rows k..n-1
         hh = (n - k) * k / n                         # |h_c|^2
         gain_t.append(0.5 * (tc[:-1] + tc[1:]))
         gain.append(tail ** 2 / hh)
@@ -467,10 +473,14 @@ def scans(var: Variable, target: Residual) -> dict:
     return target.scans[var.name]
 
 
-def scan_together(variables: list[Variable], targets: list[Residual]) -> None:
+def scan_together(variables: list[Variable], targets: list[Residual], step=None) -> None:
     """``scans`` of every variable on every target (residuals of the same rows, e.g. a model's
     and the same one linear step further), kept on each target: the periodograms of all the
-    targets' axes made in one pass per variable (the costly part of a diagnosis)."""
+    targets' axes made in one pass per variable (the costly part of a diagnosis). ``step``:
+    the scan of a step's moment in time, ``step(t, target)`` -> s or None (default
+    ``best_step``, on the residual alone; a physics model's frame re-adjusts the model's
+    directions: model_form.JointFrame.scan)."""
+    step = best_step if step is None else step
     for var in variables:
         todo = [t for t in targets if var.name not in t.scans]
         if not todo:
@@ -484,7 +494,7 @@ def scan_together(variables: list[Variable], targets: list[Residual]) -> None:
                     info["period"] = period
         if var.kind == "time":
             for info, t in zip(infos, todo):
-                tau = best_step(var.values, t)
+                tau = step(var.values, t)
                 if tau is not None:
                     info["step_s"] = tau
         for info, t in zip(infos, todo):

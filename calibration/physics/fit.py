@@ -326,8 +326,13 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     one evaluation. A Jacobian is recomputed only where it must be exact: when its step says the
     fit has converged (the Gauss-Newton step left moves the parameters by < STEP_SIGMA of their
     uncertainty, the test ``converged_`` applies, so convergence is always judged with an exact
-    Jacobian), or when an updated one fails a step no longer than one that succeeded (a longer
-    one may only have outrun the trust region). Steps stay within a trust
+    Jacobian), when an updated one fails a step no longer than one that succeeded (a longer
+    one may only have outrun the trust region), or when an updated one's step is accepted but
+    lowers the cost by less than a quarter of its prediction: the updates are wrong in the
+    directions the step went (Broyden's updates correct the Jacobian only along the steps
+    taken; in weakly determined directions it can be 50-290 % off, docs/performance.md; a
+    paper-force case's fit crawled along them at gains of 0.03-0.5 until its evaluations ran
+    out, seed 99 g01: 42.8 nm val err90, 37.4 with this rule). Steps stay within a trust
     region (fit scales) that a failed step shrinks and a well-predicted one widens (a curved
     valley of weakly determined directions: the Gauss-Newton step overshoots it); a model that
     cannot be evaluated at a trial point (its kinematics fail) counts as a failed step there.
@@ -390,9 +395,14 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
             # Broyden's update: the Jacobian that reproduces the step's residual change
             basis.B += np.outer((c_new - basis.c) - basis.B @ step, step / (length * length))
             basis.c = c_new
+            updated = not exact
             z, r, A, cost, exact, accepted = z + step, r_new, A_new, cost_new, False, length
             if gain < 0.25:
                 radius = 0.5 * length
+                if updated:         # the updated Jacobian mispredicted: recomputed
+                    Jz, J = jac(z)
+                    basis = _ResidualBasis(Jz, r)
+                    exact = True
             elif gain > 0.75:
                 radius = max(radius, 2.0 * length)
         elif exact:

@@ -555,6 +555,39 @@ def test_a_term_whose_physical_alternative_fails_on_validation_still_joins():
     assert _forward(joint, blocks, 1e-3, 0.02, take) == [0]
     assert _forward(joint, blocks, 1e-3, 0.02, take, physical={0: [1]}) == [0]
 
+@pytest.mark.parametrize("unlike, chosen", [(0.05, [1]), (0.3, [])])
+def test_a_block_the_calibration_rows_cannot_tell_from_a_failing_best_joins(unlike, chosen):
+    """model_form._forward: the block strongest on the calibration rows (block 0) is unrelated
+    to the residual on the validation rows, so it fails the joining test there; one of the
+    same variable the calibration rows cannot tell from it (``unlike`` 0.05: 4 residual
+    variances worse, below the Bonferroni limit) and that follows the validation rows joins in
+    its place (before: the selection ended with no form); one significantly worse (0.3: 144),
+    or of another variable, does not."""
+    from deltatwin.calibration.diagnosis.model_form import _forward
+
+    rng = np.random.default_rng(6161)
+    n_cal, n_val = 400, 200
+    term, other, unrelated, noise = rng.standard_normal((4, n_cal + n_val))
+    r = 1e-9 * (term + 0.5 * noise)
+    joint = _joint_of(r, n_cal)
+    # the other pattern without any part of the term or the residual on the calibration rows:
+    # the second block is weaker there by 400 * unlike^2 / 0.5^2 residual variances
+    basis = np.linalg.qr(np.column_stack([term[:n_cal], r[:n_cal]]))[0]
+    other[:n_cal] -= basis @ (basis.T @ other[:n_cal])
+    other[:n_cal] *= np.sqrt(n_cal) / np.linalg.norm(other[:n_cal])
+    strongest = np.concatenate([term[:n_cal], unrelated[n_cal:]])
+    blocks = [(1e-9 * x[:n_cal, None], 1e-9 * x[n_cal:, None], 0)
+              for x in (strongest, term + unlike * other)]
+    gains = [float(np.sum(b[0] * joint.r[:, None])) ** 2 / float(np.sum(b[0] ** 2))
+             for b in blocks]
+    assert gains[0] > gains[1], gains
+    take = lambda chosen, i: not chosen          # one block at most
+    assert _forward(joint, blocks[:1], 1e-3, 0.02, take) == []
+    assert _forward(joint, blocks, 1e-3, 0.02, take, variable_of=["F_N", "F_N"]) == chosen
+    # another variable's block is another dependence: not tried in the strongest's place
+    assert _forward(joint, blocks, 1e-3, 0.02, take, variable_of=["F_N", "t_s"]) == []
+
+
 def test_the_motor_probe_response_matches_central_differences():
     """model_form.MotorError (the form's probe of where a motor sits): the model's Jacobian
     columns of its backlash, sine and cosine amplitudes (the motor candidates' responses) agree
@@ -590,3 +623,42 @@ def test_the_motor_probe_response_matches_central_differences():
         assert np.nanmax(np.abs(coarse - reference)) < 1e-8 * size, model.labels[j]
         error = np.nanmax(np.abs(J[:, :, j] * scale - reference))
         assert error < 1e-7 * size, (model.labels[j], error / size)
+
+
+def test_the_joint_frames_step_scan_is_the_model_readjusted_one_made_once():
+    """model_form.JointFrame.scan gives attribution.scan_together the step scan with the model's
+    directions re-adjusted (``step=``), the residual's own where that counts no step: the scans
+    are bit for bit those of scanning on the residual and then replacing each time variable's
+    step moment by ``_Joint.best_step``'s (how it was done before, twice per time variable),
+    on a mirror step whose moment the model's drift shifts (the residual's scan misplaces it)."""
+    from deltatwin.calibration.diagnosis.attribution import laboratory_variables, scan_together
+    from deltatwin.calibration.diagnosis.model_form import JointFrame, ModelSpan
+    from deltatwin.calibration.physics.model import _projected
+    from tests.calibration.outside_effects import simulate_case
+
+    # seed 12345 g09: a 230 nm Z mirror step on the portal's force campaign (model_form's
+    # _Joint.best_step docstring)
+    case, scale = generate_cases(np.random.default_rng(12345), 10)[
+        "g09-mirror-step-force-portal"]
+    df, meta, baseline, known, _ = simulate_case(case, scale)
+    fit = PhysicsFit(baseline, start=known).fit(df, meta)
+    meas, J = fit.measurements_, fit.jacobian_
+    JS = (J.reshape(-1, J.shape[2]) @ (fit.model_.scales[:, None] * fit.identified_directions_)
+          ).reshape(J.shape[:2] + (fit.identified_directions_.shape[1],))
+    Jm = _projected(meas, meas.cal, JS)
+    r0 = _projected(meas, meas.cal, fit.residual_)
+    frames = [JointFrame(fit, Jm, JS, r0, ModelSpan(Jm)) for _ in range(2)]
+    variables = laboratory_variables(meas.df)
+    frames[0].scan(variables)
+    old = frames[1]
+    scan_together(variables, [old.target])
+    residual_only = {v: dict(info) for v, info in old.target.scans.items()}
+    for var in variables:
+        info = old.target.scans[var.name]
+        if "step_s" in info:
+            tau = old.joint.best_step(var.values)
+            if tau is not None:
+                info["step_s"] = tau
+    assert frames[0].target.scans == old.target.scans
+    steps = {v: info["step_s"] for v, info in old.target.scans.items() if "step_s" in info}
+    assert steps and steps != {v: residual_only[v]["step_s"] for v in steps}, steps
