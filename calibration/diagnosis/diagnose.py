@@ -751,13 +751,13 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     nm, from extrapolated temperatures; loop drift, also significant, closing 84 % of the gap
     to the floor, was never tried). A rejected effect whose row in that diagnosis was
     significant held off (``held_at`` "off": what its determined directions leave of the
-    library's start switched off, ``_held_at``) is first tried again held so before the next
-    effect (``_held_off``: its free parameters started and, along what the data do not
-    determine, held at zero; the try recorded in ``tried_instead`` with ``held`` "off"): the
-    library's start is a guess, and the refit held there is not the model the diagnosis
-    found significant (loop drift at a third of the library's CTEs: held at the library's
-    values its refit predicted validation worse on five of twelve seeds, 1.13-1.26x the
-    floor).
+    library's start switched off, ``_held_at``) is first tried again held so, if zero switches
+    it off (``_switches_off``), before the next effect (``_held_off``: its free parameters
+    started and, along what the data do not determine, held at zero; the try recorded in
+    ``tried_instead`` with ``held`` "off"): the library's start is a guess, and the refit held
+    there is not the model the diagnosis found significant (loop drift at a third of the
+    library's CTEs: held at the library's values its refit predicted validation worse on five
+    of twelve seeds, 1.13-1.26x the floor).
 
     Returns (ladder, diagnoses, fits): one ladder row per model kept ({model, effects, added,
     n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm,
@@ -811,7 +811,8 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                 d["refit_rejected"] = _rejected_refit(fit, fits[-1], d)
                 d["tried_instead"] = []
             row = next((c for c in d["ranking"] if c["effect"] == effects[-1]), {})
-            if not held_off and row.get("significant") and row.get("held_at") == "off":
+            if (not held_off and row.get("significant") and row.get("held_at") == "off"
+                    and _switches_off(fits[-1], effects[-1])):
                 held_off = True
                 continue
             held_off = False
@@ -856,13 +857,28 @@ def _with_known(values: dict, known: dict | None) -> dict:
     return {e: {**values.get(e, {}), **known.get(e, {})} for e in {**values, **known}}
 
 
+def _off(effect: str) -> dict:
+    """``effect``'s free parameters at zero ({parameter: value})."""
+    return {p.name: np.zeros(p.shape).tolist() for p in LIBRARY[effect].free_parameters()}
+
+
+def _switches_off(fit: PhysicsFit, effect: str) -> bool:
+    """Whether ``effect`` added to ``fit``'s model with its free parameters at zero
+    (``_off``) leaves the model's predictions on its data unchanged (to 1e-12 m): so for loop
+    drift's CTEs, a coil's moment, a sag's load factor; not for air refraction, whose beam
+    and compensation sensor still differ at a zero room fraction and offset (0.1 um)."""
+    values = {**fit.model_.values(), effect: {**fit.known_.get(effect, {}), **_off(effect)}}
+    model = PhysicsModel(fit.effects + [effect], fit.model_.params, values)
+    change = model.predict_path(fit.measurements_) - fit.prediction_
+    return bool(np.nanmax(np.abs(change), initial=0.0) <= 1e-12)
+
+
 def _held_off(values: dict, effect: str, known: dict | None) -> dict:
     """A fit's start and prior (PhysicsFit keyword arguments) from a previous fit's
-    ``values`` with ``effect`` added held off: its free parameters at zero (each library
-    effect with a strength changes nothing there: loop drift's CTEs, a coil's moment, a sag's
-    load factor, an air path's room fraction and offsets), started so and held so along what
-    the data do not determine (the prior), the laboratory's ``known`` constants put over."""
-    off = {p.name: np.zeros(p.shape).tolist() for p in LIBRARY[effect].free_parameters()}
+    ``values`` with ``effect`` added held off: its free parameters at zero (``_off``: the
+    effect off where ``_switches_off`` says so), started so and held so along what the data
+    do not determine (the prior), the laboratory's ``known`` constants put over."""
+    off = _off(effect)
     return {"start": _with_known({**values, effect: {**values.get(effect, {}), **off}}, known),
             "prior": {effect: off}}
 
