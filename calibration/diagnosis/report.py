@@ -126,10 +126,8 @@ def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
         if d.get("refit_rejected"):
             lines += ["", f"Named: **{d['missing_effect']}**; "
                       + d["refit_rejected"]["message"] + "."]
-            lines += [(f"Tried again held off (its free parameters at zero along what the data "
-                       f"do not determine): **{t['effect']}**" if t.get("held") == "off" else
-                       f"Tried instead, also significant: **{t['effect']}**")
-                      + f" ({t['val_err90_nm']:.1f} nm: {'kept' if t['kept'] else 'not kept'})."
+            lines += [f"Tried instead, also significant: **{t['effect']}** "
+                      f"({t['val_err90_nm']:.1f} nm: {'kept' if t['kept'] else 'not kept'})."
                       for t in d["tried_instead"]]
         elif d["missing_effect"]:
             lines += ["", f"Missing effect: **{d['missing_effect']}**. Add it with "
