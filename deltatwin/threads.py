@@ -14,12 +14,24 @@ second process (``models.batched.in_background``: ``diagnose``'s attribution bes
 candidates).  It holds no lock and spins on nothing, so beside another command it only
 shares the cores as any process does: it is on when this process may use two cores or more,
 unless ``DELTATWIN_THREADS=1`` (or ``set_threads(1)``) asks for one core.
+
+The same start-up sets how numpy's large arrays take their memory: in pages of 4 kB, not in
+transparent huge pages (numpy asks for those on Linux, ``NUMPY_MADVISE_HUGEPAGE``).  A command
+here makes its (N, 3, p) arrays once or a few times, so what costs is the first touch of new
+memory, and on a machine whose kernel gathers huge pages on demand (``transparent_hugepage``
+``defrag`` at ``madvise``, as on the 2-core machine of issue 21) a new huge page cost 1.3-2.0
+ms per MB against 0.4 for small pages: `diagnose` of full paper-thermal spent ~0.2 s less
+in the system, `fit` 0.15-0.3 s (docs/performance.md).  A ``NUMPY_MADVISE_HUGEPAGE`` already
+set is the user's choice and kept.
 """
 from __future__ import annotations
 
 import os
+import sys
 
 ENVIRONMENT_VARIABLE = "DELTATWIN_THREADS"
+# numpy's switch of transparent huge pages for its large arrays (read when numpy loads)
+HUGEPAGE_VARIABLE = "NUMPY_MADVISE_HUGEPAGE"
 # read by BLAS libraries when they load (scipy's OpenBLAS loads with scipy.linalg, later)
 BLAS_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 _blas_limit = None      # the threadpoolctl limiter, kept so the limit lives as long as the process
@@ -58,6 +70,7 @@ def set_threads(threads: int | None = None) -> int:
     one_core = n == 1 and (threads is not None or os.environ.get(ENVIRONMENT_VARIABLE))
     for variable in BLAS_VARIABLES:
         os.environ[variable] = str(n)
+    _small_pages()
     from threadpoolctl import threadpool_limits
 
     from deltatwin.models import batched
@@ -65,3 +78,18 @@ def set_threads(threads: int | None = None) -> int:
     batched.THREADS = n
     batched.BACKGROUND = not one_core and batched.usable_cores() >= 2
     return n
+
+
+def _small_pages() -> None:
+    """numpy's large arrays in small pages (the module docstring), unless the user set
+    ``NUMPY_MADVISE_HUGEPAGE``: for numpy loaded from here on and in child processes through the
+    variable, for a numpy already loaded through its switch."""
+    if HUGEPAGE_VARIABLE in os.environ:
+        return
+    os.environ[HUGEPAGE_VARIABLE] = "0"
+    if "numpy" in sys.modules:
+        # numpy's own switch is private: a numpy without it keeps its default (only slower)
+        from numpy._core import multiarray
+        switch = getattr(multiarray, "_set_madvise_hugepage", None)
+        if switch is not None:
+            switch(False)

@@ -8,7 +8,7 @@ the room (the reason the seeds' temperature derivatives help).
 
 The network is linear, C dT/dt = -K T + F u, and is integrated exactly (zero-order hold on a fixed
 grid) in its modal coordinates: with K V = C V diag(lam) and V^T C V = I every mode is a
-first-order filter (scipy.signal.lfilter), so three days at 1 s steps take milliseconds, and
+first-order filter (``first_order_filter``), so three days at 1 s steps take milliseconds, and
 integrating in pieces (``ThermalState``, used by the simulated instruments as the campaign clock
 advances) gives the same temperatures. Units: degC, s, J/K, W/K, W."""
 from __future__ import annotations
@@ -16,9 +16,36 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import eigh
+from scipy.linalg import eigh, solve_banded
 
 GRID_S = 1.0  # integration step; inputs are held constant over a step
+
+
+def first_order_filter(u: np.ndarray, a, y_before) -> np.ndarray:
+    """y[k] = a y[k-1] + u[k] along axis 0 of ``u`` ((n,) or (n, m)), from y[-1] =
+    ``y_before``, for decays ``a`` in [0, 1) (a scalar or one per column): what
+    ``scipy.signal.lfilter([1], [1, -a], u, zi=[a * y_before])`` computes, without importing
+    scipy.signal (0.33 s CPU with the scipy.stats it loads, a third of a short simulation). The
+    recursion is the lower bidiagonal system (1 on the diagonal, -a below it) that LAPACK's
+    banded solver takes row by row: the same operations as the recursion, one solve per decay."""
+    u = np.asarray(u, dtype=np.float64)
+    columns = u.reshape(u.shape[0], -1)
+    m = columns.shape[1]
+    a = np.broadcast_to(np.asarray(a, np.float64), (m,))
+    y_before = np.broadcast_to(np.asarray(y_before, np.float64), (m,))
+    if u.shape[0] == 0:
+        return u.copy()
+    rhs = columns.copy()
+    rhs[0] += a * y_before
+    bands = np.zeros((2, u.shape[0]))
+    bands[0] = 1.0
+    for decay in np.unique(a):
+        same = np.flatnonzero(a == decay)
+        bands[1, :-1] = -decay
+        rhs[:, same] = solve_banded((1, 0), bands, rhs[:, same], overwrite_b=True,
+                                    check_finite=False)
+    return rhs.reshape(u.shape)
+
 
 # (node, heat capacity J/K, conductance to the room air W/K); time constants alone = C/G
 PART_NODES = (
@@ -165,13 +192,8 @@ class ThermalState:
     def advance(self, U: np.ndarray) -> np.ndarray:
         """Integrate len(U) grid steps with inputs U (n, n_inputs) held per step; return the
         node temperatures (n, n_nodes) at the END of each step and keep the final state."""
-        from scipy.signal import lfilter  # scipy.signal loads scipy.stats: only when integrating
-
         net = self.net
         drive = (U @ net.VtF.T) * net.gain                   # (n, n_modes)
-        Z = np.empty_like(drive)
-        for m in range(drive.shape[1]):                       # one first-order filter per mode
-            Z[:, m], _ = lfilter([1.0], [1.0, -net.decay[m]], drive[:, m],
-                                  zi=[net.decay[m] * self.z[m]])
-            self.z[m] = Z[-1, m]
+        Z = first_order_filter(drive, net.decay, self.z)     # one first-order filter per mode
+        self.z = Z[-1].copy()
         return Z @ net.V.T

@@ -84,7 +84,7 @@ def linearised_power(fit: PhysicsFit, effect: str, true_values: dict | None, sig
     rss1 = float(np.sum((d1 - Qx @ (Qx.T @ d1)) ** 2))
     n = d.size
     lam = max(rss0 - rss1, 0.0) / sigma_m ** 2
-    df1, df2 = max(k, 1), max(n - k_m - k - len(meas.groups), 1)
+    df1, df2 = max(k, 1), meas.residual_dof(n, k_m + k)
     f_alpha = float(stats.f.isf(alpha, df1, df2))
     f_bic = (n ** (df1 / n) - 1.0) * df2 / df1
     f_star = max(f_alpha, f_bic)
@@ -118,7 +118,7 @@ def _linear_draws(meas, delta, delta0, Jm, X, full_m, full_x, sigma_m, n_draws, 
     rss0 = np.sum(r0 ** 2, axis=0)
     rss1 = np.sum((r - X @ coef) ** 2, axis=0)
     n, k_m, k = r.shape[0], Jm.shape[1], X.shape[1] - Jm.shape[1]
-    df1, df2 = max(k, 1), max(n - k_m - k - len(meas.groups), 1)
+    df1, df2 = max(k, 1), meas.residual_dof(n, k_m + k)
     F = np.where(rss0 > rss1, (rss0 - rss1) / df1 / (rss1 / df2), 0.0)
     dbic = n * np.log(rss1 / rss0) + k * math.log(n)
     val = meas.val[:, None] & (meas.group >= 0)

@@ -590,8 +590,11 @@ def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val:
     return out
 
 
-def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
-    """Rank the library effects the fitted model lacks (see the module docstring)."""
+def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
+             variables: list | None = None) -> dict:
+    """Rank the library effects the fitted model lacks (see the module docstring).
+    ``variables``: ``laboratory_variables`` of the fit's data when already made (they depend
+    on the data alone: `deltatwin diagnose` makes them beside the fit it keeps)."""
     meas = fit.measurements_
     cal = meas.cal
     k_m = fit.identifiability_["n_identified_directions"]
@@ -622,7 +625,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None) -> dict:
     # candidate must beat to be claimed, and the form proposed when none is
     # the frame both the form and the attribution fit in (the model's directions re-adjusted,
     # attribution.py): the scans, the load responses and the projections made once
-    variables = laboratory_variables(meas.df)
+    variables = laboratory_variables(meas.df) if variables is None else variables
     frame = JointFrame(fit, Jm, JS, r0, span)
     loads = load_candidates(fit)
     # the attribution depends on none of what follows: on a second core where the command has

@@ -31,6 +31,16 @@ def _magnitude_nm(res: np.ndarray) -> np.ndarray:
     return np.sqrt(np.nanmean(r ** 2, axis=1))
 
 
+def tried_instead_line(tried: dict, markdown: bool = False) -> str:
+    """One of a diagnosis' ``tried_instead`` refits (a significant effect fitted after the named
+    one was rejected) in words: plain, as the demo's progress prints it, or a Markdown sentence
+    (the effect in bold), as the report writes it."""
+    effect = f"**{tried['effect']}**" if markdown else tried["effect"]
+    line = (f"tried instead, also significant: {effect} ({tried['val_err90_nm']:.1f} nm: "
+            f"{'kept' if tried['kept'] else 'not kept'})")
+    return f"T{line[1:]}." if markdown else line
+
+
 def ladder_figure(ladder: list[dict], path: Path) -> None:
     fig = Figure(figsize=(6, 3.2))
     ax = fig.subplots()
@@ -126,9 +136,7 @@ def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
         if d.get("refit_rejected"):
             lines += ["", f"Named: **{d['missing_effect']}**; "
                       + d["refit_rejected"]["message"] + "."]
-            lines += [f"Tried instead, also significant: **{t['effect']}** "
-                      f"({t['val_err90_nm']:.1f} nm: {'kept' if t['kept'] else 'not kept'})."
-                      for t in d["tried_instead"]]
+            lines += [tried_instead_line(t, markdown=True) for t in d["tried_instead"]]
         elif d["missing_effect"]:
             lines += ["", f"Missing effect: **{d['missing_effect']}**. Add it with "
                       f"`{d['next_command']}`."]

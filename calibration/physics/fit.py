@@ -127,7 +127,7 @@ class PhysicsFit:
         S = model.scales
         sigma = self.noise_nm * 1e-9
         A0, J0 = model.jacobian(meas, theta0)
-        Js = _projected(meas, cal, J0 * S)
+        Js = _projected(meas, cal, J0, scale=S)
         # on the data it was fitted on, the start is kept in the directions it was fitted in
         # (below): no SVD chooses directions here, V's report is made from Js alone
         same_data = (fitted_on is not None and fitted_on == self.data_sha256_
@@ -169,11 +169,11 @@ class PhysicsFit:
             J = model.jacobian(meas, theta_of(z), seen)[1]
             self.n_evaluations_ += int(seen.sum()) + 1
             self.n_jacobians_ += 1
-            return -_projected(meas, cal, J * S) @ V * NM, J
+            return -_projected(meas, cal, J, scale=S) @ V * NM, J
 
         k = V.shape[1]
         n_res = int(np.sum((meas.group >= 0) & cal[:, None]))
-        dof = max(n_res - k - len(meas.groups), 1)
+        dof = meas.residual_dof(n_res, k)
         self.solver_message_ = "nothing to fit: no identified direction"
         Jz0 = -Js @ V * NM
         r0 = _projected(meas, cal, meas.y - A0) * NM
@@ -183,7 +183,7 @@ class PhysicsFit:
         keep_start = same_data or (
             keep_converged_start and V_test.shape[1] > 0
             and _remaining_step_sigma(-Js @ V_test * NM, r0,
-                                      max(n_res - V_test.shape[1] - len(meas.groups), 1))
+                                      meas.residual_dof(n_res, V_test.shape[1]))
             <= STEP_SIGMA)
         if keep_start and V_test is not V:
             V = V_test
@@ -207,8 +207,8 @@ class PhysicsFit:
                 self.n_evaluations_ += int((~seen).sum()) + 1
         model.set_theta(theta)          # the solver's last evaluation may have been a trial
         r = _projected(meas, cal, meas.y - A)
-        Jz = -(Js if J is J0 else _projected(meas, cal, J * S)) @ V
-        dof = max(n_res - V.shape[1] - len(meas.groups), 1)
+        Jz = -(Js if J is J0 else _projected(meas, cal, J, scale=S)) @ V
+        dof = meas.residual_dof(n_res, V.shape[1])
         self.remaining_step_sigma_ = _remaining_step_sigma(Jz, r, dof)
         change = self.remaining_step_sigma_ * float(np.linalg.norm(r)) / np.sqrt(dof)
         self.converged_ = bool(self.remaining_step_sigma_ <= STEP_SIGMA)
@@ -247,7 +247,7 @@ class PhysicsFit:
         (n, k; its sign does not matter here)."""
         p, k = model.n_free, int(keep.sum())
         labels = model.labels
-        dof = max(r.size - k - len(meas.groups), 1)
+        dof = meas.residual_dof(r.size, k)
         sigma_r = float(np.sqrt(np.sum(r ** 2) / dof))
         cov_z = np.linalg.pinv(Jz.T @ Jz) * sigma_r ** 2 if k else np.zeros((0, 0))
         S = model.scales
@@ -556,9 +556,9 @@ def fit_from_starts(effects, starts: dict, df: pd.DataFrame, meta: dict | None =
         costs[label] = float(np.sqrt(cost / max(n_res, 1))) * 1e9
         if best is None:
             first = cost
-            chance = 0.0 if chance_alpha is None else cost / max(
-                n_res - fit.identifiability_["n_identified_directions"] - len(meas.groups),
-                1) * float(special.chdtri(1, chance_alpha))   # chi2.isf(alpha, 1)
+            chance = 0.0 if chance_alpha is None else cost / meas.residual_dof(
+                n_res, fit.identifiability_["n_identified_directions"]
+            ) * float(special.chdtri(1, chance_alpha))   # chi2.isf(alpha, 1)
         if best is None or (cost < best[0] and first - cost > chance):
             best = (cost, label, fit)
     _, label, fit = best

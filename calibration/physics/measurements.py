@@ -58,6 +58,12 @@ class Measurements:
     def n(self) -> int:
         return self.y.shape[0]
 
+    def residual_dof(self, n_residuals: int, n_directions: int) -> int:
+        """Degrees of freedom of a residual of ``n_residuals`` readings fitted with
+        ``n_directions`` identified directions and one zero offset per (session, axis) group;
+        at least 1."""
+        return max(n_residuals - n_directions - len(self.groups), 1)
+
     def part_temperatures(self, effects) -> dict:
         """Part temperatures (N + S rows) under the model's ``effects``: those that say how a
         sensor reads its part (``sensed_parts``) correct the readings, else each part is at its

@@ -24,6 +24,7 @@ from deltatwin.models.kinematics import (
 )
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, effect_spec, make_effect
+from deltatwin.twin.effects.base import WrenchDerivatives
 from deltatwin.twin.instruments.optics import (
     AXES,
     Optics,
@@ -50,6 +51,8 @@ DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving 
 READING_ROUNDOFF_M = 1e-15
 # rows in fewer runs of one session than this are counted run by run (PhysicsModel._counted)
 SESSION_RUNS = 64
+# rows per chunk where a block of Jacobian columns is formed row by row (PhysicsModel._add_counted)
+ROW_CHUNK = 2048
 
 
 def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
@@ -392,6 +395,23 @@ class PhysicsModel:
         counted *= f.reshape(f.shape + (1,) * (counted.ndim - 2))   # in place: (N, 3, p) is big
         return counted if derivative else counted + meas.cos_offset
 
+    @staticmethod
+    def _add_counted(meas: Measurements, J: np.ndarray, cols, n_comp: np.ndarray,
+                     path_rows) -> None:
+        """``J[:, :, cols] +=`` what the interferometers count of a paths' derivative
+        (``_counted(..., derivative=True)``, the same numbers), ``path_rows(rows)`` giving the
+        derivative (rows, 3, k) at a slice of the N + S rows: chunk by chunk of ROW_CHUNK rows,
+        so that no (N + S, 3, k) array is made (at full scale a block of 63 columns is 44 MB,
+        and every new page a process touches costs it; a chunk's few MB stay in cache)."""
+        n = meas.n
+        zeros = path_rows(slice(n, None))                 # the session zeros' rows, (S, 3, k)
+        for a in range(0, n, ROW_CHUNK):
+            rows = slice(a, min(a + ROW_CHUNK, n))
+            counted = path_rows(rows)
+            counted -= zeros[meas.zero_row[rows] - n]
+            counted *= (meas.cos_scale[rows] / n_comp[rows])[..., None]
+            J[rows, :, cols] += counted
+
     def _observe(self, meas: Measurements, stage, wrench: np.ndarray | None = None) -> np.ndarray:
         return self._counted(meas, *self._paths(meas, stage, wrench))
 
@@ -447,9 +467,15 @@ class PhysicsModel:
             # where the motors sit: the encoders' readings, or those plus an effect's errors
             q = motor_positions(self.effects, pts)
             rods = None
-        J = np.zeros(A.shape + (theta.size,))
+        # a few columns asked for (a probe's, a candidate's): each column contiguous, so that the
+        # columns not computed stay untouched zero pages (written column by column, an (N,3,p)
+        # array in row order is touched throughout: ~70 MB at full scale, and every new page a
+        # process touches costs it); the same values and shape either way
+        J = (np.zeros((theta.size,) + A.shape).transpose(1, 2, 0)
+             if 2 * np.count_nonzero(wanted) < theta.size else np.zeros(A.shape + (theta.size,)))
         # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
-        # derivative at the fixed pose (N + S, 6, k), the home's (3, k) or None: it stays)
+        # derivative at the fixed pose (N + S, 6, k) or the function giving it at a slice of
+        # the rows, the home's (3, k) or None: it stays)
         moving = []
         # the rods (P - A) and platform hinges (R P0) at the points, (N + S, 3, 2, 3) each
         if rods is None and np.any(wanted & ~by["load_optics"]):
@@ -484,10 +510,11 @@ class PhysicsModel:
         optics_at = (self._optics_at(meas, stage, truth) if any(
             "optics" in self.classes[f.effect].model_stages() and wanted[f.sl].any()
             and by["load_optics"][f.sl].any() for f in self.free) else None)
+        exact = {}           # the load effects' exact wrench derivatives, asked once each
         for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors):
             if by["load_optics"][j]:
                 J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
-                                                      response, n_comp, A, optics_at)
+                                                      response, n_comp, A, optics_at, exact)
                 continue
 
             def evaluate(offset, j=j):
@@ -509,18 +536,21 @@ class PhysicsModel:
         if moving:
             if sensitivity is None:
                 d_kin, d_home_path = self._pose_sensitivity(meas, stage, truth, gradient,
-                                                            response)
+                                                            response, exact)
                 # the chain rule per point: the paths' derivative through the kinematic pose
                 # (adjoint: three right-hand sides, not one per parameter)
                 sensitivity = (d_home_path, pose_adjoint(stage.geom, q, stage.kin, d_kin, rods))
             d_home_path, adjoint = sensitivity
             # block by block (no (N + S, 6, k) array of every column), and the home's (one
-            # product)
+            # product per chunk of rows)
             for cols, d_rods, d_home in moving:
-                out = -(adjoint @ d_rods)
-                if d_home is not None:
-                    out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)
-                J[:, :, _as_slice(cols)] += self._counted(meas, out, n_comp, derivative=True)
+                # the robot's block comes as a function of the rows (its (N + S, 6, 63) array
+                # would be 86 MB), the others as arrays
+                rods_at = d_rods if callable(d_rods) else d_rods.__getitem__
+                self._add_counted(meas, J, _as_slice(cols), n_comp,
+                                  lambda rows, rods_at=rods_at, d_home=d_home: _through_pose(
+                                      adjoint[rows], rods_at(rows),
+                                      None if d_home is None else d_home_path[rows], d_home))
         self._linearised = Linearisation(
             meas, self.params, dict(self.classes),
             {e.name: {k: np.array(v) for k, v in e.values.items()} for e in self.effects},
@@ -593,15 +623,24 @@ class PhysicsModel:
 
     def _load_optics_column(self, meas: Measurements, theta, j: int, effect, stage: Stage,
                             truth: Truth, response: np.ndarray, n_comp: np.ndarray,
-                            A: np.ndarray, optics_at: dict) -> np.ndarray:
+                            A: np.ndarray, optics_at: dict, exact: dict) -> np.ndarray:
         """(N,3) the readings' derivative in the load or optics parameter ``j`` of ``effect``:
         its wrench's derivative through the compliance (``response``: the paths' derivative
-        in the wrench) plus its optics' derivative at the deflected pose. Each is a difference
-        of that effect's wrench, or of the optics alone (``_stepped_optics_paths``, from
-        ``optics_at``), never of a whole load stage."""
+        in the wrench) plus its optics' derivative at the deflected pose. The wrench's is the
+        effect's own exact derivative when it gives one (``_wrench_derivatives``); else each
+        is a difference of that effect's wrench, or of the optics alone
+        (``_stepped_optics_paths``, from ``optics_at``), never of a whole load stage."""
         stages = self.classes[effect.name].model_stages()
         pts = self._stage_points(meas, stage)
         n_rows = pts.t_s.shape[0]
+        if stages == ("wrench",):
+            derivatives = self._wrench_derivatives(meas, stage, effect, exact)
+            free = next(f for f in self.free if f.sl.start <= j < f.sl.stop)
+            if derivatives is not None and free.name in derivatives.parameters:
+                d_wrench = derivatives.parameters[free.name].reshape(n_rows, 6, -1)
+                return self._counted(meas, np.einsum("nak,nk->na", response,
+                                                     d_wrench[:, :, j - free.sl.start]),
+                                     n_comp, derivative=True)
 
         def evaluate(offset):
             th = theta.copy()
@@ -635,6 +674,17 @@ class PhysicsModel:
         if "optics" in stages:
             column += d[-1]
         return column
+
+    def _wrench_derivatives(self, meas: Measurements, stage: Stage, effect,
+                            exact: dict) -> WrenchDerivatives | None:
+        """``effect``'s exact wrench derivatives at the stage's kinematic pose and the current
+        values (``Effect.wrench_derivatives``), asked once per Jacobian: kept in ``exact``
+        by effect name for its parameters' columns and the pose sensitivity."""
+        if effect.name not in exact:
+            pts = self._stage_points(meas, stage)
+            pts.pose, pts.home_p = stage.kin, stage.home
+            exact[effect.name] = effect.wrench_derivatives(pts)
+        return exact[effect.name]
 
     def _part_scale_derivatives(self, meas, theta, stage: Stage, truth: Truth, gradient,
                                 cols, rods: tuple) -> tuple[np.ndarray, np.ndarray]:
@@ -713,12 +763,13 @@ class PhysicsModel:
         return (per_rad[..., None] * d_angles[:, :, None, :]).reshape(rod.shape[0], 6, -1)
 
     def _robot_derivatives(self, meas, theta, stage: Stage, cols, steps, rod: np.ndarray):
-        """For the robot parameters ``cols``: the rod equations' derivative at the fixed pose
-        (N + S, 6, k) and the home's (3, k). Each point's joint arrays are the robot's at its
-        parameters' temperatures times the parts' thermal factors at the point
-        (models.geometry.part_scales), so their derivatives are too: the joint arrays are
-        differenced once per parameter (the elbow hinges on the distinct motor coordinates),
-        then every parameter's rod equations are formed at once from the points' rod vectors."""
+        """For the robot parameters ``cols``: the function giving the rod equations' derivative
+        at the fixed pose at a slice of the N + S rows, (rows, 6, k), and the home's (3, k).
+        Each point's joint arrays are the robot's at its parameters' temperatures times the
+        parts' thermal factors at the point (models.geometry.part_scales), so their derivatives
+        are too: the joint arrays are differenced once per parameter (the elbow hinges on the
+        distinct motor coordinates), then every parameter's rod equations are formed at once
+        from the points' rod vectors, a slice of rows at a time (the caller's chunks)."""
         pts = meas.points
         q = motor_positions(self.effects, pts)     # with an effect's angle errors, where they sit
         qu, inv = pts.unique_q() if q is pts.q else np.unique(q, axis=0, return_inverse=True)
@@ -756,8 +807,7 @@ class PhysicsModel:
         turning = np.array([not all(np.array_equal(getattr(geoms[2 * i], f),
                                                    getattr(geoms[2 * i + 1], f))
                                     for f in arm_arrays) for i in range(cols.size)], bool)
-        n, k = q.shape[0], cols.size
-        d_rods = np.zeros((n, 3, 2, k))
+        k, d_arm = cols.size, None
         if turning.any():
             moved = [g for i in np.flatnonzero(turning) for g in geoms[2 * i:2 * i + 2]]
             axis, arm_vec, theta_zero = (np.stack([getattr(g, f) for g in moved])
@@ -767,70 +817,101 @@ class PhysicsModel:
                                      arm_vec[:, None])             # (2 k', M, 3, 2, 3)
             step = 2 * steps[cols[turning]]
             d_arm = np.moveaxis((arms[0::2] - arms[1::2]) / step[:, None, None, None, None],
-                                0, -1)                             # (M, 3, 2, 3, k')
-            # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod dL,
-            # each hinge its part's factor times the robot's: the elbow hinges first, each
-            # point's rod against its motor coordinates' row of d_arm (a sparse product, three
-            # entries per rod equation, instead of an (N, 6, 3, k') gather), for the turning
-            # parameters alone (the others' are zero: half the product here, 30 of 63)
-            rows = scipy.sparse.csr_matrix(
-                ((-rod * s_arm[..., None, None]).reshape(-1),
-                 (inv[:, None] * 18 + np.arange(18)).reshape(-1),     # (motor coordinates,
-                 np.arange(0, 18 * n + 1, 3)), shape=(6 * n, 18 * qu.shape[0]))  # rod, component)
-            d_rods[..., _as_slice(np.flatnonzero(turning))] = (
-                rows @ d_arm.reshape(-1, d_arm.shape[-1])).reshape(n, 3, 2, -1)
-        # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and the
-        # rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
-        point_terms = np.concatenate(
-            [(rod.reshape(n, 6, 3) @ stage.kin.R).reshape(n, 3, 2, 3)
-             * s_plat[..., None, None, None],
-             -rod * s_base[..., None, None, None],
-             -np.broadcast_to(stage.geom.L * s_rod, (n, 3, 2))[..., None]], axis=-1)
+                                0, -1).reshape(-1, int(turning.sum()))   # (M * 18, k')
         joint_terms = np.concatenate([dP0, np.broadcast_to(dB[:, None], (3, 2, 3, k)),
                                       dL[:, :, None]], axis=2)         # (3, 2, 7, k)
-        for i in range(3):
-            for side in range(2):
-                d_rods[:, i, side] += point_terms[:, i, side] @ joint_terms[i, side]
-        d_rods *= 2
-        return d_rods.reshape(n, 6, k), d_home
+        # a part's factors (and the rod lengths) per point have one axis more than one part's
+        at_rows = lambda a, rows, part_ndim: a[rows] if np.ndim(a) > part_ndim else a
+        L = stage.geom.L * s_rod
+
+        def rods_at(rows: slice) -> np.ndarray:
+            """The rod equations' derivative (rows, 6, k) at a slice of the points."""
+            rod_r, inv_r = rod[rows], inv[rows]
+            n = rod_r.shape[0]
+            d_rods = np.zeros((n, 3, 2, k))
+            if d_arm is not None:
+                # d f / d parameter / 2 = rod . (d platform hinge - d elbow hinge) - L s_rod
+                # dL, each hinge its part's factor times the robot's: the elbow hinges first,
+                # each point's rod against its motor coordinates' row of d_arm (a sparse
+                # product, three entries per rod equation, instead of an (n, 6, 3, k') gather),
+                # for the turning parameters alone (the others' are zero: 30 of 63)
+                entries = scipy.sparse.csr_matrix(
+                    ((-rod_r * at_rows(s_arm, rows, 1)[..., None, None]).reshape(-1),
+                     (inv_r[:, None] * 18 + np.arange(18)).reshape(-1),  # (motor coordinates,
+                     np.arange(0, 18 * n + 1, 3)), shape=(6 * n, d_arm.shape[0]))  # rod, xyz)
+                d_rods[..., _as_slice(np.flatnonzero(turning))] = (
+                    entries @ d_arm).reshape(n, 3, 2, -1)
+            # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and
+            # the rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
+            point_terms = np.concatenate(
+                [(rod_r.reshape(n, 6, 3) @ stage.kin.R[rows]).reshape(n, 3, 2, 3)
+                 * at_rows(s_plat, rows, 0)[..., None, None, None],
+                 -rod_r * at_rows(s_base, rows, 0)[..., None, None, None],
+                 -np.broadcast_to(at_rows(L, rows, 2), (n, 3, 2))[..., None]], axis=-1)
+            for i in range(3):
+                for side in range(2):
+                    d_rods[:, i, side] += point_terms[:, i, side] @ joint_terms[i, side]
+            d_rods *= 2
+            return d_rods.reshape(n, 6, k)
+        return rods_at, d_home
 
     def _pose_sensitivity(self, meas, stage: Stage, truth: Truth, gradient,
-                          response) -> tuple[np.ndarray, np.ndarray]:
+                          response, derivatives: dict) -> tuple[np.ndarray, np.ndarray]:
         """The paths' derivatives (N + S, 3, 6) and (N + S, 3, 3) with respect to the kinematic
         pose (position, rotation vector applied on its rotation) and the home. A kinematic pose change
         moves the deflected pose with it (``gradient``: the paths' analytic derivative there; its
         rotation carried through the deflection's) and changes the effects' wrench (a coil's
         force grows as the gap closes: ``response``, the paths' derivative in the wrench);
         the home moves the instruments aligned there and what is placed relative to it (the
-        coils). The wrench's and the instruments' derivatives are central differences of
-        those stages alone."""
+        coils). The wrench's derivatives are the loads' own exact ones where they give them
+        (``_wrench_derivatives``, kept in ``derivatives``), else central differences of the
+        wrench alone; the instruments' are central differences of the optics alone."""
         kin = stage.kin
         turn = batched.rotation_matrices(truth.deflection[:, 3:].T)    # (3, 3, N + S)
         d_kin = np.concatenate([gradient[:, :, :3],
                                 gradient[:, :, 3:] @ turn.transpose(2, 0, 1)], axis=2)
         d_home_path = np.zeros(d_kin.shape[:2] + (3,))
         loads = [e for e in self.effects if "wrench" in self.classes[e.name].model_stages()]
+        # the wrench's derivative in the pose and the home (N + S, 6, 9): the loads' own
+        # exact derivatives where they give them, the others' differenced below
+        exact = [self._wrench_derivatives(meas, stage, e, derivatives) for e in loads]
+        d_wrench = np.zeros(d_kin.shape[:1] + (6, 9))
+        for x in exact:
+            if x is not None and x.pose is not None:
+                d_wrench += x.pose
+        differenced = [e for e, x in zip(loads, exact) if x is None or x.pose is None]
         pts = self._stage_points(meas, stage)
-        for d in range(0 if loads else 6, 9):       # without a load: only the home's optics
-            sides = []
+        for d in range(0 if differenced else 6, 9):    # else only the home's optics
+            wrenches, paths = [], []
             for moved, home in _moved_places(kin, stage.home, d):
                 pts.pose, pts.home_p = moved, home
-                sides.append(platform_wrench(loads, pts) if loads else None)
+                if differenced:
+                    wrenches.append(platform_wrench(differenced, pts))
                 if d >= 6:                                   # the instruments aligned there
-                    sides[-1] = (sides[-1], self._optics_paths(
+                    paths.append(self._optics_paths(
                         meas, stage, truth.pose, stage.cube_home + (home - stage.home))[0])
             pts.pose, pts.home_p = kin, stage.home
-            if d < 6:
-                if loads:
-                    d_kin[:, :, d] += np.einsum("naj,nj->na", response,
-                                                (sides[0] - sides[1]) / (2 * POSE_STEP))
-                continue
-            (w_plus, path_plus), (w_minus, path_minus) = sides
-            d_home_path[:, :, d - 6] = (path_plus - path_minus) / (2 * POSE_STEP)
-            if loads:
-                d_home_path[:, :, d - 6] += np.einsum("naj,nj->na", response,
-                                                      (w_plus - w_minus) / (2 * POSE_STEP))
+            if differenced:
+                d_wrench[:, :, d] += (wrenches[0] - wrenches[1]) / (2 * POSE_STEP)
+            if paths:
+                d_home_path[:, :, d - 6] = (paths[0] - paths[1]) / (2 * POSE_STEP)
+        if loads:
+            d_by_pose = response @ d_wrench                  # (N + S, 3, 9)
+            d_kin += d_by_pose[:, :, :6]
+            d_home_path += d_by_pose[:, :, 6:]
         return d_kin, d_home_path
+
+
+def _through_pose(adjoint: np.ndarray, d_rods: np.ndarray, d_home_path: np.ndarray | None,
+                  d_home: np.ndarray | None) -> np.ndarray:
+    """The paths' derivative (rows, 3, k) through the kinematic pose (the ``adjoint`` (rows, 3,
+    6) of the rod equations' derivative ``d_rods`` (rows, 6, k)) and through the home
+    (``d_home_path`` (rows, 3, 3) times the home's derivative ``d_home`` (3, k), or none)."""
+    out = adjoint @ d_rods
+    np.negative(out, out=out)
+    if d_home is not None:
+        out += (d_home_path.reshape(-1, 3) @ d_home).reshape(out.shape)
+    return out
 
 
 def _moved_places(kin: Pose, home: np.ndarray, d: int):
@@ -867,16 +948,23 @@ def residuals(meas: Measurements, pred: np.ndarray, offsets: np.ndarray) -> np.n
     return meas.y - pred - off
 
 
-def _projected(meas: Measurements, rows: np.ndarray, v: np.ndarray) -> np.ndarray:
+def _projected(meas: Measurements, rows: np.ndarray, v: np.ndarray,
+               scale: np.ndarray | None = None) -> np.ndarray:
     """Values v (N,3,...) on the readings of ``rows`` with each group's mean removed:
-    (n_readings, ...)."""
-    out = []
-    for g in range(len(meas.groups)):
-        m = (meas.group == g) & rows[:, None]
-        if m.any():
-            x = v[m]
-            out.append(x - x.mean(axis=0))
-    return np.concatenate(out) if out else np.zeros((0,) + v.shape[2:])
+    (n_readings, ...). ``scale``: v times it (broadcast on each reading's values), the same
+    numbers as projecting ``v * scale`` without that (N,3,...) copy (a full-scale Jacobian's
+    is 66 MB, and every new page a process touches costs it)."""
+    masks = [m for m in ((meas.group == g) & rows[:, None] for g in range(len(meas.groups)))
+             if m.any()]
+    out = np.empty((sum(int(np.count_nonzero(m)) for m in masks),) + v.shape[2:])
+    start = 0
+    for m in masks:
+        x = v[m]
+        if scale is not None:
+            x *= scale
+        np.subtract(x, x.mean(axis=0), out=out[start:start + x.shape[0]])
+        start += x.shape[0]
+    return out
 
 
 def figures_nm(res: np.ndarray, rows: np.ndarray) -> dict:

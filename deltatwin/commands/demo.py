@@ -41,7 +41,7 @@ def run(args) -> int:
         budget_lines,
         record_achievable_floor,
     )
-    from deltatwin.calibration.diagnosis.report import write_report
+    from deltatwin.calibration.diagnosis.report import tried_instead_line, write_report
     from deltatwin.calibration.physics.model_file import fitted_toml
     from deltatwin.files import atomic_write_text
     from deltatwin.twin.dataset import write_dataset
@@ -102,8 +102,7 @@ def run(args) -> int:
             if d.get("refit_rejected"):
                 say("  " + d["refit_rejected"]["message"])
                 for t in d["tried_instead"]:
-                    say(f"  tried instead, also significant: {t['effect']} "
-                        f"({t['val_err90_nm']:.1f} nm: {'kept' if t['kept'] else 'not kept'})")
+                    say("  " + tried_instead_line(t))
         else:
             say("  " + d["unexplained"]["message"])
     recording = None

@@ -102,15 +102,20 @@ def run_fit(args) -> int:
 
 
 def run_diagnose(args) -> int:
+    from deltatwin.calibration.diagnosis.attribution import laboratory_variables
     from deltatwin.calibration.diagnosis.diagnose import diagnose
     from deltatwin.calibration.physics.fit import PhysicsFit
     from deltatwin.calibration.physics.model_file import fitted_on, load_fitted, saved_directions
+    from deltatwin.models.batched import in_background
     from deltatwin.twin.dataset import read_dataset
 
     df, meta = read_dataset(args.data)
     if str(args.model).lower().endswith(".json"):
         return _diagnose_stepwise(args, df, meta)
     model, doc = load_fitted(args.model)
+    # the laboratory variables the diagnosis scans depend on the data alone: made beside the
+    # model's Jacobian on a second core where the command has one (docs/performance.md)
+    variables = in_background(laboratory_variables, df)
     # the file's values on this dataset (its zeros are new): kept as fitted when these are the
     # data it was fitted on by this code (its status says how converged), or when they are converged here in
     # the directions the fit determined (one Jacobian); else refined on its calibration rows
@@ -120,7 +125,7 @@ def run_diagnose(args) -> int:
                                                  keep_converged_start=True,
                                                  start_directions=saved_directions(doc),
                                                  fitted_on=fitted_on(doc, model))
-    d = diagnose(fit, str(args.data))
+    d = diagnose(fit, str(args.data), variables=variables())
     if args.json:
         print(strict_json(d))
         return 0

@@ -149,7 +149,7 @@ def _diagnosed_from_its_file(tmp_path, monkeypatch, fit, df, meta):
     path.write_text(fitted_toml(fit, str(data)))
     seen = []
     monkeypatch.setattr(diagnose_module, "diagnose",
-                        lambda f, data: seen.append(f) or diagnose(f, data))
+                        lambda f, data, **kw: seen.append(f) or diagnose(f, data, **kw))
     assert main(["diagnose", str(data), "--model", str(path), "--json"]) == 0
     return seen, data, path
 

@@ -389,7 +389,7 @@ def test_the_ladder_keeps_an_effect_only_if_its_refit_predicts_validation_better
     errors = iter([45.0, 69.0])
     monkeypatch.setattr(diagnosis, "fit_from_starts",
                         lambda effects, *a, **k: _Fit(effects, next(errors)))
-    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data: {
+    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data, **kw: {
         "missing_effect": "loop_drift", "ranking": [], "extrapolation": {
             "variables": [{"variable": "T_table_C"}]}})
     ladder, diagnoses, fits = diagnosis.effect_ladder(pd.DataFrame(), None, ["geometric_errors"])
@@ -412,7 +412,7 @@ def test_the_ladder_tries_the_next_significant_effect_when_a_refit_is_rejected(m
                {"effect": "air_refraction", "significant": False},
                {"effect": "loop_drift", "significant": True}]
     named = iter(["magnetic_force", None])
-    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data: {
+    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data, **kw: {
         "missing_effect": next(named), "ranking": ranking, "extrapolation": {}})
     errors = iter([297.0, 299.0, 240.0])
     fitted = []

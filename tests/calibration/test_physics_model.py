@@ -300,3 +300,33 @@ def test_a_probe_re_uses_the_fitted_models_linearisation_only_where_it_holds():
     # the base's values moved since its Jacobian
     base.set_theta(theta + 0.1 * base.scales)
     assert not probe(MotorError, {}, base)[0]
+
+
+def test_the_jacobian_is_the_same_whatever_its_row_chunks_and_the_columns_asked_for(monkeypatch):
+    """The pose-moving blocks are formed chunk by chunk of rows (``_add_counted``), and a
+    Jacobian of fewer than half its columns is stored column by column: neither changes a bit.
+    Chunks of 7 rows (session zeros and run boundaries inside chunks) against one chunk for
+    all rows; the columns of one effect asked for alone against the same columns of the whole
+    Jacobian."""
+    import deltatwin.calibration.physics.model as physics_model
+
+    df, meta = Scenario.load("quiet/magnetic-force").simulate(0.02)
+    model = PhysicsModel(["geometric_errors", "thermal_expansion", "magnetic_force",
+                          "loop_drift", "beam_misalignment"],
+                         values={"loop_drift": {"frame_arm_m": [-0.6, 0.0]}})
+    meas = measurements(df, meta, model.params)
+    theta = model.theta() + model.scales * np.random.default_rng(5).standard_normal(model.n_free)
+    monkeypatch.setattr(physics_model, "ROW_CHUNK", meas.n + 1)
+    A_one, J_one = model.jacobian(meas, theta)
+    monkeypatch.setattr(physics_model, "ROW_CHUNK", 7)
+    A, J = model.jacobian(meas, theta)
+    assert meas.n > 50 and np.array_equal(A, A_one) and np.array_equal(J, J_one)
+    for effect in ("thermal_expansion", "geometric_errors", "beam_misalignment"):
+        few = np.zeros(model.n_free, bool)
+        for f in model.free:
+            few[f.sl] |= f.effect == effect
+        _, J_few = model.jacobian(meas, theta, columns=few)
+        # fewer than half the columns (all but the geometry's 63 of 92): column by column
+        assert J_few.shape == J.shape
+        assert J_few.flags.c_contiguous == (effect == "geometric_errors")
+        assert np.array_equal(J_few[:, :, few], J[:, :, few]) and not J_few[:, :, ~few].any()

@@ -153,3 +153,21 @@ def test_a_background_result_is_taken_once_and_its_errors_keep_their_traceback(m
         assert done() == 1
     with pytest.raises(RuntimeError, match="already taken"):
         done()
+
+
+@pytest.mark.parametrize("numpy_first, user, expected", [
+    (False, None, "False 0"), (True, None, "False 0"), (False, "1", "True 1"),
+    (True, "1", "True 1")])
+def test_set_threads_takes_numpys_arrays_in_small_pages_unless_the_user_chose(
+        numpy_first, user, expected):
+    code = ("import numpy\n" if numpy_first else "") + (
+        "import os\n"
+        "from deltatwin.threads import set_threads\n"
+        "set_threads()\n"
+        "from numpy._core.multiarray import _set_madvise_hugepage\n"
+        "print(_set_madvise_hugepage(False), os.environ['NUMPY_MADVISE_HUGEPAGE'])\n")
+    env_code = (f"import os; os.environ['NUMPY_MADVISE_HUGEPAGE'] = {user!r}\n" if user
+                else "import os; os.environ.pop('NUMPY_MADVISE_HUGEPAGE', None)\n")
+    r = _run(env_code + code, None)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == expected

@@ -1,16 +1,23 @@
 """Effects written component-first (models/batched.py): the same numbers as their previous
-(N,3)-layout formulas, kept here as the reference, and the dipole force checked against the
-gradient of the dipole energy."""
+(N,3)-layout formulas, kept here as the reference, the dipole force checked against the
+gradient of the dipole energy, and the magnetic wrench's exact derivatives against central
+differences."""
 from types import SimpleNamespace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from deltatwin.models.geometry import build_geometry
-from deltatwin.models.kinematics import forward
+from deltatwin.models.kinematics import Pose, forward
 from deltatwin.models.mjcf import magnet_positions
 from deltatwin.models.params import load_params
 from deltatwin.twin.effects.beam_misalignment import _tilt
-from deltatwin.twin.effects.magnetic_force import MU0, MagneticForce, dipole_force_torque
+from deltatwin.twin.effects.magnetic_force import (
+    MU0,
+    MagneticForce,
+    dipole_force_torque,
+    dipole_force_torque_gradient,
+)
 
 
 def reference_dipole(m1, r1, m2, r2):
@@ -55,6 +62,81 @@ def test_magnetic_wrench_equals_the_previous_formulas():
     new, ref = effect.wrench(points), reference_wrench(effect, points)
     for part in (slice(0, 3), slice(3, 6)):
         assert np.abs(new[:, part] - ref[:, part]).max() <= 1e-15 * np.abs(ref[:, part]).max()
+
+
+def _magnet_points(n: int, rng):
+    params = load_params()
+    geom = build_geometry(params)
+    currents = rng.uniform(-1.0, 1.0, (n, 3))
+    currents[::7] = 0.0                              # rows without current: no force
+    return SimpleNamespace(pose=forward(geom, rng.uniform(*geom.stroke, size=(n, 3))),
+                           params=params, home_p=forward(geom, np.zeros((1, 3))).p[0],
+                           currents_A=currents)
+
+
+def test_dipole_gradient_matches_central_differences():
+    """d F / d r2 and d tau / d r2 at fixed moments, by central differences of the formulas."""
+    rng = np.random.default_rng(12)
+    m1, r1, m2 = rng.normal(size=(3, 5)), rng.normal(size=(3, 5)) * 1e-3, rng.normal(size=(3, 5))
+    r2 = r1 + np.array([0.004, -0.003, 0.012])[:, None] + rng.normal(size=(3, 5)) * 2e-3
+    dF, dtau = dipole_force_torque_gradient(m1, r1, m2, r2)
+    h = 1e-8
+    for j in range(3):
+        step = np.zeros((3, 1))
+        step[j] = h
+        (F_plus, tau_plus), (F_minus, tau_minus) = (dipole_force_torque(m1, r1, m2, r2 + s)
+                                                    for s in (step, -step))
+        for exact, plus, minus in ((dF, F_plus, F_minus), (dtau, tau_plus, tau_minus)):
+            reference = (plus - minus) / (2 * h)
+            assert np.abs(exact[:, j] - reference).max() < 1e-6 * np.abs(reference).max()
+
+
+def test_magnetic_wrench_derivatives_match_central_differences():
+    """``MagneticForce.wrench_derivatives`` (what a physics model's load columns and pose
+    sensitivity use) against central differences of ``wrench``: in every parameter (the coil
+    offsets one by one), the platform's position, a rotation applied on its rotation and the
+    home; force and moment each to 1e-8 of their largest; zero on the rows without current."""
+    rng = np.random.default_rng(11)
+    points = _magnet_points(2000, rng)
+    effect = MagneticForce(coil_offset_m=rng.normal(size=(3, 3)) * 1e-3)
+    exact = effect.wrench_derivatives(points)
+    assert {p.name for p in MagneticForce.free_parameters()} <= set(exact.parameters)
+
+    def agrees(column, sides, h, what):
+        reference = (sides[0] - sides[1]) / (2 * h)
+        for part in (slice(0, 3), slice(3, 6)):
+            size = np.abs(reference[:, part]).max()
+            assert size > 0, what
+            assert np.abs(column[:, part] - reference[:, part]).max() < 1e-8 * size, what
+        assert not np.any(column[::7]), what
+
+    steps = {"magnet_moment_Am2": 1e-3, "coil_moment_per_A": 1e-4, "core_depth_m": 1e-7,
+             "coil_offset_m": 1e-7}
+    for name, h in steps.items():
+        value = np.asarray(effect.values[name], float)
+        for idx in np.ndindex(value.shape):
+            sides = []
+            for sign in (1.0, -1.0):
+                moved = value.copy()
+                moved[idx] += sign * h
+                setattr(effect, name, moved if value.shape else float(moved))
+                sides.append(effect.wrench(points))
+            setattr(effect, name, value if value.shape else float(value))
+            agrees(exact.parameters[name][(slice(None), slice(None)) + idx], sides, h,
+                   (name, idx))
+    pose, home, h = points.pose, points.home_p, 1e-7
+    for d in range(9):
+        sides = []
+        for sign in (1.0, -1.0):
+            step = np.zeros(3)
+            step[d % 3] = sign * h
+            points.pose, points.home_p = (
+                (Pose(pose.p + step, pose.R), home) if d < 3 else
+                (Pose(pose.p, Rotation.from_rotvec(step).as_matrix() @ pose.R), home) if d < 6
+                else (pose, home + step))
+            sides.append(effect.wrench(points))
+        points.pose, points.home_p = pose, home
+        agrees(exact.pose[:, :, d], sides, h, ("pose", d))
 
 
 def test_dipole_force_is_minus_the_energy_gradient():

@@ -222,16 +222,18 @@ def effect_spec(cls: type[Effect]) -> str:
 def code_sha256(classes) -> str | None:
     """A fingerprint of the code that computes these effects (SHA-256, hex): deltatwin's version
     and, per class in order, its name and the source files of it and of every class it inherits
-    from below ``Effect`` (mixins too). A fitted model keeps it, so a diagnosis keeps the values
-    as fitted only when the code that evaluates them is the code that fitted them (a
-    researcher's effect edited since the fit is refined, not trusted). Where the files lie does
-    not count (a project moved keeps its fingerprint). Not covered: modules an effect's file
-    imports (a helper module edited keeps the fingerprint), and the kinematics and optics the
-    effects build on, covered by the version alone. None (never equal to a file's) when a
-    class's source cannot be read (defined in a notebook or a REPL)."""
+    from below ``Effect`` (mixins too), then the researcher's own modules those files import
+    (``_own_modules``: helpers, transitively; sorted by module name). A fitted model keeps it, so
+    a diagnosis keeps the values as fitted only when the code that evaluates them is the code
+    that fitted them (a researcher's effect or helper edited since the fit is refined, not
+    trusted). Where the files lie does not count (a project moved keeps its fingerprint). Not
+    covered: installed packages (numpy, scipy, ...) and the kinematics and optics the effects
+    build on, covered by the version alone. None (never equal to a file's) when a class's
+    source cannot be read (defined in a notebook or a REPL)."""
     from deltatwin import __version__
 
     h = hashlib.sha256(__version__.encode())
+    modules = {}
     for cls in classes:
         h.update(b"\0" + cls.__qualname__.encode())
         for c in cls.__mro__:
@@ -242,7 +244,50 @@ def code_sha256(classes) -> str | None:
                          + Path(inspect.getsourcefile(c)).read_bytes())
             except (TypeError, OSError):
                 return None
+            if c.__module__ in sys.modules:
+                modules[c.__module__] = sys.modules[c.__module__]
+    helpers = {}
+    for module in modules.values():
+        _own_modules(module, helpers)
+    for name in sorted(set(helpers) - set(modules)):
+        try:
+            h.update(b"\0" + name.encode() + b"\0" + Path(helpers[name]).read_bytes())
+        except OSError:
+            return None
     return h.hexdigest()
+
+
+def _own_modules(module, found: dict) -> None:
+    """Add to ``found`` ({module name: source file}) the modules ``module``'s globals come from
+    that are the researcher's own code, transitively (``module`` itself among them when its
+    globals hold its own classes): neither deltatwin's (its version covers them) nor installed
+    (the standard library, site-packages) nor built in."""
+    for value in vars(module).values():
+        other = value if inspect.ismodule(value) else sys.modules.get(
+            getattr(value, "__module__", None) or "")
+        name = getattr(other, "__name__", "")
+        if other is None or name in found or name.split(".")[0] == "deltatwin":
+            continue
+        source = getattr(other, "__file__", None)
+        if not source or not source.endswith(".py") or _installed(source):
+            continue
+        found[name] = source
+        _own_modules(other, found)
+
+
+@functools.cache
+def _installed_roots() -> tuple:
+    import sysconfig
+
+    paths = sysconfig.get_paths()
+    return tuple({Path(paths[k]).resolve() for k in ("stdlib", "platstdlib", "purelib",
+                                                     "platlib")})
+
+
+def _installed(source: str) -> bool:
+    """Whether the file ``source`` is part of Python or an installed package."""
+    resolved = Path(source).resolve()
+    return any(resolved.is_relative_to(root) for root in _installed_roots())
 
 
 def make_effect(spec, values: dict | None = None, where: str = "effects",

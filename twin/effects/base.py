@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import difflib
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 
@@ -43,6 +43,16 @@ def _numbers_only(raw) -> bool:
 
 class EffectError(ValueError):
     """An unknown effect or a bad effect parameter."""
+
+
+class WrenchDerivatives(NamedTuple):
+    """An effect's exact wrench derivatives (``Effect.wrench_derivatives``), N and N*m per unit
+    of what they are taken in. ``parameters``: by free parameter name, (N,6) + the parameter's
+    shape (a parameter not named is differenced); ``pose``: (N,6,9) in the kinematic pose's
+    position (m), a rotation vector applied on its rotation (rad, world frame: R -> exp(w) R)
+    and the robot's home (m), or None (differenced)."""
+    parameters: dict
+    pose: np.ndarray | None
 
 
 @dataclass(frozen=True)
@@ -165,6 +175,14 @@ class Effect:
 
     def wrench(self, points) -> np.ndarray | None:
         """Wrench (N,6) on the platform (N at the platform origin, N*m), world frame."""
+        return None
+
+    def wrench_derivatives(self, points) -> WrenchDerivatives | None:
+        """Model side, optional: the wrench's exact derivatives at the current values and
+        ``points.pose`` (``WrenchDerivatives``), or None: the physics model then differences
+        ``wrench`` (a Richardson stencil per parameter, with halvings where it is nonlinear,
+        and central differences in the pose). Written with a test against central
+        differences of ``wrench``."""
         return None
 
     def optics(self, points, optics) -> None:

@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 
 from deltatwin.twin.effects.base import Effect, Parameter
+from deltatwin.twin.thermal import first_order_filter
 
 
 def ornstein_uhlenbeck(rng, t, std, time_s, step_s=60.0):
     """A stationary Ornstein-Uhlenbeck process (std, correlation time) sampled at times ``t``:
     generated on a coarse step and interpolated linearly."""
-    from scipy.signal import lfilter  # scipy.signal loads scipy.stats: only when simulating
     coarse = np.arange(t[0], t[-1] + 2 * step_s, step_s)
     a = np.exp(-step_s / time_s)
-    x = lfilter([std * np.sqrt(1 - a * a)], [1.0, -a], rng.standard_normal(coarse.size),
-                zi=[a * std * rng.standard_normal()])[0]
+    kicks = std * np.sqrt(1 - a * a) * rng.standard_normal(coarse.size)
+    x = first_order_filter(kicks, a, std * rng.standard_normal())
     return np.interp(t, coarse, x)
 
 
@@ -45,15 +45,13 @@ class RoomClimate(Effect):
     )
 
     def environment(self, env, rng):
-        from scipy.signal import lfilter
-
         t = env.t_grid
         free = (self.free_mean_C
                 + self.daily_amplitude_C * np.cos(2 * np.pi * (t / 3600.0 - self.daily_peak_h) / 24.0)
                 + ornstein_uhlenbeck(rng, t, self.wander_std_C, self.wander_time_s))
         target = np.where(t < self.ac_off_s, self.ac_setpoint_C, free)
         a = np.exp(-(t[1] - t[0]) / self.room_time_constant_s)
-        env.room_C = lfilter([1 - a], [1.0, -a], target, zi=[a * target[0]])[0]
+        env.room_C = first_order_filter((1 - a) * target, a, target[0])
         env.pressure_Pa = self.pressure_mean_Pa + ornstein_uhlenbeck(
             rng, t, self.pressure_std_Pa, self.pressure_time_s)
         # the vapour's draws come from a child of the stream (spawning does not advance it):
