@@ -33,10 +33,13 @@ def _magnitude_nm(res: np.ndarray) -> np.ndarray:
 
 def tried_instead_line(tried: dict, markdown: bool = False) -> str:
     """One of a diagnosis' ``tried_instead`` refits (a significant effect fitted after the named
-    one was rejected) in words: plain, as the demo's progress prints it, or a Markdown sentence
-    (the effect in bold), as the report writes it."""
+    one was rejected, or the rejected one again held off: ``held`` "off") in words: plain, as
+    the demo's progress prints it, or a Markdown sentence (the effect in bold), as the report
+    writes it."""
     effect = f"**{tried['effect']}**" if markdown else tried["effect"]
-    line = (f"tried instead, also significant: {effect} ({tried['val_err90_nm']:.1f} nm: "
+    what = ("tried again held off (its free parameters at zero where the data do not "
+            "determine them)" if tried.get("held") == "off" else "tried instead, also significant")
+    line = (f"{what}: {effect} ({tried['val_err90_nm']:.1f} nm: "
             f"{'kept' if tried['kept'] else 'not kept'})")
     return f"T{line[1:]}." if markdown else line
 

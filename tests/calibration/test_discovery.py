@@ -13,6 +13,7 @@ from deltatwin.calibration.diagnosis.conditions import extrapolated_variables
 from deltatwin.calibration.diagnosis.floor import achievable_floor, true_model
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
+from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.cases import KNOWN, MODEL, Case, generate_cases
 from deltatwin.twin.scenario import Scenario
@@ -432,6 +433,67 @@ def test_the_ladder_tries_the_next_significant_effect_when_a_refit_is_rejected(m
     assert len(fitted) == 3 and [r["added"] for r in ladder] == [None]
     assert diagnoses[0]["tried_instead"] == [{"effect": "loop_drift", "kept": False,
                                               "val_err90_nm": 301.0}]
+
+
+@pytest.mark.parametrize("held_at", ["off", "start"])
+def test_a_rejected_effect_significant_held_off_is_refitted_held_off(monkeypatch, held_at):
+    """Loop drift named, significant held off (its start's undetermined rest switched off):
+    its refit at the library's start predicts validation worse, so it is refitted once more
+    held off (free parameters started and held at zero) before the next significant effect,
+    and kept when that predicts better. A rejected effect significant at its start is not."""
+    ranking = [{"effect": "loop_drift", "significant": True, "held_at": held_at},
+               {"effect": "magnetic_force", "significant": True, "held_at": None}]
+    named = iter(["loop_drift", None])
+    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data: {
+        "missing_effect": next(named), "ranking": ranking, "extrapolation": {}})
+    errors = iter([45.0, 69.0, 40.0])
+    fitted = []
+
+    def fake_fit(effects, starts, *a, **k):
+        fitted.append((list(effects), starts))
+        return _Fit(effects, next(errors))
+    monkeypatch.setattr(diagnosis, "fit_from_starts", fake_fit)
+    monkeypatch.setattr(diagnosis, "_switches_off", lambda fit, effect: True)
+    ladder, diagnoses, _ = diagnosis.effect_ladder(pd.DataFrame(), None, ["geometric_errors"],
+                                                   known=KNOWN)
+    assert diagnoses[0]["refit_rejected"]["effect"] == "loop_drift"
+    if held_at == "start":
+        assert [e for e, _ in fitted][-1] == ["geometric_errors", "magnetic_force"]
+        assert diagnoses[0]["tried_instead"] == [{"effect": "magnetic_force", "kept": True,
+                                                  "val_err90_nm": 40.0}]
+    else:
+        effects, starts = fitted[-1]
+        assert effects == ["geometric_errors", "loop_drift"] and len(starts) == 1
+        (start,) = starts.values()
+        off = {"table_cte_per_K": 0.0, "frame_cte_per_K": 0.0, "support_cte_per_K": 0.0}
+        assert start["prior"] == {"loop_drift": off}
+        assert start["start"]["loop_drift"] == {**off, **KNOWN["loop_drift"]}
+        assert [r["added"] for r in ladder] == [None, "loop_drift"]
+        assert diagnoses[0]["tried_instead"] == [{"effect": "loop_drift", "kept": True,
+                                                  "val_err90_nm": 40.0, "held": "off"}]
+
+
+def test_an_effect_held_off_changes_no_prediction(baseline_fit):
+    """``_held_off``'s values switch loop drift, gravity sag and a coil without current off:
+    the model with the effect added there predicts what the model without it does; air
+    refraction at zero room fraction and offset still changes them (its beam and sensor air
+    differ), so it is not refitted held off."""
+    meas, values = baseline_fit.measurements_, baseline_fit.model_.values()
+    without = PhysicsModel(BASELINE, baseline_fit.params, values).predict_path(meas)
+    for effect in ("loop_drift", "gravity_sag", "magnetic_force", "air_refraction"):
+        held = diagnosis._held_off(values, effect, KNOWN)
+        assert held["prior"] == {effect: diagnosis._off(effect)}
+        # a fit keeps the start of its own effects (the rest are the laboratory's constants)
+        added = PhysicsModel(BASELINE + [effect], baseline_fit.params,
+                             {e: v for e, v in held["start"].items()
+                              if e in BASELINE + [effect]}).predict_path(meas)
+        off = effect != "air_refraction"
+        assert (np.nanmax(np.abs(added - without)) < 1e-15) == off, effect
+        assert diagnosis._switches_off(baseline_fit, effect) == off, effect
+    # at the library's start loop drift does change them (the comparison can fail)
+    start = PhysicsModel(BASELINE + ["loop_drift"], baseline_fit.params,
+                         {**values, "loop_drift": KNOWN["loop_drift"]}).predict_path(meas)
+    assert np.nanmax(np.abs(start - without)) > 1e-9
 
 
 def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor():
