@@ -27,7 +27,6 @@ set is the user's choice and kept.
 from __future__ import annotations
 
 import os
-import sys
 
 ENVIRONMENT_VARIABLE = "DELTATWIN_THREADS"
 # numpy's switch of transparent huge pages for its large arrays (read when numpy loads)
@@ -82,14 +81,8 @@ def set_threads(threads: int | None = None) -> int:
 
 def _small_pages() -> None:
     """numpy's large arrays in small pages (the module docstring), unless the user set
-    ``NUMPY_MADVISE_HUGEPAGE``: for numpy loaded from here on and in child processes through the
-    variable, for a numpy already loaded through its switch."""
-    if HUGEPAGE_VARIABLE in os.environ:
-        return
-    os.environ[HUGEPAGE_VARIABLE] = "0"
-    if "numpy" in sys.modules:
-        # numpy's own switch is private: a numpy without it keeps its default (only slower)
-        from numpy._core import multiarray
-        switch = getattr(multiarray, "_set_madvise_hugepage", None)
-        if switch is not None:
-            switch(False)
+    ``NUMPY_MADVISE_HUGEPAGE``: numpy reads the variable when it loads, so this takes effect in
+    the commands (``set_threads`` runs before numpy is imported) and in child processes; a
+    program that loaded numpy before calling ``set_threads`` keeps numpy's default (numpy's
+    run-time switch is private API)."""
+    os.environ.setdefault(HUGEPAGE_VARIABLE, "0")

@@ -29,18 +29,22 @@ def first_order_filter(u: np.ndarray, a, y_before) -> np.ndarray:
     recursion is the lower bidiagonal system (1 on the diagonal, -a below it) that LAPACK's
     banded solver takes row by row: the same operations as the recursion, one solve per decay."""
     u = np.asarray(u, dtype=np.float64)
+    if u.shape[0] == 0:
+        return u.copy()
     columns = u.reshape(u.shape[0], -1)
     m = columns.shape[1]
     a = np.broadcast_to(np.asarray(a, np.float64), (m,))
+    if not np.all((a >= 0.0) & (a < 1.0)):
+        raise ValueError(f"first_order_filter: decays {a[~((a >= 0.0) & (a < 1.0))]} are not "
+                         "in [0, 1)")
     y_before = np.broadcast_to(np.asarray(y_before, np.float64), (m,))
-    if u.shape[0] == 0:
-        return u.copy()
     rhs = columns.copy()
     rhs[0] += a * y_before
     bands = np.zeros((2, u.shape[0]))
     bands[0] = 1.0
-    for decay in np.unique(a):
-        same = np.flatnonzero(a == decay)
+    decays, column_decay = np.unique(a, return_inverse=True)
+    for d, decay in enumerate(decays):
+        same = np.flatnonzero(column_decay == d)
         bands[1, :-1] = -decay
         rhs[:, same] = solve_banded((1, 0), bands, rhs[:, same], overwrite_b=True,
                                     check_finite=False)

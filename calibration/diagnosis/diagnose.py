@@ -182,7 +182,7 @@ def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
     change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
     after = _val_after(meas, fit, change)
     verdict = _verdict(float(e0 @ e0), float(e1 @ e1), k_c, n,
-                       max(n - k_m - k_c - len(meas.groups), 1), before, after, meas.val,
+                       meas.residual_dof(n, k_m + k_c), before, after, meas.val,
                        floor_all_nm, alpha, _serial_inflation(meas, e0 - e1, e1))
     if generic is not None:
         verdict.update(_beyond_generic(meas, r, X[:, k_m:], Jm, generic, k_c, n,
@@ -260,7 +260,7 @@ def _beyond_generic(meas, r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic
     base = np.hstack([Jm, G])
     e_g, e_gc = _left_after(base, r0), _left_after(np.hstack([base, Xc]), r)
     rss_g, rss_gc = float(e_g @ e_g), float(e_gc @ e_gc)
-    df1, df2 = max(k_c, 1), max(n - base.shape[1] - k_c - len(meas.groups), 1)
+    df1, df2 = max(k_c, 1), meas.residual_dof(n, base.shape[1] + k_c)
     # the rows are as serially correlated here as in the calibration test (a candidate that
     # follows the temperatures as slowly as the residual's leftover looks significant on
     # independent rows)
@@ -332,7 +332,7 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
                                  + ("better" if rss1 < rss0 else "no better"))
         return
     v = _verdict(rss0, rss1, k, r0.size,
-                 max(r0.size - k_refit - len(meas.groups), 1), base.residual_, refit.residual_,
+                 meas.residual_dof(r0.size, k_refit), base.residual_, refit.residual_,
                  meas.val, floor_all_nm, ALPHA, _serial_inflation(meas, r0 - r1, r1))
     row.update({"refit_explained_fraction": v["explained_fraction"],
                 "refit_gap_closed": v["gap_closed"], "refit_p_value": v["p_value"],
@@ -626,6 +626,10 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     # the frame both the form and the attribution fit in (the model's directions re-adjusted,
     # attribution.py): the scans, the load responses and the projections made once
     variables = laboratory_variables(meas.df) if variables is None else variables
+    wrong = [v.name for v in variables if np.shape(v.values) != (meas.n,)]
+    if wrong:
+        raise ValueError(f"diagnose: variables {wrong} do not have one value per row of the "
+                         f"fit's data ({meas.n} rows): made from other data?")
     frame = JointFrame(fit, Jm, JS, r0, span)
     loads = load_candidates(fit)
     # the attribution depends on none of what follows: on a second core where the command has

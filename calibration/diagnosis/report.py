@@ -41,7 +41,7 @@ def tried_instead_line(tried: dict, markdown: bool = False) -> str:
             "determine them)" if tried.get("held") == "off" else "tried instead, also significant")
     line = (f"{what}: {effect} ({tried['val_err90_nm']:.1f} nm: "
             f"{'kept' if tried['kept'] else 'not kept'})")
-    return f"T{line[1:]}." if markdown else line
+    return f"{line[:1].upper()}{line[1:]}." if markdown else line
 
 
 def ladder_figure(ladder: list[dict], path: Path) -> None:

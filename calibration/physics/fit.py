@@ -341,6 +341,11 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     The steps' algebra is done in a ``_ResidualBasis`` (coordinates B, c of Jz and r on an
     orthonormal basis of their span, exact): a thin SVD of the (n, k) Jacobian at every step
     cost more than an evaluation at full scale (0.1 s at 85,000 readings by 39 directions)."""
+    def exact_at(z, r):
+        """The exact Jacobian at ``z``: the model's (N,3,p) and the solver's basis."""
+        Jz, J = jac(z)
+        return J, _ResidualBasis(Jz, r), True
+
     if at_start is None:
         r, A = fun(z)
         J, exact = None, False
@@ -358,9 +363,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
                 message = ("converged: the Gauss-Newton step left moves the parameters by < "
                            f"{STEP_SIGMA} of their uncertainty")
                 break
-            Jz, J = jac(z)
-            basis = _ResidualBasis(Jz, r)
-            exact = True
+            J, basis, exact = exact_at(z, r)
             continue
         if radius < RADIUS_MIN:
             message = "no step lowers the cost any further (round-off)"
@@ -400,9 +403,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
             if gain < 0.25:
                 radius = 0.5 * length
                 if updated:         # the updated Jacobian mispredicted: recomputed
-                    Jz, J = jac(z)
-                    basis = _ResidualBasis(Jz, r)
-                    exact = True
+                    J, basis, exact = exact_at(z, r)
             elif gain > 0.75:
                 radius = max(radius, 2.0 * length)
         elif exact:
@@ -414,9 +415,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
             # strongly nonlinear parameter, such as a coil's offset, outruns Broyden's
             # updates): recomputed, in a smaller region
             radius = 0.5 * length
-            Jz, J = jac(z)
-            basis = _ResidualBasis(Jz, r)
-            exact = True
+            J, basis, exact = exact_at(z, r)
     if not exact:
         J = jac(z)[1]
     return z, J, A, message

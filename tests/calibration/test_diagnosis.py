@@ -448,3 +448,12 @@ def test_the_attribution_in_a_second_process_gives_the_same_diagnosis(monkeypatc
         diagnoses.append(json.dumps(diagnose(fit), sort_keys=True, default=str))
     assert diagnoses[0] == diagnoses[1]
     assert '"depends_on": [{' in diagnoses[1]          # the attribution named a variable
+    # the laboratory variables made beforehand (as `deltatwin diagnose` does, in a second
+    # process): the same diagnosis; variables made from other data are refused by name
+    from deltatwin.calibration.diagnosis.attribution import laboratory_variables
+
+    given = json.dumps(diagnose(fit, variables=laboratory_variables(df)), sort_keys=True,
+                       default=str)
+    assert given == diagnoses[0]
+    with pytest.raises(ValueError, match=r"variables \['t_s', .* one value per row"):
+        diagnose(fit, variables=laboratory_variables(df.iloc[:10]))

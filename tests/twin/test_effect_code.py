@@ -54,12 +54,14 @@ def gain():
     return {gain}
 '''
 
-USING_HELPER = '''
+USING_HELPERS = '''
 import sys
 sys.path.insert(0, {folder!r})
 import numpy as np
 from deltatwin.twin.effects import Effect, Parameter, shift_reading
 from lab_helper_{tag} import gain
+from lab_consts_{tag} import OFFSET_M
+import lab_ns_{tag}.tables
 
 
 class Sway(Effect):
@@ -68,21 +70,30 @@ class Sway(Effect):
     parameters = (Parameter("slope_m", "m", 0.0, "slope", fit_scale=1e-9),)
 
     def optics(self, points, optics):
-        shift_reading(optics, "x", gain() * self.slope_m * np.asarray(points.q)[:, 1])
+        shift_reading(optics, "x", gain() * lab_ns_{tag}.tables.FACTOR * self.slope_m
+                      * np.asarray(points.q)[:, 1] + OFFSET_M)
 '''
 
 
 def test_the_code_fingerprint_follows_the_researchers_helper_modules_not_installed_ones(
         tmp_path):
+    """A function, a constant and a namespace package's module the effect's file imports are
+    the researcher's code: editing any of them changes the fingerprint; numpy, sys and
+    deltatwin are imported too but do not count."""
     (tmp_path / "lab_helper_hp.py").write_text(HELPER.format(gain=1.0))
-    (tmp_path / "lab_hp.py").write_text(USING_HELPER.format(folder=str(tmp_path), tag="hp"))
+    (tmp_path / "lab_consts_hp.py").write_text("OFFSET_M = 0.0\n")
+    (tmp_path / "lab_ns_hp").mkdir()                 # no __init__.py: a namespace package
+    (tmp_path / "lab_ns_hp" / "tables.py").write_text("FACTOR = 1.0\n")
+    (tmp_path / "lab_hp.py").write_text(USING_HELPERS.format(folder=str(tmp_path), tag="hp"))
     sway = effect_class(f"{tmp_path / 'lab_hp.py'}:Sway")
-    before = code_sha256([sway])
-    assert before is not None and before == code_sha256([sway])
-    # numpy, sys and deltatwin are imported too, but only the researcher's helper counts
     found = {}
     _own_modules(sys.modules[sway.__module__], found)
-    assert set(found) - {sway.__module__} == {"lab_helper_hp"}
-    # the helper the effect's file imports a function from, edited: other code
-    (tmp_path / "lab_helper_hp.py").write_text(HELPER.format(gain=2.0))
-    assert code_sha256([sway]) != before
+    assert set(found) == {"lab_helper_hp", "lab_consts_hp", "lab_ns_hp.tables"}
+    fingerprints = [code_sha256([sway])]
+    assert fingerprints[0] is not None and fingerprints[0] == code_sha256([sway])
+    for helper, text in (("lab_helper_hp.py", HELPER.format(gain=2.0)),
+                         ("lab_consts_hp.py", "OFFSET_M = 1e-9\n"),
+                         ("lab_ns_hp/tables.py", "FACTOR = 2.0\n")):
+        (tmp_path / helper).write_text(text)
+        fingerprints.append(code_sha256([sway]))
+    assert len(set(fingerprints)) == 4                # each edit is other code

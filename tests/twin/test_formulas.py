@@ -103,17 +103,19 @@ def test_air_index_agrees_with_ciddor_and_the_reference_sensitivities():
     assert dp == pytest.approx(2.7e-9, rel=0.03)
 
 
-@pytest.mark.parametrize("n", [1, 31, 32, 33, 1000, 40_000])
+@pytest.mark.parametrize("n", [1, 2, 1000, 40_000])
 def test_first_order_filter_equals_scipy_lfilter(n):
-    """``first_order_filter`` (blocks of products, no scipy.signal) against scipy.signal.lfilter
-    step by step, from a given start, one column per decay (a fast mode to a three-day one, and
-    0: no memory): within 1e-13 of the largest value; a 1-D input keeps its shape."""
+    """``first_order_filter`` (LAPACK's banded solver, no scipy.signal) against
+    scipy.signal.lfilter step by step, from a given start, one column per decay (a fast mode to
+    a three-day one, and 0: no memory, two columns sharing one decay): within 1e-13 of the
+    largest value; a 1-D input keeps its shape; no rows give no rows; a decay outside [0, 1) is
+    refused by name."""
     from scipy.signal import lfilter
 
     from deltatwin.twin.thermal import first_order_filter
 
     rng = np.random.default_rng(21)
-    a = np.array([0.0, 0.3, 0.98, 0.99995, 1 - 1 / 259_200])
+    a = np.array([0.0, 0.3, 0.98, 0.99995, 1 - 1 / 259_200, 0.3])
     u = 20.0 + rng.normal(size=(n, a.size))
     start = rng.normal(size=a.size)
     y = first_order_filter(u, a, start)
@@ -124,6 +126,9 @@ def test_first_order_filter_equals_scipy_lfilter(n):
     one = first_order_filter(u[:, 2], a[2], start[2])
     assert one.shape == (n,)
     assert np.abs(one - reference[:, 2]).max() <= 1e-13 * np.abs(reference[:, 2]).max()
+    assert first_order_filter(u[:0], a, start).shape == (0, a.size)
+    with pytest.raises(ValueError, match=r"decays \[nan\]"):
+        first_order_filter(u, np.where(a == 0.98, np.nan, a), start)
 
 
 def test_thermal_network_integration_equals_matrix_exponential():

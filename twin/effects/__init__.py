@@ -14,6 +14,7 @@ its hooks (at evaluation) are reported as an ``EffectError`` naming the file and
 """
 from __future__ import annotations
 
+import ast
 import difflib
 import functools
 import hashlib
@@ -258,30 +259,59 @@ def code_sha256(classes) -> str | None:
 
 
 def _own_modules(module, found: dict) -> None:
-    """Add to ``found`` ({module name: source file}) the modules ``module``'s globals come from
-    that are the researcher's own code, transitively (``module`` itself among them when its
-    globals hold its own classes): neither deltatwin's (its version covers them) nor installed
-    (the standard library, site-packages) nor built in."""
-    for value in vars(module).values():
-        other = value if inspect.ismodule(value) else sys.modules.get(
-            getattr(value, "__module__", None) or "")
-        name = getattr(other, "__name__", "")
+    """Add to ``found`` ({module name: source file}) the modules ``module``'s source imports
+    (anywhere in it, read from the file: ``import a.b``, ``from a import b``, relative
+    imports; so a constant or a function imported from a helper counts as the helper) that are
+    the researcher's own code, transitively: loaded, and neither deltatwin's (its version covers
+    them) nor installed (``_installed``) nor built in. A namespace package has no file of its
+    own; its modules count by their own names."""
+    try:
+        tree = ast.parse(Path(module.__file__).read_bytes())
+    except (AttributeError, TypeError, OSError, SyntaxError, ValueError):
+        return
+    for name in _imported_names(tree, getattr(module, "__package__", None) or ""):
+        other = sys.modules.get(name)
         if other is None or name in found or name.split(".")[0] == "deltatwin":
             continue
         source = getattr(other, "__file__", None)
-        if not source or not source.endswith(".py") or _installed(source):
+        if not isinstance(source, str) or not source.endswith(".py") or _installed(source):
             continue
         found[name] = source
         _own_modules(other, found)
 
 
+def _imported_names(tree: ast.AST, package: str):
+    """The module names an import statement in ``tree`` may load: every parent of ``import
+    a.b.c``, and for ``from m import x`` both ``m`` and ``m.x`` (x may be a submodule)."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                parts = alias.name.split(".")
+                yield from (".".join(parts[:k]) for k in range(1, len(parts) + 1))
+        elif isinstance(node, ast.ImportFrom):
+            try:
+                base = importlib.util.resolve_name("." * node.level + (node.module or ""),
+                                                   package) if node.level else node.module
+            except (ImportError, ValueError):
+                continue
+            yield base
+            yield from (f"{base}.{alias.name}" for alias in node.names)
+
+
 @functools.cache
 def _installed_roots() -> tuple:
+    """Where Python and installed packages lie: the interpreter's own paths, every
+    site-packages (the user's too) and any ``site-packages``/``dist-packages`` folder on
+    sys.path (Debian's, a PYTHONPATH entry)."""
+    import site
     import sysconfig
 
     paths = sysconfig.get_paths()
-    return tuple({Path(paths[k]).resolve() for k in ("stdlib", "platstdlib", "purelib",
-                                                     "platlib")})
+    roots = [paths[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")]
+    roots += list(getattr(site, "getsitepackages", lambda: [])())
+    roots.append(site.getusersitepackages())
+    roots += [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages")]
+    return tuple({Path(r).resolve() for r in roots if r})
 
 
 def _installed(source: str) -> bool:
