@@ -40,6 +40,10 @@ def first_order_filter(u: np.ndarray, a, y_before) -> np.ndarray:
     y_before = np.broadcast_to(np.asarray(y_before, np.float64), (m,))
     rhs = columns.copy()
     rhs[0] += a * y_before
+    if u.shape[0] == 1:
+        # already the answer; and scipy < 1.14's solve_banded divides one row by the band
+        # below the diagonal (zero) instead of the diagonal
+        return rhs.reshape(u.shape)
     bands = np.zeros((2, u.shape[0]))
     bands[0] = 1.0
     decays, column_decay = np.unique(a, return_inverse=True)
