@@ -116,6 +116,32 @@ def richardson_derivative(evaluate, step: float, max_halvings: int = 8,
     return estimates[-1]
 
 
+def _checked_derivatives(effect, derivatives, n_rows: int, shapes: dict):
+    """``effect.wrench_derivatives``' answer, checked (a researcher's hook may be wrong): None,
+    or a WrenchDerivatives whose parameters are among the effect's (``shapes``: name -> shape)
+    with (n_rows, 6) + that shape, and a pose of (n_rows, 6, 9) or None; else an EffectError
+    naming the effect, the entry and both shapes."""
+    if derivatives is None:
+        return None
+    where = f"{effect.name}.wrench_derivatives"
+    if not isinstance(derivatives, WrenchDerivatives):
+        raise EffectError(f"{where}: returned {type(derivatives).__name__}, expected "
+                          "WrenchDerivatives(parameters, pose) or None")
+    wanted = {name: (n_rows, 6) + tuple(shape) for name, shape in shapes.items()}
+    if derivatives.pose is not None:
+        wanted["pose"] = (n_rows, 6, 9)
+    given = {**derivatives.parameters, **({"pose": derivatives.pose}
+                                          if derivatives.pose is not None else {})}
+    for name, value in given.items():
+        if name not in wanted:
+            raise EffectError(f"{where}: '{name}' is not a parameter of {effect.name} "
+                              f"(its parameters: {sorted(shapes)})")
+        if np.shape(value) != wanted[name]:
+            raise EffectError(f"{where}: '{name}' has shape {np.shape(value)}, expected "
+                              f"{wanted[name]} (rows, wrench, parameter)")
+    return derivatives
+
+
 def _as_slice(index: np.ndarray):
     """Sorted column indices as a slice when they are one range: assigning an (N, ..., k)
     block through a slice is a strided copy, through an index array or a mask a gather and
@@ -682,8 +708,9 @@ class PhysicsModel:
         by effect name for its parameters' columns and the pose sensitivity."""
         if effect.name not in exact:
             pts = self._stage_points(meas, stage)
-            pts.pose, pts.home_p = stage.kin, stage.home
-            exact[effect.name] = effect.wrench_derivatives(pts)
+            exact[effect.name] = _checked_derivatives(
+                effect, effect.wrench_derivatives(pts), pts.t_s.shape[0],
+                {p.name: p.shape for p in effect.parameters})
         return exact[effect.name]
 
     def _part_scale_derivatives(self, meas, theta, stage: Stage, truth: Truth, gradient,

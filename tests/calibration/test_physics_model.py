@@ -330,3 +330,28 @@ def test_the_jacobian_is_the_same_whatever_its_row_chunks_and_the_columns_asked_
         assert J_few.shape == J.shape
         assert J_few.flags.c_contiguous == (effect == "geometric_errors")
         assert np.array_equal(J_few[:, :, few], J[:, :, few]) and not J_few[:, :, ~few].any()
+
+
+def test_a_wrong_wrench_derivatives_hook_is_named_not_misread():
+    """A researcher's ``wrench_derivatives`` answer is checked before it is used: a parameter
+    the effect does not have, a column block of the wrong shape (the same size in another
+    layout too), a pose block of the wrong shape or another type are refused, naming the
+    effect, the entry and the shapes; a right answer and None pass."""
+    from deltatwin.calibration.physics.model import _checked_derivatives
+    from deltatwin.twin.effects import LIBRARY, EffectError
+    from deltatwin.twin.effects.base import WrenchDerivatives
+
+    effect = LIBRARY["magnetic_force"]()
+    shapes = {p.name: p.shape for p in effect.parameters}
+    name, shape = next((n, s) for n, s in shapes.items() if s)      # a vector parameter
+    n = 5
+    right = WrenchDerivatives({name: np.zeros((n, 6) + shape)}, np.zeros((n, 6, 9)))
+    assert _checked_derivatives(effect, right, n, shapes) is right
+    assert _checked_derivatives(effect, None, n, shapes) is None
+    for wrong, message in (
+            (WrenchDerivatives({"nothing_m": np.zeros((n, 6))}, None), "'nothing_m' is not a"),
+            (WrenchDerivatives({name: np.zeros((6, n) + shape)}, None), f"'{name}' has shape"),
+            (WrenchDerivatives({}, np.zeros((n, 6, 3))), "'pose' has shape"),
+            ({name: np.zeros((n, 6) + shape)}, "returned dict")):
+        with pytest.raises(EffectError, match=f"magnetic_force.wrench_derivatives: {message}"):
+            _checked_derivatives(effect, wrong, n, shapes)
