@@ -49,6 +49,9 @@ DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving 
 # a reading's round-off over the evaluations a difference combines (the 0.3 m paths carry
 # ~5e-17 m each): a column's change over its step below this is noise, 1e-6 nm
 READING_ROUNDOFF_M = 1e-15
+# a Jacobian with at least this many load and optics columns makes them in a background process
+# (``jacobian``): each costs ~9 ms at full scale, the fork and the block's transfer ~40 ms
+BESIDE_COLUMNS = 16
 # rows in fewer runs of one session than this are counted run by run (PhysicsModel._counted)
 SESSION_RUNS = 64
 # rows per chunk where a block of Jacobian columns is formed row by row (PhysicsModel._add_counted)
@@ -480,15 +483,37 @@ class PhysicsModel:
         # the rods (P - A) and platform hinges (R P0) at the points, (N + S, 3, 2, 3) each
         if rods is None and np.any(wanted & ~by["load_optics"]):
             rods = rod_vectors(stage.geom, q, stage.kin)
+        owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
+                 for j in range(f.sl.start, f.sl.stop)}
+        gradient, response = ((base.gradient, base.response) if base is not None else
+                              self._pose_gradients(meas, stage, truth))
+        # the load and optics columns need the stage alone: many of them (a whole Jacobian's
+        # ~30, a third of its time) are made on a second core where the command has one
+        # (models.batched.in_background), beside the columns that move the pose
+        loads_optics = np.flatnonzero(wanted & by["load_optics"])
+        # the optics a step re-uses, for the optics columns wanted (a load's wrench needs none)
+        optics_at = (self._optics_at(meas, stage, truth) if any(
+            "optics" in self.classes[f.effect].model_stages() and wanted[f.sl].any()
+            and by["load_optics"][f.sl].any() for f in self.free) else None)
+        exact = {}           # the load effects' exact wrench derivatives, asked once each
+
+        def load_optics_columns():
+            return (self._load_optics_column(meas, theta, j, owner[j], stage, truth, response,
+                                             n_comp, A, optics_at, exact)
+                    for j in loads_optics)
+
+        def load_optics_block():
+            return np.stack(list(load_optics_columns()), axis=-1)
+        beside = (batched.in_background(load_optics_block)
+                  if batched.BACKGROUND and loads_optics.size >= BESIDE_COLUMNS else None)
+        if beside is None:
+            for j, column in zip(loads_optics, load_optics_columns()):
+                J[:, :, j] = column
         robot = wanted & by["robot"]
         if robot.any():
             moving.append((np.flatnonzero(robot), *self._robot_derivatives(
                 meas, theta, stage, np.flatnonzero(robot), GEOMETRY_STEP * self.scales,
                 rods[0])))
-        owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
-                 for j in range(f.sl.start, f.sl.stop)}
-        gradient, response = ((base.gradient, base.response) if base is not None else
-                              self._pose_gradients(meas, stage, truth))
         scaling = wanted & by["part_scales"]
         if scaling.any():
             d_rods, direct = self._part_scale_derivatives(meas, theta, stage, truth, gradient,
@@ -506,17 +531,8 @@ class PhysicsModel:
             pts = self._stage_points(meas, stage)
             at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
                         A)
-        # the optics a step re-uses, for the optics columns wanted (a load's wrench needs none)
-        optics_at = (self._optics_at(meas, stage, truth) if any(
-            "optics" in self.classes[f.effect].model_stages() and wanted[f.sl].any()
-            and by["load_optics"][f.sl].any() for f in self.free) else None)
-        exact = {}           # the load effects' exact wrench derivatives, asked once each
-        for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors):
-            if by["load_optics"][j]:
-                J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
-                                                      response, n_comp, A, optics_at, exact)
-                continue
-
+        for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors
+                                & ~by["load_optics"]):
             def evaluate(offset, j=j):
                 # a part temperature: the geometry at the points and what the optics read
                 th = theta.copy()
@@ -551,6 +567,8 @@ class PhysicsModel:
                                   lambda rows, rods_at=rods_at, d_home=d_home: _through_pose(
                                       adjoint[rows], rods_at(rows),
                                       None if d_home is None else d_home_path[rows], d_home))
+        if beside is not None:
+            J[:, :, _as_slice(loads_optics)] = beside()
         self._linearised = Linearisation(
             meas, self.params, dict(self.classes),
             {e.name: {k: np.array(v) for k, v in e.values.items()} for e in self.effects},
