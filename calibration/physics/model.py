@@ -49,10 +49,10 @@ DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving 
 # a reading's round-off over the evaluations a difference combines (the 0.3 m paths carry
 # ~5e-17 m each): a column's change over its step below this is noise, 1e-6 nm
 READING_ROUNDOFF_M = 1e-15
-# a Jacobian with at least this many optics columns makes them in a background process
-# (``jacobian``): each costs ~12 ms at full paper-thermal scale, the fork and the block's
-# transfer ~40 ms
-BESIDE_COLUMNS = 8
+# a Jacobian makes its optics columns in a background process (``jacobian``) when they hold at
+# least this many rows times columns: a column costs ~0.44 us a row (12 ms at full
+# paper-thermal, 28,492 rows), the fork and the block's transfer ~40 ms there
+BESIDE_ROW_COLUMNS = 200_000
 # rows in fewer runs of one session than this are counted run by run (PhysicsModel._counted)
 SESSION_RUNS = 64
 # rows per chunk where a block of Jacobian columns is formed row by row (PhysicsModel._add_counted)
@@ -498,7 +498,7 @@ class PhysicsModel:
         loads_optics = np.flatnonzero(wanted & by["load_optics"])
         optics = np.array([j for j in loads_optics
                            if "optics" in self.classes[owner[j].name].model_stages()], int)
-        if not batched.BACKGROUND or few or optics.size < BESIDE_COLUMNS:
+        if not batched.BACKGROUND or few or optics.size * A.shape[0] < BESIDE_ROW_COLUMNS:
             optics = optics[:0]
         # the optics a step re-uses, for the optics columns wanted (a load's wrench needs none)
         optics_at = (self._optics_at(meas, stage, truth) if any(
