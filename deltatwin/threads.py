@@ -9,11 +9,12 @@ BLAS thread per core slowed each other by 75-240 % (issue 21).  So a command use
 of each unless told otherwise by ``DELTATWIN_THREADS`` (a number, or ``auto``: every core this
 process may use) or an explicit ``set_threads(n)``.
 
-Apart from the pools, a command may run one whole independent task of a second or so in a
-second process (``models.batched.in_background``: ``diagnose``'s attribution beside its
-candidates).  It holds no lock and spins on nothing, so beside another command it only
-shares the cores as any process does: it is on when this process may use two cores or more,
-unless ``DELTATWIN_THREADS=1`` (or ``set_threads(1)``) asks for one core.
+Apart from the pools, a command may run one whole independent task of a few tenths of a
+second or more in a second process (``models.batched.in_background``: ``diagnose``'s
+attribution beside its candidates; a Jacobian's optics columns beside its pose-moving ones).
+It holds no lock and spins on nothing, so beside another command it only shares the cores as
+any process does: it is on when this process may use two cores or more, unless
+``DELTATWIN_THREADS=1`` (or ``set_threads(1)``) asks for one core.
 
 The same start-up sets how numpy's large arrays take their memory: in pages of 4 kB, not in
 transparent huge pages (numpy asks for those on Linux, ``NUMPY_MADVISE_HUGEPAGE``).  A command

@@ -49,6 +49,10 @@ DERIVATIVE_TOL = 1e-8   # relative change of a column at which the step halving 
 # a reading's round-off over the evaluations a difference combines (the 0.3 m paths carry
 # ~5e-17 m each): a column's change over its step below this is noise, 1e-6 nm
 READING_ROUNDOFF_M = 1e-15
+# a Jacobian makes its optics columns in a background process (``jacobian``) when they hold at
+# least this many rows times columns: a column costs ~0.44 us a row (12 ms at full
+# paper-thermal, 28,492 rows), the fork and the block's transfer ~40 ms there
+BESIDE_ROW_COLUMNS = 200_000
 # rows in fewer runs of one session than this are counted run by run (PhysicsModel._counted)
 SESSION_RUNS = 64
 # rows per chunk where a block of Jacobian columns is formed row by row (PhysicsModel._add_counted)
@@ -497,8 +501,9 @@ class PhysicsModel:
         # columns not computed stay untouched zero pages (written column by column, an (N,3,p)
         # array in row order is touched throughout: ~70 MB at full scale, and every new page a
         # process touches costs it); the same values and shape either way
-        J = (np.zeros((theta.size,) + A.shape).transpose(1, 2, 0)
-             if 2 * np.count_nonzero(wanted) < theta.size else np.zeros(A.shape + (theta.size,)))
+        few = 2 * np.count_nonzero(wanted) < theta.size
+        J = (np.zeros((theta.size,) + A.shape).transpose(1, 2, 0) if few
+             else np.zeros(A.shape + (theta.size,)))
         # the columns that move the kinematic pose, in blocks: (columns, the rod equations'
         # derivative at the fixed pose (N + S, 6, k) or the function giving it at a slice of
         # the rows, the home's (3, k) or None: it stays)
@@ -506,15 +511,41 @@ class PhysicsModel:
         # the rods (P - A) and platform hinges (R P0) at the points, (N + S, 3, 2, 3) each
         if rods is None and np.any(wanted & ~by["load_optics"]):
             rods = rod_vectors(stage.geom, q, stage.kin)
+        owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
+                 for j in range(f.sl.start, f.sl.stop)}
+        gradient, response = ((base.gradient, base.response) if base is not None else
+                              self._pose_gradients(meas, stage, truth))
+        # the load and optics columns need the stage alone: a Jacobian's optics columns (a
+        # whole one's ~20, a third of its time, at full paper-thermal) are made on a second
+        # core where the command has one (models.batched.in_background), beside the columns
+        # that move the pose; the loads' stay here, where their exact wrench derivatives serve
+        # the pose sensitivity too. A few columns (a probe's, a candidate's: diagnose makes
+        # them while its attribution has the second core) are all made here
+        loads_optics = np.flatnonzero(wanted & by["load_optics"])
+        optics = np.array([j for j in loads_optics
+                           if "optics" in self.classes[owner[j].name].model_stages()], int)
+        if not batched.BACKGROUND or few or optics.size * A.shape[0] < BESIDE_ROW_COLUMNS:
+            optics = optics[:0]
+        # the optics a step re-uses, for the optics columns wanted (a load's wrench needs none)
+        optics_at = (self._optics_at(meas, stage, truth) if any(
+            "optics" in self.classes[f.effect].model_stages() and wanted[f.sl].any()
+            and by["load_optics"][f.sl].any() for f in self.free) else None)
+        exact = {}           # the load effects' exact wrench derivatives, asked once each
+
+        def load_optics_column(j):
+            return self._load_optics_column(meas, theta, j, owner[j], stage, truth, response,
+                                            n_comp, A, optics_at, exact)
+
+        def optics_columns():
+            return np.stack([load_optics_column(j) for j in optics], axis=-1)
+        beside = batched.in_background(optics_columns) if optics.size else None
+        for j in np.setdiff1d(loads_optics, optics):
+            J[:, :, j] = load_optics_column(j)
         robot = wanted & by["robot"]
         if robot.any():
             moving.append((np.flatnonzero(robot), *self._robot_derivatives(
                 meas, theta, stage, np.flatnonzero(robot), GEOMETRY_STEP * self.scales,
                 rods[0])))
-        owner = {j: self.effects[self.names.index(f.effect)] for f in self.free
-                 for j in range(f.sl.start, f.sl.stop)}
-        gradient, response = ((base.gradient, base.response) if base is not None else
-                              self._pose_gradients(meas, stage, truth))
         scaling = wanted & by["part_scales"]
         if scaling.any():
             d_rods, direct = self._part_scale_derivatives(meas, theta, stage, truth, gradient,
@@ -532,17 +563,8 @@ class PhysicsModel:
             pts = self._stage_points(meas, stage)
             at_theta = (rod_residuals(stage.geom, motor_positions(self.effects, pts), stage.kin),
                         A)
-        # the optics a step re-uses, for the optics columns wanted (a load's wrench needs none)
-        optics_at = (self._optics_at(meas, stage, truth) if any(
-            "optics" in self.classes[f.effect].model_stages() and wanted[f.sl].any()
-            and by["load_optics"][f.sl].any() for f in self.free) else None)
-        exact = {}           # the load effects' exact wrench derivatives, asked once each
-        for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors):
-            if by["load_optics"][j]:
-                J[:, :, j] = self._load_optics_column(meas, theta, j, owner[j], stage, truth,
-                                                      response, n_comp, A, optics_at, exact)
-                continue
-
+        for j in np.flatnonzero(wanted & ~by["robot"] & ~by["part_scales"] & ~motors
+                                & ~by["load_optics"]):
             def evaluate(offset, j=j):
                 # a part temperature: the geometry at the points and what the optics read
                 th = theta.copy()
@@ -577,6 +599,8 @@ class PhysicsModel:
                                   lambda rows, rods_at=rods_at, d_home=d_home: _through_pose(
                                       adjoint[rows], rods_at(rows),
                                       None if d_home is None else d_home_path[rows], d_home))
+        if beside is not None:
+            J[:, :, _as_slice(optics)] = beside()
         self._linearised = Linearisation(
             meas, self.params, dict(self.classes),
             {e.name: {k: np.array(v) for k, v in e.values.items()} for e in self.effects},

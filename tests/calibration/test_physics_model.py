@@ -2,6 +2,9 @@
 noise-free readings counted from each session's zero (the dead path's index change included),
 and the sensor_contact effect's inversion gives back the parts' temperatures from their
 sensors."""
+import os
+import sys
+
 import numpy as np
 import pytest
 
@@ -355,3 +358,51 @@ def test_a_wrong_wrench_derivatives_hook_is_named_not_misread():
             ({name: np.zeros((n, 6) + shape)}, "returned dict")):
         with pytest.raises(EffectError, match=f"magnetic_force.wrench_derivatives: {message}"):
             _checked_derivatives(effect, wrong, n, shapes)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"),
+                    reason="the background process is forked on Linux only")
+def test_the_optics_columns_made_in_a_background_process_are_the_same_bit_for_bit(monkeypatch):
+    """With a second process (models.batched.BACKGROUND, as a command on two cores sets it) a
+    Jacobian of half its columns or more makes its optics columns there (when they hold
+    ``BESIDE_ROW_COLUMNS`` rows times columns or more), the rest here: the Jacobian, the
+    readings and the kept linearisation's pose sensitivities equal those made all in one
+    process; a probe's few columns and less optics work start no process."""
+    import deltatwin.calibration.physics.model as physics_model
+    from deltatwin.models import batched
+
+    df, meta = Scenario.load("quiet/magnetic-force").simulate(0.02)
+    model = PhysicsModel(["geometric_errors", "thermal_expansion", "magnetic_force",
+                          "loop_drift", "air_refraction", "beam_misalignment"],
+                         values={"loop_drift": {"frame_arm_m": [-0.6, 0.0]}})
+    meas = measurements(df, meta, model.params)
+    theta = model.theta() + model.scales * np.random.default_rng(6).standard_normal(model.n_free)
+    monkeypatch.setattr(batched, "BACKGROUND", False)
+    A_here, J_here = model.jacobian(meas, theta)
+    adjoint_here = model._linearised.sensitivity[1]
+    started = []
+
+    def counted(fun, *args, **kwargs):
+        started.append(fun.__name__)
+        return in_background(fun, *args, **kwargs)
+    in_background = batched.in_background
+    optics = [j for f in model.free for j in range(f.sl.start, f.sl.stop)
+              if f.effect in ("loop_drift", "air_refraction", "beam_misalignment")]
+    monkeypatch.setattr(batched, "BACKGROUND", True)
+    monkeypatch.setattr(batched, "in_background", counted)
+    # this small campaign's optics work is made beside at the threshold, not below it
+    monkeypatch.setattr(physics_model, "BESIDE_ROW_COLUMNS", len(optics) * A_here.shape[0])
+    parent = os.getpid()
+    A, J = model.jacobian(meas, theta)
+    assert os.getpid() == parent and started == ["optics_columns"]
+    assert np.any(J[:, :, optics] != 0.0)
+    assert np.array_equal(A, A_here) and np.array_equal(J, J_here)
+    assert np.array_equal(model._linearised.sensitivity[1], adjoint_here)
+    few = np.zeros(model.n_free, bool)
+    few[optics] = True
+    _, J_few = model.jacobian(meas, theta, columns=few)
+    assert started == ["optics_columns"]
+    assert np.array_equal(J_few[:, :, few], J_here[:, :, few])
+    monkeypatch.setattr(physics_model, "BESIDE_ROW_COLUMNS", len(optics) * A_here.shape[0] + 1)
+    _, J_all_here = model.jacobian(meas, theta)
+    assert started == ["optics_columns"] and np.array_equal(J_all_here, J_here)
