@@ -70,8 +70,8 @@ from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsEr
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
-    _as_slice,
     _projected,
+    as_slice,
     figures_nm,
     group_offsets,
     model_effects,
@@ -366,7 +366,7 @@ def _effect_spans(fit: PhysicsFit) -> dict:
         if not cols.size:
             continue
         # the effect's own columns scaled (not a scaled copy of the whole Jacobian)
-        cols = _as_slice(cols)
+        cols = as_slice(cols)
         Pe = _projected(meas, meas.cal, fit.jacobian_[:, :, cols] * scales[cols])
         u, sv, _ = np.linalg.svd(Pe, full_matrices=False)
         out[e] = u[:, sv > sv.max(initial=0) * 1e-9]

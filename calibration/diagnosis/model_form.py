@@ -58,7 +58,7 @@ from deltatwin.calibration.diagnosis.term_form import (
 )
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
-    _as_slice,
+    as_slice,
     group_offsets,
     residuals,
 )
@@ -329,12 +329,12 @@ class _Joint:
                     for axis, first, X in C.blocks:
                         cols = np.flatnonzero(np.any(X != 0, axis=0)) if axis == k else []
                         if len(cols):
-                            parts.append((i, _as_slice(cols + first), cols.size,
+                            parts.append((i, as_slice(cols + first), cols.size,
                                           X if cols.size == X.shape[1] else X[:, cols]))
                     continue
                 cols = np.flatnonzero(np.any(C[:, k] != 0, axis=0))
                 if cols.size:
-                    sl = _as_slice(cols)
+                    sl = as_slice(cols)
                     parts.append((i, sl, cols.size, C[:, k, sl]))
             for start in range(0, len(parts), COLUMNS_AT_ONCE):
                 batch = parts[start:start + COLUMNS_AT_ONCE]

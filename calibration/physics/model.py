@@ -146,7 +146,7 @@ def _checked_derivatives(effect, derivatives, n_rows: int, shapes: dict):
     return derivatives
 
 
-def _as_slice(index: np.ndarray):
+def as_slice(index: np.ndarray):
     """Sorted column indices as a slice when they are one range: assigning an (N, ..., k)
     block through a slice is a strided copy, through an index array or a mask a gather and
     scatter ~30x slower."""
@@ -551,7 +551,7 @@ class PhysicsModel:
             d_rods, direct = self._part_scale_derivatives(meas, theta, stage, truth, gradient,
                                                           np.flatnonzero(scaling), rods)
             moving.append((np.flatnonzero(scaling), d_rods, None))
-            J[:, :, _as_slice(np.flatnonzero(scaling))] = self._counted(meas, direct, n_comp,
+            J[:, :, as_slice(np.flatnonzero(scaling))] = self._counted(meas, direct, n_comp,
                                                                         derivative=True)
         motors = wanted & by["motor_angles"]
         if motors.any():
@@ -595,12 +595,12 @@ class PhysicsModel:
                 # the robot's block comes as a function of the rows (its (N + S, 6, 63) array
                 # would be 86 MB), the others as arrays
                 rods_at = d_rods if callable(d_rods) else d_rods.__getitem__
-                self._add_counted(meas, J, _as_slice(cols), n_comp,
+                self._add_counted(meas, J, as_slice(cols), n_comp,
                                   lambda rows, rods_at=rods_at, d_home=d_home: _through_pose(
                                       adjoint[rows], rods_at(rows),
                                       None if d_home is None else d_home_path[rows], d_home))
         if beside is not None:
-            J[:, :, _as_slice(optics)] = beside()
+            J[:, :, as_slice(optics)] = beside()
         self._linearised = Linearisation(
             meas, self.params, dict(self.classes),
             {e.name: {k: np.array(v) for k, v in e.values.items()} for e in self.effects},
@@ -890,7 +890,7 @@ class PhysicsModel:
                     ((-rod_r * at_rows(s_arm, rows, 1)[..., None, None]).reshape(-1),
                      (inv_r[:, None] * 18 + np.arange(18)).reshape(-1),  # (motor coordinates,
                      np.arange(0, 18 * n + 1, 3)), shape=(6 * n, d_arm.shape[0]))  # rod, xyz)
-                d_rods[..., _as_slice(np.flatnonzero(turning))] = (
+                d_rods[..., as_slice(np.flatnonzero(turning))] = (
                     entries @ d_arm).reshape(n, 3, 2, -1)
             # then the platform hinges R P0 (rod . R dP0 = R^T rod . dP0), the base joints and
             # the rod lengths: one product per rod over [R^T rod, rod, L] and the parameters
