@@ -142,34 +142,42 @@ def test_residual_basis_holds_the_jacobian_and_residuals_exactly_as_it_grows_and
     assert remade
 
 
+def _solver_calls(seed: int, trials: list) -> list:
+    """What ``_gauss_newton`` asks for, in order ("fun": an evaluation, "jac": a Jacobian), on
+    a two-parameter problem whose Jacobian is the identity on its first two readings (plus 48
+    readings of seeded noise, 1 % of the residual), starting exactly at a residual of (1, 1):
+    its evaluations return ``trials``' first two readings in turn, then (0.1, 0.1)."""
+    noise = np.random.default_rng(seed).normal(0.0, 0.01, 48)
+    r0 = np.concatenate([[1.0, 1.0], noise])
+    J0 = np.zeros((50, 2))
+    J0[0, 0] = J0[1, 1] = 1.0
+    calls = []
+    readings = iter([np.concatenate([t, noise]) for t in trials] + [
+        np.concatenate([[0.1, 0.1], noise])] * 4)
+
+    def fun(z):
+        calls.append("fun")
+        return next(readings), None
+
+    def jac(z):
+        calls.append("jac")
+        return J0, J0
+    _gauss_newton(fun, jac, np.zeros(2), J0, 48, 4, (r0, None, J0))
+    return calls
+
+
 def test_a_failed_step_as_long_as_the_last_accepted_one_recomputes_the_jacobian(monkeypatch):
     """Two trust-region steps on one radius have lengths equal to round-off (the damping's
     bisection): a failed re-used-Jacobian step that long is "no longer than one that
     succeeded", so the updated Jacobian is blamed and recomputed, whatever the sign of the
     round-off (it was a coin flip: a force case's floor fit went 57.4 or 37.1 nm by it)."""
     from deltatwin.calibration.physics import fit as fit_module
-    noise = np.random.default_rng(5).normal(0.0, 0.01, 48)
-    r0 = np.concatenate([[1.0, 1.0], noise])
-    J0 = np.zeros((50, 2))
-    J0[0, 0] = J0[1, 1] = 1.0
     lengths = iter(0.5 * (1.0 + np.array([0.0, 3e-16, 6e-16, 9e-16])))
     monkeypatch.setattr(fit_module, "_trust_region_step",
                         lambda Jz, r, radius: -np.ones(2) / np.sqrt(2.0) * next(lengths))
-    calls = []
     # the first step falls half as far as predicted (accepted, the radius kept), the second
     # fails
-    trials = iter([np.concatenate([[0.85, 0.85], noise]),
-                   np.concatenate([[9.0, 9.0], noise]),
-                   np.concatenate([[0.7, 0.7], noise])])
-
-    def fun(z):
-        calls.append("fun")
-        return next(trials), None
-
-    def jac(z):
-        calls.append("jac")
-        return J0, J0
-    _gauss_newton(fun, jac, np.zeros(2), J0, 48, 4, (r0, None, J0))
+    calls = _solver_calls(5, [[0.85, 0.85], [9.0, 9.0], [0.7, 0.7]])
     assert calls[:3] == ["fun", "fun", "jac"], calls
 
 
@@ -180,26 +188,7 @@ def test_an_accepted_step_the_updated_jacobian_predicted_poorly_recomputes_it():
     them by steps of gain 0.03-0.4 until its 20 evaluations ran out, seed 99 g01: 42.8 nm
     against 37.4 from exact Jacobians). A step the exact Jacobian predicted poorly only shrinks
     the trust region."""
-    noise = np.random.default_rng(6).normal(0.0, 0.01, 48)
-    r0 = np.concatenate([[1.0, 1.0], noise])
-    J0 = np.zeros((50, 2))
-    J0[0, 0] = J0[1, 1] = 1.0
-
-    def run(first, second):
-        calls = []
-        trials = iter([np.concatenate([first, noise]), np.concatenate([second, noise]),
-                       np.concatenate([[0.1, 0.1], noise])])
-
-        def fun(z):
-            calls.append("fun")
-            return next(trials), None
-
-        def jac(z):
-            calls.append("jac")
-            return J0, J0
-        _gauss_newton(fun, jac, np.zeros(2), J0, 48, 4, (r0, None, J0))
-        return calls
     # the exact Jacobian's step falls half as far as predicted; the updated one's, 1 % as far
-    assert run([0.5, 0.5], [0.497, 0.497])[:3] == ["fun", "fun", "jac"]
+    assert _solver_calls(6, [[0.5, 0.5], [0.497, 0.497]])[:3] == ["fun", "fun", "jac"]
     # the exact Jacobian's step predicted poorly (3 % of its fall): no Jacobian before the next
-    assert run([0.985, 0.985], [0.5, 0.5])[:3] == ["fun", "fun", "fun"]
+    assert _solver_calls(6, [[0.985, 0.985], [0.5, 0.5]])[:3] == ["fun", "fun", "fun"]

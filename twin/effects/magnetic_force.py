@@ -18,16 +18,20 @@ from deltatwin.twin.effects.base import Effect, Parameter, WrenchDerivatives
 MU0 = 4e-7 * np.pi
 
 
-def dipole_force_torque(m1, r1, m2, r2):
-    """Force (N) and torque (N*m, about r2) on dipole m2 at r2 from dipole m1 at r1 (A*m^2, m).
-    Component-first arrays (3, ...) broadcasting over the trailing axes (models/batched.py)."""
+def _separation(m1, r1, m2, r2):
+    """The dipoles' separation r = r2 - r1: |r|^2, |r|, the unit vector u, m1 . u, m2 . u and
+    m1 . m2 (component-first arrays)."""
     r = r2 - r1
     d2 = batched.dot(r, r)
     d = np.sqrt(d2)
     u = r / d
-    m1u = batched.dot(m1, u)
-    m2u = batched.dot(m2, u)
-    m1m2 = batched.dot(m1, m2)
+    return d2, d, u, batched.dot(m1, u), batched.dot(m2, u), batched.dot(m1, m2)
+
+
+def dipole_force_torque(m1, r1, m2, r2):
+    """Force (N) and torque (N*m, about r2) on dipole m2 at r2 from dipole m1 at r1 (A*m^2, m).
+    Component-first arrays (3, ...) broadcasting over the trailing axes (models/batched.py)."""
+    d2, d, u, m1u, m2u, m1m2 = _separation(m1, r1, m2, r2)
     F = 3 * MU0 / (4 * np.pi * d2 * d2) * (m2 * m1u + m1 * m2u + u * m1m2 - 5 * u * m1u * m2u)
     B = MU0 / (4 * np.pi * d2 * d) * (3 * u * m1u - m1)
     return F, batched.cross(m2, B)
@@ -40,16 +44,10 @@ def dipole_force_torque_gradient(m1, r1, m2, r2):
     d F / d r_j = 3 mu0 / (4 pi d^5) [m2 m1_j + m1 m2_j + (c - 5 a1 a2) e_j
     - 5 u (m1_j a2 + m2_j a1) - 5 u_j (m2 a1 + m1 a2 + u c) + 35 u u_j a1 a2], and the torque's
     m2 x d B / d r_j with d B / d r_j = 3 mu0 / (4 pi d^4) [u m1_j + m1 u_j + a1 e_j - 5 a1 u u_j]."""
-    r = r2 - r1
-    d2 = batched.dot(r, r)
-    d = np.sqrt(d2)
-    u = r / d
-    a1 = batched.dot(m1, u)
-    a2 = batched.dot(m2, u)
-    c = batched.dot(m1, m2)
+    d2, d, u, a1, a2, c = _separation(m1, r1, m2, r2)
     k_B = 3 * MU0 / (4 * np.pi * d2 * d2)
     k_F = k_B / d
-    shape = np.broadcast_shapes(r.shape, m1.shape, m2.shape)
+    shape = np.broadcast_shapes(u.shape, m1.shape, m2.shape)
     dF, dtau = np.empty((3,) + shape), np.empty((3,) + shape)
     pair = m2 * a1 + m1 * a2 + u * c                    # the vector u_j multiplies
     for j in range(3):
