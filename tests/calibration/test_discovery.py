@@ -1,6 +1,7 @@
 """Issue 15: a fit that always returns, effects the baseline absorbs reported as absorbed, a
 candidate that fails named in its row, the achievable floor, and extrapolation flagged (small
 simulated campaigns)."""
+import functools
 import logging
 from types import SimpleNamespace
 
@@ -13,6 +14,7 @@ from deltatwin.calibration.diagnosis.conditions import extrapolated_variables
 from deltatwin.calibration.diagnosis.floor import achievable_floor, true_model
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
+from deltatwin.calibration.physics.measurements import Measurements
 from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.cases import KNOWN, MODEL, Case, generate_cases
@@ -261,8 +263,7 @@ def test_the_calibration_f_test_holds_its_level_on_correlated_rows(rho):
     penalised on a slow residual."""
     rng = np.random.default_rng(31)
     n = 400
-    meas = SimpleNamespace(group=np.column_stack([np.zeros(n, int), np.full((n, 2), -1)]),
-                           groups=[(0, "x")], cal=np.ones(n, bool))
+    meas = _one_group(n)
     nothing, val = np.zeros((n, 3)), np.zeros(n, bool)
     naive, corrected, factors, pose_factors = [], [], [], []
     for _ in range(300):
@@ -293,8 +294,7 @@ def test_the_serial_factor_skips_groups_without_calibration_readings():
     n = 200
     e, x = _ar1(rng, n, 0.95), _ar1(rng, n, 0.95)
     e1 = e - x * (x @ e) / (x @ x)
-    one = SimpleNamespace(group=np.column_stack([np.zeros(n, int), np.full((n, 2), -1)]),
-                          groups=[(0, "x")], cal=np.ones(n, bool))
+    one = _one_group(n)
     alone = diagnosis._serial_inflation(one, e - e1, e1)
     # group 1: one calibration reading (row n, y); group 2: five validation rows (z)
     group = np.full((n + 6, 3), -1)
@@ -564,9 +564,12 @@ def test_a_refit_that_determines_nothing_new_is_not_named_on_the_validation_rows
 
 
 def _one_group(n: int) -> SimpleNamespace:
-    """The measurements' grouping of n calibration readings of one (session, axis) group."""
-    return SimpleNamespace(group=np.column_stack([np.zeros(n, int), np.full((n, 2), -1)]),
-                           groups=[(0, "x")], cal=np.ones(n, bool))
+    """The measurements' grouping of n calibration readings of one (session, axis) group, with
+    the measurements' own degrees of freedom (``Measurements.residual_dof``)."""
+    grouping = SimpleNamespace(group=np.column_stack([np.zeros(n, int), np.full((n, 2), -1)]),
+                               groups=[(0, "x")], cal=np.ones(n, bool))
+    grouping.residual_dof = functools.partial(Measurements.residual_dof, grouping)
+    return grouping
 
 
 def test_the_test_beyond_generic_terms_holds_its_level_on_correlated_rows():
