@@ -7,11 +7,11 @@ import scipy.optimize
 from deltatwin.calibration.physics.fit import (
     STEP_SIGMA,
     PhysicsFit,
-    calibration_cost,
     _gauss_newton,
     _remaining_step_sigma,
     _ResidualBasis,
     _trust_region_step,
+    calibration_cost,
 )
 from deltatwin.calibration.physics.measurements import measurements
 from deltatwin.twin.scenario import Scenario
