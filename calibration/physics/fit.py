@@ -101,7 +101,7 @@ class PhysicsFit:
     def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
             where: str = "data", keep_converged_start: bool = False,
             start_directions: np.ndarray | None = None, fitted_on: str | None = None,
-            reidentify: int = REIDENTIFIED_AT_MOST):
+            reidentify: int | None = None):
         """Fit to the calibration rows of ``df`` (``where`` names the data in errors).
         ``keep_converged_start``: a start that is already converged on these data (a fitted
         model diagnosed on its own data: the Gauss-Newton step left from it moves the
@@ -123,7 +123,10 @@ class PhysicsFit:
         its status says how far from converged it is. ``reidentify``: how many times a fit
         converged in the directions identified at its start may be refined again from where it
         ended, in the directions identified there, while those leave a step above STEP_SIGMA
-        (``n_reidentified_``: how many it was; the evaluations and Jacobians add up)."""
+        (None: REIDENTIFIED_AT_MOST; ``n_reidentified_``: how many it was; the evaluations and
+        Jacobians add up)."""
+        if reidentify is None:
+            reidentify = REIDENTIFIED_AT_MOST
         model = PhysicsModel(self.effects, self.params, self.start)
         meas = meas or measurements(df, meta, model.params, where)
         check_sensors(model.names, meas, where)
