@@ -44,8 +44,8 @@ STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of 
 # offsets' columns scale with the coil moment, 0.16 at the library's start for 2.2; the rung
 # converged in its start's directions at 137 nm validation, 2.2x the achievable floor, and
 # at 64.7 nm, 1.06x, fitted again once. Three times: the floor's own fit also fell to a
-# lower calibration cost at 73.5 nm validation, and the 12 cases' CPU rose 76 % against
-# 32 % for once)
+# lower calibration cost at 73.5 nm validation, and 12 cases' CPU rose 73-81 % against
+# 33-36 % for once, on three seeds)
 REIDENTIFIED_AT_MOST = 1
 log = logging.getLogger(__name__)
 
