@@ -273,11 +273,11 @@ class PhysicsFit:
     def _refined_again(self, df, meta, meas, where: str, reidentify: int) -> None:
         """This fit fitted again from where it ended (``reidentify`` - 1 further times at
         most), in the directions identified there, what they do not determine held at the
-        prior as in any fit, and kept when its calibration cost is lower (a converged force
-        fit's refit rose 9 %: the directions its start identified held it away from the
-        prior; held where it ended instead, the magnetic-force case above stopped at 20.64
-        nm, 117 nm validation): its results replaced by the refit's, the parameters'
-        ``start`` still this fit's, the evaluations and Jacobians added up either way."""
+        prior as in any fit, and kept when its calibration cost is lower (quiet/magnetic-force
+        from the library's start: the refit's calibration rms rose 9 %, the directions its
+        start identified had held it away from the prior; held where it ended instead, the
+        magnetic-force case above stopped at 20.64 nm, 117 nm validation): its results
+        replaced by the refit's, the evaluations and Jacobians added up either way."""
         again = PhysicsFit(self.effects, self.params,
                            start={**self.model_.values(), **self.known_},
                            noise_nm=self.noise_nm, identifiable_ratio=self.identifiable_ratio,
@@ -286,12 +286,9 @@ class PhysicsFit:
         again.fit(df, meta, meas=meas, where=where, reidentify=reidentify - 1)
         n_evaluations, n_jacobians = self.n_evaluations_, self.n_jacobians_
         if calibration_cost(again) < calibration_cost(self):
-            starts = [q["start"] for q in self.parameters_]
             for name, value in vars(again).items():
                 if name.endswith("_"):
                     setattr(self, name, value)
-            for q, start in zip(self.parameters_, starts):
-                q["start"] = start
             self.n_reidentified_ = again.n_reidentified_ + 1
         self.n_evaluations_ = n_evaluations + again.n_evaluations_
         self.n_jacobians_ = n_jacobians + again.n_jacobians_
