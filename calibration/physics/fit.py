@@ -37,16 +37,6 @@ LENGTH_ROUND_OFF = 1e-9
 # the fit: its column changes the fitted directions' Jacobian by < 1e-8 of a fitted column
 UNSEEN_FRACTION = 1e-16
 STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of their uncertainty
-# a fit converged in the directions identified at its start is fitted again from where it
-# ended at most this many times, while the directions identified there leave a step above
-# STEP_SIGMA: the Jacobian changes along the way, most where an added effect starts far from
-# its size (a force case's refit adding magnetic force at 10x, seed 6363 case001: the coil
-# offsets' columns scale with the coil moment, 0.16 at the library's start for 2.2; the rung
-# converged in its start's directions at 137 nm validation, 2.2x the achievable floor, and
-# at 64.7 nm, 1.06x, fitted again once. Three times: the floor's own fit also fell to a
-# lower calibration cost at 73.5 nm validation, and 12 cases' CPU rose 73-81 % against
-# 33-36 % for once, on three seeds)
-REIDENTIFIED_AT_MOST = 1
 log = logging.getLogger(__name__)
 
 
@@ -100,8 +90,7 @@ class PhysicsFit:
 
     def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
             where: str = "data", keep_converged_start: bool = False,
-            start_directions: np.ndarray | None = None, fitted_on: str | None = None,
-            reidentify: int | None = None):
+            start_directions: np.ndarray | None = None, fitted_on: str | None = None):
         """Fit to the calibration rows of ``df`` (``where`` names the data in errors).
         ``keep_converged_start``: a start that is already converged on these data (a fitted
         model diagnosed on its own data: the Gauss-Newton step left from it moves the
@@ -120,13 +109,7 @@ class PhysicsFit:
         on those very data the start is kept as it is, converged or not (with
         ``start_directions``): refining it would diagnose another model than the file's, and
         the diagnosis takes the model's own remaining linear step as its reference anyway;
-        its status says how far from converged it is. ``reidentify``: how many times a fit
-        converged in the directions identified at its start may be refined again from where it
-        ended, in the directions identified there, while those leave a step above STEP_SIGMA
-        (None: REIDENTIFIED_AT_MOST; ``n_reidentified_``: how many it was; the evaluations and
-        Jacobians add up)."""
-        if reidentify is None:
-            reidentify = REIDENTIFIED_AT_MOST
+        its status says how far from converged it is."""
         model = PhysicsModel(self.effects, self.params, self.start)
         meas = meas or measurements(df, meta, model.params, where)
         check_sensors(model.names, meas, where)
@@ -257,41 +240,7 @@ class PhysicsFit:
         self.jacobian_ = J
         self.identified_directions_ = V
         self._identifiability(model, s, Vt, keep, Jz, meas, r, V, theta, prior)
-        self.n_reidentified_ = 0
-        if self.converged_ and not keep_start and J is not J0 and reidentify > 0:
-            # converged in the start's directions: the directions identified where the fit
-            # ended (the same rule) may still leave a step
-            Js_end = _projected(meas, cal, J, scale=S)
-            _, s_end, Vt_end = np.linalg.svd(Js_end, full_matrices=False)
-            V_end = Vt_end[(s_end > sigma / self.identifiable_ratio)
-                           & (s_end > s_end.max(initial=0) * 1e-12)].T
-            if _remaining_step_sigma(-Js_end @ V_end, r, meas.residual_dof(
-                    n_res, V_end.shape[1])) > STEP_SIGMA:
-                self._refined_again(df, meta, meas, where, reidentify)
         return self
-
-    def _refined_again(self, df, meta, meas, where: str, reidentify: int) -> None:
-        """This fit fitted again from where it ended (``reidentify`` - 1 further times at
-        most), in the directions identified there, what they do not determine held at the
-        prior as in any fit, and kept when its calibration cost is lower (quiet/magnetic-force
-        from the library's start: the refit's calibration rms rose 9 %, the directions its
-        start identified had held it away from the prior; held where it ended instead, the
-        magnetic-force case above stopped at 20.64 nm, 117 nm validation): its results
-        replaced by the refit's, the evaluations and Jacobians added up either way."""
-        again = PhysicsFit(self.effects, self.params,
-                           start={**self.model_.values(), **self.known_},
-                           noise_nm=self.noise_nm, identifiable_ratio=self.identifiable_ratio,
-                           max_evaluations=self.max_evaluations, progress=self.progress,
-                           prior=self.prior)
-        again.fit(df, meta, meas=meas, where=where, reidentify=reidentify - 1)
-        n_evaluations, n_jacobians = self.n_evaluations_, self.n_jacobians_
-        if calibration_cost(again) < calibration_cost(self):
-            for name, value in vars(again).items():
-                if name.endswith("_"):
-                    setattr(self, name, value)
-            self.n_reidentified_ = again.n_reidentified_ + 1
-        self.n_evaluations_ = n_evaluations + again.n_evaluations_
-        self.n_jacobians_ = n_jacobians + again.n_jacobians_
 
     def _identifiability(self, model, s, Vt, keep, Jz, meas, r, V, theta, theta0):
         """``Jz``: the projected calibration residual's Jacobian in the directions ``V``
