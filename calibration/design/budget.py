@@ -82,7 +82,7 @@ def parameter_covariance(fit: PhysicsFit, prior: bool = True) -> np.ndarray:
     held = np.eye(S.size) - V @ V.T                        # unidentified subspace (scaled)
     C = S[:, None] * held * S[None, :] if prior else np.zeros((S.size, S.size))
     if V.shape[1]:
-        Jz = _projected(meas, meas.cal, fit.jacobian_ * S) @ V
+        Jz = _projected(meas, meas.cal, fit.jacobian_, scale=S) @ V
         sigma = fit.identifiability_["residual_sigma_nm"] * 1e-9
         SV = S[:, None] * V
         C = C + SV @ np.linalg.pinv(Jz.T @ Jz) @ SV.T * sigma ** 2

@@ -367,7 +367,7 @@ def _effect_spans(fit: PhysicsFit) -> dict:
             continue
         # the effect's own columns scaled (not a scaled copy of the whole Jacobian)
         cols = as_slice(cols)
-        Pe = _projected(meas, meas.cal, fit.jacobian_[:, :, cols] * scales[cols])
+        Pe = _projected(meas, meas.cal, fit.jacobian_[:, :, cols], scale=scales[cols])
         u, sv, _ = np.linalg.svd(Pe, full_matrices=False)
         out[e] = u[:, sv > sv.max(initial=0) * 1e-9]
     return out
