@@ -231,15 +231,24 @@ def _left_after(X: np.ndarray, r: np.ndarray) -> np.ndarray:
     return r - X @ np.linalg.lstsq(X, r, rcond=None)[0]
 
 
+def _generic(Jm: np.ndarray, G: np.ndarray, explained: float, r0: np.ndarray,
+             above_floor: float) -> tuple:
+    """The generic terms as ``_beyond_generic`` takes them, for every candidate: the model's
+    directions and the form's columns G side by side, G's ``explained`` fraction of the
+    validation residual, what least squares on both leaves of the model's residual ``r0``
+    (the same for every candidate: made once here) and the share of the validation power above
+    the floor."""
+    base = np.hstack([Jm, G])
+    return base, explained, _left_after(base, r0) if G.shape[1] else r0, above_floor
+
+
 def _beyond_generic(meas, r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic: tuple,
                     k_c: int, n: int, explained: float) -> dict:
     """Whether a candidate's improvement is matched by generic functions of the laboratory
-    variables (the missing term's sparse form, term_form.py): ``generic`` = (G, its explained
-    fraction of the validation residual, r0, the share of the validation residual's power above
-    the achievable floor), G the form's columns and r0 the model's residual (calibration
-    readings, session means out); ``r`` the residual with the candidate on at its
-    starting values and ``Xc`` its own new directions. The candidate adds something beyond the
-    generic terms when its directions (or its fixed change) still lower the calibration
+    variables (the missing term's sparse form, term_form.py): ``generic`` as ``_generic``
+    makes it, on the calibration readings, session means out; ``r`` the residual with the
+    candidate on at its starting values and ``Xc`` its own new directions. The candidate adds
+    something beyond the generic terms when its directions (or its fixed change) still lower the calibration
     residual significantly (F test, p < ALPHA, its statistic divided by the rows'
     serial-correlation factor as the calibration test's, ``_serial_inflation`` on ``meas``'
     (session, axis) groups) with the model's directions and the generic terms already fitted.
@@ -252,13 +261,12 @@ def _beyond_generic(meas, r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic
     effect either carries most of the structure (a sensor's contact lag is, to first order, a
     temperature rate: the generic terms match it, 90 % against 94 %) or adds its exact
     signature beyond the generic terms (two effects missing at once)."""
-    G, generic_explained, r0, above_floor = generic
+    base, generic_explained, e_g, above_floor = generic
     out = {"generic_explained_fraction": generic_explained, "p_beyond_generic": 0.0,
            "matched_by_generic": False}
-    if not G.shape[1]:
+    if base.shape[1] == Jm.shape[1]:            # no generic column
         return out
-    base = np.hstack([Jm, G])
-    e_g, e_gc = _left_after(base, r0), _left_after(np.hstack([base, Xc]), r)
+    e_gc = _left_after(np.hstack([base, Xc]), r)
     rss_g, rss_gc = float(e_g @ e_g), float(e_gc @ e_gc)
     df1, df2 = max(k_c, 1), meas.residual_dof(n, base.shape[1] + k_c)
     # the rows are as serially correlated here as in the calibration test (a candidate that
@@ -280,7 +288,7 @@ def _refit(fit: PhysicsFit, effects: list) -> PhysicsFit:
     meas = fit.measurements_
     return PhysicsFit(effects, fit.params, start=_with_known(fit.model_.values(), fit.known_),
                       noise_nm=fit.noise_nm, identifiable_ratio=fit.identifiable_ratio,
-                      max_evaluations=LADDER_EVALUATIONS).fit(meas.df, fit.meta_)
+                      max_evaluations=LADDER_EVALUATIONS).fit(meas.df, fit.meta_, meas=meas)
 
 
 def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | None,
@@ -642,8 +650,8 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
                                 frame=frame, extra_terms=load_terms(loads))
     form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, frame=frame,
                                             loads=loads)
-    generic = (_projected(meas, cal, G), generic_explained, r0,
-               _above_floor_share(fit.val_["all"]["err_p90"], floor_all))
+    generic = _generic(Jm, _projected(meas, cal, G), generic_explained, r0,
+                       _above_floor_share(fit.val_["all"]["err_p90"], floor_all))
     ranking = []
     effect_spans = _effect_spans(fit) if candidates and k_m else {}
     for name in candidates:
@@ -811,9 +819,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
         if fits and fit.val_["all"]["err_p90"] > fits[-1].val_["all"]["err_p90"]:
             d = diagnoses[-1]
             if "refit_rejected" in d:
-                d["tried_instead"].append({"effect": effects[-1], "kept": False,
-                                           "val_err90_nm": fit.val_["all"]["err_p90"],
-                                           **({"held": "off"} if held_off else {})})
+                d["tried_instead"].append(_tried(effects[-1], fit, False, held_off))
             else:
                 d["refit_rejected"] = _rejected_refit(fit, fits[-1], d)
                 d["tried_instead"] = []
@@ -831,9 +837,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             effects = effects[:-1] + [instead]
             continue
         if diagnoses and "refit_rejected" in diagnoses[-1]:
-            diagnoses[-1]["tried_instead"].append({"effect": effects[-1], "kept": True,
-                                                   "val_err90_nm": fit.val_["all"]["err_p90"],
-                                                   **({"held": "off"} if held_off else {})})
+            diagnoses[-1]["tried_instead"].append(_tried(effects[-1], fit, True, held_off))
         held_off = False
         fits.append(fit)
         ladder.append({"model": "baseline" if round_ == 0 else f"+ {effects[-1]}",
@@ -853,6 +857,13 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             break
         effects = effects + [d["missing_effect"]]
     return ladder, diagnoses, fits
+
+
+def _tried(effect: str, fit: PhysicsFit, kept: bool, held_off: bool) -> dict:
+    """A ``tried_instead`` record: the effect refitted, its validation error, whether the
+    ladder kept it, and whether it was held off."""
+    return {"effect": effect, "kept": kept, "val_err90_nm": fit.val_["all"]["err_p90"],
+            **({"held": "off"} if held_off else {})}
 
 
 def _with_known(values: dict, known: dict | None) -> dict:

@@ -613,8 +613,7 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
                     if not _better(t, alt, rss, limit):
                         tries.append(alt)
                 tries.append(t)
-            seen = set()
-            tries = [t for t in tries if not (t[0] in seen or seen.add(t[0]))]
+            tries = list({t[0]: t for t in tries}.values())   # each block once, first place
         best = None
         for i, gain, Pn, kk, df2 in tries:
             trial = chosen + [i]

@@ -509,9 +509,12 @@ def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor
     assert above == pytest.approx(1 - (10.84 / 13.1) ** 2) and 0.3 < above < 0.33
     assert diagnosis._above_floor_share(10.0, 10.84) == diagnosis._above_floor_share(10, None) == 1
     meas = _one_group(400)
-    without = diagnosis._beyond_generic(meas, r, Xc, Jm, (G, 0.41, r, 1.0), 1, 400, 0.18)
+    without = diagnosis._beyond_generic(meas, r, Xc, Jm, diagnosis._generic(Jm, G, 0.41, r, 1.0),
+                                        1, 400, 0.18)
     assert without["p_beyond_generic"] >= diagnosis.ALPHA and without["matched_by_generic"]
-    with_floor = diagnosis._beyond_generic(meas, r, Xc, Jm, (G, 0.41, r, above), 1, 400, 0.18)
+    with_floor = diagnosis._beyond_generic(meas, r, Xc, Jm,
+                                           diagnosis._generic(Jm, G, 0.41, r, above), 1, 400,
+                                           0.18)
     assert not with_floor["matched_by_generic"]
 
 
@@ -586,7 +589,7 @@ def test_the_test_beyond_generic_terms_holds_its_level_on_correlated_rows():
     for _ in range(200):
         e, x = _ar1(rng, n, 0.95), _ar1(rng, n, 0.95)
         G = rng.standard_normal((n, 2))
-        generic = (G, 0.5, e - e.mean(), 1.0)
+        generic = diagnosis._generic(Jm, G, 0.5, e - e.mean(), 1.0)
         p.append(diagnosis._beyond_generic(meas, e - e.mean(), (x - x.mean())[:, None], Jm,
                                            generic, 1, n, 0.0)["p_beyond_generic"])
     p = np.array(p)
@@ -595,7 +598,8 @@ def test_the_test_beyond_generic_terms_holds_its_level_on_correlated_rows():
     x = _ar1(rng, n, 0.95)
     r = x + 0.2 * rng.standard_normal(n)
     found = diagnosis._beyond_generic(meas, r - r.mean(), (x - x.mean())[:, None], Jm,
-                                      (rng.standard_normal((n, 2)), 0.5, r - r.mean(), 1.0),
+                                      diagnosis._generic(Jm, rng.standard_normal((n, 2)), 0.5,
+                                                        r - r.mean(), 1.0),
                                       1, n, 0.0)
     assert found["p_beyond_generic"] < 1e-6
 
