@@ -67,7 +67,11 @@ from deltatwin.calibration.diagnosis.model_form import (
 )
 from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
-from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
+from deltatwin.calibration.physics.fit import (
+    PhysicsFit,
+    fit_from_starts,
+    fitted_again_where_it_ended,
+)
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
     _projected,
@@ -751,8 +755,12 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     last rung's first start), reused instead of refitted (``fit_from_starts``). Each model
     is fitted from the priors and from the previous model's values, the baseline from the
     priors and from the baseline without each of its effects after the first; another start
-    than the priors is kept when it lowers the calibration cost beyond chance (ALPHA). The
-    fits may evaluate LADDER_EVALUATIONS points unless ``fit_options`` say otherwise.
+    than the priors is kept when it lowers the calibration cost beyond chance (ALPHA); a
+    model that added an effect is then fitted again from where it ended, in the directions
+    identified there, if they leave a step (``fitted_again_where_it_ended``: kept when its
+    calibration cost is lower; the baseline is not, its linearised candidates are judged
+    where its fit ends). The fits may evaluate LADDER_EVALUATIONS points unless
+    ``fit_options`` say otherwise.
 
     An effect is kept only if its refit lowers the validation error: a refit that predicts
     the validation rows worse than the model without the effect (its parameters taking
@@ -776,7 +784,8 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
 
     Returns (ladder, diagnoses, fits): one ladder row per model kept ({model, effects, added,
     n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm,
-    achievable_floor_nm, fit_status, fit_start: the start its fit was kept from}), the
+    achievable_floor_nm, fit_status, fit_start: the start its fit was kept from,
+    fitted_again: whether ``fitted_again_where_it_ended`` replaced it}), the
     diagnosis of every model, and the fits."""
     noise = ((meta or {}).get("truth") or {}).get("noise_floor_nm")
     achievable = ((meta or {}).get("truth") or {}).get("achievable_floor_nm")
@@ -816,6 +825,10 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                                                                      known)}
         fit = fit_from_starts(effects, starts, df, meta, made=made, chance_alpha=ALPHA,
                               **fit_options)
+        if fits:
+            # a rung that added an effect: its fit chose its directions at its start, where
+            # the added effect sat at the library's guess (fitted_again_where_it_ended)
+            fit = fitted_again_where_it_ended(fit)
         if fits and fit.val_["all"]["err_p90"] > fits[-1].val_["all"]["err_p90"]:
             d = diagnoses[-1]
             if "refit_rejected" in d:
@@ -848,7 +861,8 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                        "val_err90_by_axis_nm": {a: fit.val_[a]["err_p90"] for a in AXES
                                                 if a in fit.val_},
                        "noise_floor_nm": noise, "achievable_floor_nm": achievable,
-                       "fit_status": fit.status_, "fit_start": fit.start_label_})
+                       "fit_status": fit.status_, "fit_start": fit.start_label_,
+                       "fitted_again": fit.fitted_again_})
         if progress:
             progress(f"diagnose {'+'.join(effects) or 'nominal robot'}")
         d = diagnose(fit, data)
