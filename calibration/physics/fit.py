@@ -527,9 +527,9 @@ def fitted_again_where_it_ended(fit: PhysicsFit) -> PhysicsFit:
     (``effect_ladder``): done in every fit, the shipped quiet loop-drift baseline moved to a
     lower calibration cost where loop drift's linearised candidate was no longer
     significant, and 12 cases cost a third more CPU."""
-    meas = fit.measurements_
     if not fit.converged_ or not fit.model_.n_free:
         return fit
+    meas = fit.measurements_
     Js = _projected(meas, meas.cal, fit.jacobian_, scale=fit.model_.scales)
     _, s, Vt = np.linalg.svd(Js, full_matrices=False)
     V = Vt[_identified(s, fit.noise_nm, fit.identifiable_ratio)].T

@@ -382,7 +382,9 @@ class _Fit:
         self.model_ = type("M", (), {"n_free": 1, "values": lambda self: {}})()
         self.identifiability_ = {"n_identified_directions": 1}
         self.val_ = {"all": {"err_p90": val_nm}}
-        self.status_, self.start_label_ = "converged", "priors"
+        self.start_label_ = "priors"
+        # unconverged: fitted_again_where_it_ended returns it as it is
+        self.status_, self.converged_, self.fitted_again_ = "not converged", False, False
 
 
 def test_the_ladder_keeps_an_effect_only_if_its_refit_predicts_validation_better(monkeypatch):
@@ -401,6 +403,33 @@ def test_the_ladder_keeps_an_effect_only_if_its_refit_predicts_validation_better
     ladder, _, _ = diagnosis.effect_ladder(pd.DataFrame(), None, ["geometric_errors"],
                                            max_added=1)
     assert [r["val_err90_nm"] for r in ladder] == [45.0, 30.0]
+
+
+def test_the_ladder_fits_again_where_they_ended_only_the_rungs_that_added_an_effect(
+        monkeypatch):
+    """The baseline's fit is diagnosed where it ended (its candidates linearised there); a
+    rung that added an effect is fitted again from where it ended (fitted_again_where_it_ended),
+    the fit it returns the rung's, said in its ladder row."""
+    named = iter(["magnetic_force", "loop_drift", None])
+    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data, **kw: {
+        "missing_effect": next(named), "ranking": [], "extrapolation": {}})
+    errors = iter([297.0, 120.0, 100.0, 80.0, 70.0])
+    monkeypatch.setattr(diagnosis, "fit_from_starts",
+                        lambda effects, *a, **k: _Fit(effects, next(errors)))
+    again = []
+
+    def fitted_again(fit):
+        again.append(list(fit.effects))
+        out = _Fit(fit.effects, next(errors))
+        out.fitted_again_ = True
+        return out
+    monkeypatch.setattr(diagnosis, "fitted_again_where_it_ended", fitted_again)
+    ladder, _, fits = diagnosis.effect_ladder(pd.DataFrame(), None, ["geometric_errors"])
+    assert again == [["geometric_errors", "magnetic_force"],
+                     ["geometric_errors", "magnetic_force", "loop_drift"]]
+    assert [r["val_err90_nm"] for r in ladder] == [297.0, 100.0, 70.0]
+    assert [r["fitted_again"] for r in ladder] == [False, True, True]
+    assert all(f.fitted_again_ for f in fits[1:])
 
 
 def test_the_ladder_tries_the_next_significant_effect_when_a_refit_is_rejected(monkeypatch):
