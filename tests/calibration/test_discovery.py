@@ -622,9 +622,10 @@ def test_the_benchmark_refuses_an_only_prefix_that_selects_no_case():
 
 def test_a_direction_counts_at_its_estimated_size_only_where_the_data_know_it():
     """``_determined``: the fit's rule (a change above noise / identifiable_ratio per typical
-    size), or a change of at least the noise per typical size whose estimate (the residual's
-    component along it) exceeds that threshold; never a direction the data know worse than
-    its typical size, whatever the residual holds along it."""
+    size), or, for a candidate with no direction determined so, a change of at least the
+    noise per typical size whose estimate (the residual's component along it) exceeds that
+    threshold; never a direction the data know worse than its typical size, whatever the
+    residual holds along it."""
     fit = SimpleNamespace(noise_nm=5.0, identifiable_ratio=0.3)
     threshold = 5e-9 / 0.3
     U = np.eye(4)
@@ -632,7 +633,10 @@ def test_a_direction_counts_at_its_estimated_size_only_where_the_data_know_it():
     r = threshold * np.array([0.0, 3.0, 0.5, 30.0])
     determined, sized = diagnosis._determined(fit, U, s, r)
     assert determined.tolist() == [True, False, False, False]
-    assert sized.tolist() == [False, True, False, False]
+    # a candidate with a determined direction is held along the rest (``_held_at``)
+    assert not sized.any()
+    determined, sized = diagnosis._determined(fit, U[:, 1:], s[1:], r)
+    assert not determined.any() and sized.tolist() == [True, False, False]
 
 
 @pytest.mark.parametrize("hidden", [True, False])
