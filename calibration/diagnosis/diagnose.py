@@ -163,7 +163,6 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, e0: n
                 for h, r_h, d_h in tried]
     held, verdict, after, coef = min(verdicts, key=lambda v: (not v[1]["significant"],
                                                               v[1]["delta_bic"]))
-    fig = figures_nm(after, meas.val)
     # where directions count at their estimated size, the model refitted with the candidate
     # holds what its fit does not determine at that estimate (``effect_ladder``), not at the
     # library's start: the fit's rule, at a typical size, would hold them there again
@@ -229,7 +228,7 @@ def _determined(fit: PhysicsFit, U: np.ndarray, s: np.ndarray, r: np.ndarray):
     direction by the size the library expects; an effect far beyond it (beam misalignment at
     ten times the library's angles and offsets: its directions beyond geometric_errors' span
     change the readings by 0.4-0.7 of the threshold per typical size, the calibration rows put
-    8-10 typical sizes on them, calibration p = 6e-33) is determined at its own size. A
+    5-10 typical sizes on them, calibration p = 6e-33) is determined at its own size. A
     direction counts so when the data know it to within one typical size (its change per
     typical size at least the noise) and the residual's component along it, its change at the
     calibration rows' estimate, exceeds the threshold: known to identifiable_ratio of its
@@ -863,7 +862,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             # (``_determined``): from the calibration rows' estimate, held there along what
             # the fit does not determine (at the library's start its fit holds them where the
             # linearisation found nothing: beam misalignment at ten times the library's
-            # values, 17.2 nm validation against 14.4 from the estimate, floor 14.2)
+            # values, 17.2 nm validation against 14.3 from the estimate, floor 14.2)
             estimate = next((c.get("estimate") for c in diagnoses[-1]["ranking"]
                              if c["effect"] == effects[-1]), None)
             if estimate:

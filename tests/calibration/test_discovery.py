@@ -644,7 +644,7 @@ def test_an_absorbed_effect_far_beyond_its_typical_size_is_named_and_refitted(tm
     """A generated thermal case hiding beam misalignment at ten times the library's angles and
     offsets (seed 3737, its eleventh case): at one typical size 99.9 % of its signature lies
     in geometric_errors' span and no direction beyond it is determined by the fit's rule, but
-    the calibration rows put 6-10 typical sizes on its directions beyond the span. Determined
+    the calibration rows put 5-10 typical sizes on its directions beyond the span. Determined
     at that size, it is named; the ladder refits it from the calibration rows' estimate and
     the validation error falls to the floor (held at the library's start, zero, the refit
     stopped at 17.2 nm against 16.5). The same case with nothing hidden names nothing."""
