@@ -73,8 +73,8 @@ def score(case, floor: dict, ladder: list, diagnoses: list, rows: int) -> dict:
     rounds, absorbed, wrong, seen = [], [], [], collections.Counter()
     for d in diagnoses:
         missing = hidden - set(d["effects"])
-        if d["missing_effect"] and d["missing_effect"] not in hidden:
-            wrong.append(d["missing_effect"])
+        # two effects named together (``_pair``) are two claims
+        wrong += [e for e in _named(d) if e not in hidden]
         if not missing:
             continue
         by_effect = {c["effect"]: c for c in d["ranking"]}
@@ -91,8 +91,15 @@ def score(case, floor: dict, ladder: list, diagnoses: list, rows: int) -> dict:
             "absorbed_reported": absorbed, "wrong": wrong, "separability": seen,
             # a named effect is a claim, kept or not (the ladder keeps only refits that lower
             # the validation error)
-            "false_claim": not hidden and any(d["missing_effect"] for d in diagnoses),
+            "false_claim": not hidden and any(_named(d) for d in diagnoses),
             "at_floor": final <= AT_FLOOR * floor["achievable_floor_nm"]["all"]}
+
+
+def _named(diagnosis: dict) -> list:
+    """The effects a diagnosis names: its missing effect, and the one named with it when the
+    ladder added two together (``diagnosis["pair"]``)."""
+    return ([diagnosis["missing_effect"]] if diagnosis["missing_effect"] else []) + \
+        diagnosis.get("pair", {}).get("effects", [])[1:]
 
 
 def separability(row: dict, at_floor: bool) -> str:
