@@ -839,6 +839,12 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     library's CTEs: held at the library's values its refit predicted validation worse on five
     of twelve seeds, 1.13-1.26x the floor).
 
+    Where a diagnosis names no effect and the model is above AT_FLOOR times the achievable
+    floor, two effects may be added together as one rung (``_pair``: each too small alone,
+    significant together against the model and lowering the validation error); the
+    diagnosis then names the first (``missing_effect``) and records the pair (``pair``, and
+    every pair tried in ``pairs_tried``), the rung's ``added`` is "first + second".
+
     Returns (ladder, diagnoses, fits): one ladder row per model kept ({model, effects, added,
     n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm,
     achievable_floor_nm, fit_status, fit_start: the start its fit was kept from,
@@ -978,7 +984,7 @@ def _pair(fit: PhysicsFit, diagnosis: dict, df: pd.DataFrame, meta: dict | None,
     the floor closed), at ALPHA over the number of pairs (Bonferroni); the significant pair of
     lowest BIC is returned when it also lowers the validation error (the ladder's rule), its
     verdict in ``diagnosis["pair"]``."""
-    if diagnosis["at_floor"] is not False:
+    if diagnosis.get("at_floor") is not False:
         return None
     ranking = [c for c in diagnosis["ranking"] if "failed" not in c]
     refitted = [c for c in ranking if not c["significant"] and c.get("refit_gap_closed", 0) > 0]
