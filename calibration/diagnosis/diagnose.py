@@ -780,13 +780,8 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
                                      form=form if best is None else False,
                                      target=frame.target, attribution=attribution)
     if best:
-        effects = ",".join(fit.model_.specs + [best["effect"]])
         out["missing_effect"] = best["effect"]
-        known = "".join(f" --set {e}.{k}={','.join(str(x) for x in np.ravel(v))}"
-                        for e, values in fit.known_.items() for k, v in values.items())
-        out["next_command"] = f"deltatwin fit {data} --effects {effects}{known} -o fitted.toml"
-        out["scenario_change"] = (f"add \"{best['effect']}\" to the model's effects "
-                                  f"(a scenario's [hidden] baseline, or --effects)")
+        out.update(_next_step(fit, [best["effect"]], data))
         out["unexplained"] = {"claimed": False, **dependence}
     else:
         out["missing_effect"] = None
@@ -941,6 +936,12 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             if pair is not None:
                 # the two effects are one rung: neither is claimed without the other
                 d["missing_effect"] = pair.effects[-2]
+                d.update(_next_step(fit, pair.effects[-2:], data))
+                d["unexplained"]["message"] = (
+                    f"no library effect explains the residual significantly alone; "
+                    f"{pair.effects[-2]} and {pair.effects[-1]} together do "
+                    f"(calibration p = {d['pair']['p_value']:.2g}, closing "
+                    f"{100 * d['pair']['gap_closed']:.0f} % of the gap to the floor)")
                 effects = list(pair.effects)
                 fits.append(pair)
                 ladder.append({**_rung(pair, noise, achievable),
@@ -952,6 +953,17 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             break
         effects = effects + [d["missing_effect"]]
     return ladder, diagnoses, fits
+
+
+def _next_step(fit: PhysicsFit, added: list, data: str) -> dict:
+    """A diagnosis' ``next_command`` and ``scenario_change`` for the ``added`` effects."""
+    effects = ",".join(fit.model_.specs + added)
+    known = "".join(f" --set {e}.{k}={','.join(str(x) for x in np.ravel(v))}"
+                    for e, values in fit.known_.items() for k, v in values.items())
+    names = " and ".join(f'"{e}"' for e in added)
+    return {"next_command": f"deltatwin fit {data} --effects {effects}{known} -o fitted.toml",
+            "scenario_change": (f"add {names} to the model's effects (a scenario's [hidden] "
+                                "baseline, or --effects)")}
 
 
 def _rung(fit: PhysicsFit, noise: float | None, achievable) -> dict:

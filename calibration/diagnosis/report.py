@@ -140,6 +140,10 @@ def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
             lines += ["", f"Named: **{d['missing_effect']}**; "
                       + d["refit_rejected"]["message"] + "."]
             lines += [tried_instead_line(t, markdown=True) for t in d["tried_instead"]]
+        elif d.get("pair"):
+            lines += ["", "Missing effects, together (neither significant alone): "
+                      + " and ".join(f"**{e}**" for e in d["pair"]["effects"])
+                      + f". Add them with `{d['next_command']}`."]
         elif d["missing_effect"]:
             lines += ["", f"Missing effect: **{d['missing_effect']}**. Add it with "
                       f"`{d['next_command']}`."]

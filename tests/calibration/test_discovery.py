@@ -733,6 +733,7 @@ def test_two_effects_too_small_alone_are_added_together_and_reach_the_floor(tmp_
     assert first["pair"]["significant"] and first["missing_effect"] == "loop_drift"
     assert any(not p["significant"] for p in first["pairs_tried"])
     assert ladder[1]["added"] == "loop_drift + air_refraction"
+    assert "loop_drift,air_refraction" in first["next_command"]
     assert fits[1].effects[-2:] == ["loop_drift", "air_refraction"]
     assert ladder[0]["val_err90_nm"] > 1.2 * floor["all"], ladder
     assert ladder[-1]["val_err90_nm"] <= 1.1 * floor["all"], ladder
