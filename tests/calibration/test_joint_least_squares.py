@@ -156,3 +156,88 @@ def test_one_column_is_normalised_as_the_svd_would():
     tiny = _orthonormal(x * 1e-170)
     assert tiny.shape == (300, 1)
     np.testing.assert_allclose(np.abs(tiny), np.abs(u), atol=1e-14)
+
+
+def _screened_frame(rng, n=600, n_val=300):
+    """A JointFrame on a synthetic _Joint (no model directions, three reading axes): the
+    calibration residual r, the validation residual b, and blocks (P, D) of columns."""
+    from deltatwin.calibration.diagnosis.model_form import JointFrame
+
+    joint = object.__new__(_Joint)
+    joint.r, joint.b = rng.normal(size=n), rng.normal(size=n_val)
+    joint.axis_of = np.repeat(np.arange(3), n_val // 3)
+    joint.Qm, joint.n_groups, joint._grams = np.zeros((n, 0)), 3, {}
+    frame = object.__new__(JointFrame)
+    frame.joint, frame.axes, frame.n_axes = joint, [0, 1, 2], 3
+    x, y = rng.normal(size=n), rng.normal(size=n_val)
+    blocks = [(np.column_stack([x, x ** 2]) * [1.0, 1e-6], np.column_stack([y, y ** 2]) * [1.0, 1e-6]),
+              (np.column_stack([2 * x + 1e-5 * rng.normal(size=n), rng.normal(size=n)]),
+               rng.normal(size=(n_val, 2))),                     # nearly x again
+              (np.column_stack([3 * x, x ** 2]), rng.normal(size=(n_val, 2))),   # x, x^2 again
+              (np.zeros((n, 1)), np.zeros((n_val, 1)))]           # a column without values
+    # blocks that explain part of r (and of b: their validation columns follow it)
+    for scale in (0.3, 0.1, 0.1, 0.02):
+        P, D, beta = rng.normal(size=(n, 3)), rng.normal(size=(n_val, 3)), rng.normal(size=3)
+        joint.r, joint.b = joint.r + scale * P @ beta, joint.b + scale * D @ beta
+        blocks.append((P, D))
+    return frame, blocks
+
+
+def test_estimates_are_the_fits_within_their_bounds_and_unsure_where_dependent():
+    """_Joint.estimates (a forward selection's screen) against the exact fit of every lead and
+    trial: within its bounds (and far inside them) where it estimates, None for a block (or a
+    lead) nearly dependent or without values."""
+    frame, blocks = _screened_frame(np.random.default_rng(8))
+    for lead in ([], [0], [4], [4, 5], [0, 1]):
+        trials = [i for i in range(len(blocks)) if i not in lead]
+        ests = frame.estimates([blocks[j] for j in lead], [blocks[i] for i in trials])
+        for i, est in zip(trials, ests):
+            if lead == [0, 1]:                  # the lead itself nearly dependent
+                assert est is None
+                continue
+            if i == 3 or (i in (1, 2) and 0 in lead):
+                # a zero column; x nearly and exactly again (block 0's x^2 at 1e-6 is fine)
+                assert est is None, (lead, i)
+                continue
+            exact = frame.fit([blocks[j] for j in lead + [i]])
+            assert est is not None, (lead, i)
+            assert est["rank"] == exact["rank"] and est["dof"] == exact["dof"]
+            assert abs(est["rss"] - exact["rss_cal"]) < 1e-3 * est["rss_tol"]
+            assert abs(est["rss"] - exact["rss_cal"]) < 1e-11 * exact["rss_cal"]
+            assert abs(est["val_power"] - exact["val_power"]) < 1e-3 * est["val_tol"]
+
+
+def test_the_screened_forward_step_is_the_exhaustive_one():
+    """attribution._best_addition (estimates rule out, a few are fitted) chooses what fitting
+    every trial chooses (the largest validation gain among the terms that qualify, the first of
+    equal ones), with the same p value and fit, fitting a few of them."""
+    from deltatwin.calibration.diagnosis.attribution import Term, _best_addition, _joins
+
+    frame, blocks = _screened_frame(np.random.default_rng(9))
+    blocks.append(blocks[5])                 # an equal twin of block 5: the first one wins
+    terms = [Term(f"v{i}", "power 1", np.zeros((1, 1)), scanned=int(i == 6))
+             for i in range(len(blocks))]
+    fitted = []
+    fit = frame.fit
+    frame.fit = lambda bl: (fitted.append(len(bl)), fit(bl))[1]
+    for chosen in ([], [4], [4, 6], [0, 4, 6]):
+        current = fit([blocks[j] for j in chosen])
+        trials = [i for i in range(len(blocks)) if i not in chosen]
+        # the selection's thresholds; a p value too strict; every term qualifying (the unsure
+        # ones too: fitted first, not the best); no term qualifying
+        for limit, min_gain in ((1e-3, 0.02 * current["val_power"]), (1e-30, 0.0),
+                                (1.0, -np.inf), (1e-3, 1e9)):
+            want = None
+            for i in trials:        # the exhaustive selection: every trial fitted
+                after = fit([blocks[j] for j in chosen + [i]])
+                joins = _joins(terms[i], after, current, 3, limit, min_gain)
+                if joins is not None and (want is None or joins[0] > want[1]):
+                    want = (i, *joins, after)
+            fitted.clear()
+            got = _best_addition(frame, terms, blocks, chosen, trials, current, limit, min_gain)
+            if want is None:
+                assert got is None
+                continue
+            assert got[:3] == want[:3] and got[3] == want[3], (chosen, limit)
+            # the unsure trials (1, 2, 3 and their like) are fitted, a few others
+            assert len(fitted) <= 6, (chosen, fitted)
