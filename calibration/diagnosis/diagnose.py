@@ -119,17 +119,18 @@ def _response(fit: PhysicsFit, name: str) -> tuple[np.ndarray, np.ndarray]:
     return A, J[:, :, new] * model.scales[new]
 
 
-def _responses(fit: PhysicsFit, names: list) -> dict:
-    """``_response`` of each candidate, or the error that stopped it (raised where its row of
-    the ranking is made): they depend on the fit alone, so ``diagnose`` makes them beside what
-    it computes first (models.batched.in_background)."""
+def _responses(fit: PhysicsFit, names: list, spans: bool) -> tuple[dict, dict]:
+    """``_response`` of each candidate (or the error that stopped it, raised where its row of
+    the ranking is made), and ``_effect_spans(fit)`` if ``spans`` (else {}): they depend on the
+    fit alone, so ``diagnose`` makes them beside what it computes first
+    (models.batched.in_background)."""
     out = {}
     for name in names:
         try:
             out[name] = _response(fit, name)
         except CANDIDATE_ERRORS as exc:
             out[name] = exc
-    return out
+    return out, _effect_spans(fit) if spans else {}
 
 
 def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: np.ndarray,
@@ -631,10 +632,11 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     meas = fit.measurements_
     cal = meas.cal
     k_m = fit.identifiability_["n_identified_directions"]
-    # the candidates' Jacobians depend on the fit alone: on a second core where the command
-    # has one (docs/performance.md), beside the model's directions, the scans and the form
+    # the candidates' Jacobians and the model effects' spans depend on the fit alone: on a
+    # second core where the command has one (docs/performance.md), beside the model's
+    # directions, the scans and the form
     candidates = [e for e in model_effects() if e not in fit.effects]
-    responses_made = in_background(_responses, fit, candidates)
+    responses_made = in_background(_responses, fit, candidates, bool(candidates and k_m))
     # the model's identified directions on every row, made once for the form, the attribution
     # and every candidate: one (3N, p) x (p, k) product (the (N,3,p) Jacobian scaled first and
     # multiplied as a stack of N (3, p) matrices took 4x longer), then on the calibration
@@ -681,8 +683,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     generic = _generic(Jm, _projected(meas, cal, G), generic_explained, r0,
                        _above_floor_share(fit.val_["all"]["err_p90"], floor_all))
     ranking = []
-    effect_spans = _effect_spans(fit) if candidates and k_m else {}
-    responses = responses_made()
+    responses, effect_spans = responses_made()
     for name in candidates:
         if progress:
             progress(name)
