@@ -203,6 +203,20 @@ class Residual:
             per_axis.append((k, rows, coef, fitted, e))
         return per_axis, {"rss_cal": rss, "n_cal": n_cal, "val_power": val_power, "rank": rank}
 
+    def rss_each(self, X: np.ndarray) -> np.ndarray:
+        """The calibration sum of squares (every axis) after each column of X (N,c) fitted
+        alone, as ``fit`` fits one column (its least squares in closed form: a column of
+        zeros fits nothing), for a scan over c columns in one pass: (c,)."""
+        out = np.zeros(X.shape[1])
+        for _, rows, r in self.axes:
+            c = self.cal[rows]
+            Xc, rc = self.demeaned(X, rows)[c], r[c]
+            xx = np.einsum("ij,ij->j", Xc, Xc)
+            coef = (Xc.T @ rc) / np.where(xx > 0, xx, 1.0)
+            e = rc[:, None] - Xc * coef
+            out += np.einsum("ij,ij->j", e, e)
+        return out
+
     def val_power(self) -> float:
         return sum(float(np.sum(r[self.val[rows]] ** 2)) for _, rows, r in self.axes)
 

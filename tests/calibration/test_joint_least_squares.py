@@ -1,6 +1,7 @@
 """The joint form's least squares (model_form._Joint) against numpy's, including its kept
 factorisation of the leading blocks and rank-deficient blocks."""
 import numpy as np
+import pytest
 
 from deltatwin.calibration.diagnosis.model_form import _Joint
 
@@ -241,3 +242,29 @@ def test_the_screened_forward_step_is_the_exhaustive_one():
             assert got[:3] == want[:3] and got[3] == want[3], (chosen, limit)
             # the unsure trials (1, 2, 3 and their like) are fitted, a few others
             assert len(fitted) <= 6, (chosen, fitted)
+
+
+def test_rss_each_is_the_fit_of_each_column_alone():
+    """attribution.Residual.rss_each (the ramp's moment scanned in one pass) is the calibration
+    sum of squares ``Residual.fit`` leaves after each column alone: two axes, sessions with
+    their own zeros, a validation period, a column of zeros and one zero on the calibration
+    rows after the session means."""
+    from deltatwin.calibration.diagnosis.attribution import Residual
+
+    rng = np.random.default_rng(17)
+    n = 400
+    t = np.sort(rng.uniform(0.0, 7200.0, n))
+    session = np.where(t < 3000.0, "a", "b")
+    cal = t < 5000.0
+    res = np.column_stack([1e-8 * np.maximum(t - 2500.0, 0.0) / 3600 + 1e-9 * rng.normal(size=n),
+                           np.full(n, np.nan), 3e-9 * np.sin(t / 500.0)])
+    res[::7, 2] = np.nan                               # axis 2 not read on every row
+    target = Residual(res, cal, ~cal, session, t)
+    taus = np.quantile(t[cal], np.linspace(0.05, 0.95, 19))
+    X = np.column_stack([np.maximum(t[:, None] - taus, 0.0), np.zeros(n),
+                         (session == "a").astype(float)])
+    got = target.rss_each(X)
+    want = np.array([target.fit(X[:, [j]])[1]["rss_cal"] for j in range(X.shape[1])])
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert np.argmin(got) == np.argmin(want)
+    assert got[-2] == pytest.approx(target.fit(X[:, :0])[1]["rss_cal"], rel=1e-14)   # nothing fitted
