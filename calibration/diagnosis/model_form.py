@@ -35,6 +35,8 @@ it).
 """
 from __future__ import annotations
 
+import functools
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -460,6 +462,32 @@ class _Joint:
                         "rank": n_lead + P.shape[1]})
         return out
 
+    def gains(self, basis: np.ndarray, Ps: list) -> list:
+        """For each block P of ``Ps``: an estimate of what it adds to the orthonormal ``basis``
+        (n,m) in the residual's sum of squares, |Pn^T r|^2 (Pn: an orthonormal basis of P less
+        its part in ``basis``), and a bound on its error (gain, bound), or None where that is
+        not sure (the block nearly in the span of the basis, or of rank in doubt by
+        ``_orthonormal``'s rule): as ``estimates``, for model_form._forward."""
+        Br = basis.T @ self.r
+        A = np.column_stack([basis, self.r])
+        out = []
+        for P in Ps:
+            gram, norm = self._gram(P)
+            K = A.T @ P
+            W = K[:-1] / norm
+            S = gram - W.T @ W
+            eig = np.linalg.eigvalsh(S)
+            # full rank for sure (singular values of P less its basis part well above 1e-10
+            # of the largest, unscaled), the estimate sure to SURE_EIGENVALUE (scaled)
+            unscaled = np.linalg.eigvalsh(S * np.outer(norm, norm))
+            if eig[0] < SURE_EIGENVALUE or unscaled[0] < 1e-12 * unscaled[-1]:
+                out.append(None)
+                continue
+            L = np.linalg.cholesky(S)
+            t = np.linalg.solve(L, K[-1] / norm - W.T @ Br)
+            out.append((float(t @ t), 1e-6 * float(self.r @ self.r)))
+        return out
+
     def _gram(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(P^T P with P's columns at unit norm, their norms) of a block, made once."""
         kept = self._grams.get(id(P))
@@ -658,20 +686,34 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
     chosen, basis = [], np.zeros((n, 0))
     rss, val_power = float(r @ r), p0
     while True:
-        best, trials = None, {}
-        for i, (P, _, scanned) in enumerate(blocks):
-            if i in chosen or i in deferred or not limit_of(chosen, i):
-                continue
-            Pn = _orthonormal(P - basis @ (basis.T @ P))
-            if not Pn.shape[1]:
-                continue
-            gain = float(np.sum((Pn.T @ r) ** 2))
-            kk = Pn.shape[1] + scanned
-            df2 = n - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1] - joint.n_groups
-            if df2 > 0 and gain < rss:
-                trials[i] = (i, gain, Pn, kk, df2)
-                if best is None or gain > best[1]:
-                    best = trials[i]
+        # the trials (i, gain, Pn, kk, df2) of the blocks that can join: the strongest among
+        # them found from the gains' estimates with their bounds (_Joint.gains), then the
+        # others that decide its tries (its variable's, their physical forms') made too
+        eligible = [i for i in range(len(blocks))
+                    if i not in chosen and i not in deferred and limit_of(chosen, i)]
+        made = {}                  # block -> its trial, or None where it cannot join
+        make = functools.partial(_made, made, joint, blocks, basis, rss)
+        best = None
+        bounds = [(math.inf if est is None else est[0] + est[1], i)
+                  for i, est in zip(eligible, joint.gains(basis, [blocks[i][0]
+                                                                  for i in eligible]))]
+        for bound, i in sorted(bounds, key=lambda b: (-b[0], b[1])):
+            if best is not None and bound < best[1]:
+                break
+            t = make(i)
+            if t is not None and (best is None or t[1] > best[1]
+                                  or (t[1] == best[1] and i < best[0])):
+                best = t
+        if best is not None:
+            same = [i for i in eligible
+                    if variable_of is not None and variable_of[i] == variable_of[best[0]]]
+            for i in [best[0]] + same:
+                make(i)
+                for j in physical.get(i, ()):
+                    if j in eligible:
+                        make(j)
+        # the trials made, in the order of the blocks (the sort below keeps it among ties)
+        trials = {i: made[i] for i in sorted(made) if made[i] is not None}
         # the blocks tried, in order: the strongest, then those the calibration rows cannot
         # tell from it, strongest first; each preceded by its physical alternative where it
         # is not significantly better than that
@@ -705,6 +747,23 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
             break
         chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
     return _backward(joint, blocks, chosen, limit, min_share * p0)
+
+
+def _made(made: dict, joint: _Joint, blocks: list, basis: np.ndarray, rss: float, i: int):
+    """_forward's trial of block i (P, D, scanned) beside the chosen blocks' orthonormal
+    ``basis``, made once (kept in ``made``): (i, gain in the calibration sum of squares
+    ``rss``, the block's new orthonormal columns Pn, its parameters, the residual's degrees of
+    freedom after it), or None where it adds no column or leaves no degree of freedom or no
+    residual."""
+    if i not in made:
+        P, _, scanned = blocks[i]
+        Pn = _orthonormal(P - basis @ (basis.T @ P))
+        df2 = (joint.r.size - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1]
+               - joint.n_groups)
+        gain = float(np.sum((Pn.T @ joint.r) ** 2))
+        made[i] = ((i, gain, Pn, Pn.shape[1] + scanned, df2)
+                   if Pn.shape[1] and df2 > 0 and gain < rss else None)
+    return made[i]
 
 
 def _better(a: tuple, b: tuple, rss: float, limit: float) -> bool:

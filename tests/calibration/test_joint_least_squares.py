@@ -268,3 +268,73 @@ def test_rss_each_is_the_fit_of_each_column_alone():
     np.testing.assert_allclose(got, want, rtol=1e-12)
     assert np.argmin(got) == np.argmin(want)
     assert got[-2] == pytest.approx(target.fit(X[:, :0])[1]["rss_cal"], rel=1e-14)   # nothing fitted
+
+
+def test_the_screened_forward_selection_is_the_exhaustive_one(monkeypatch):
+    """model_form._forward with its trials screened by _Joint.gains chooses the blocks that
+    trying every block chooses (gains all unsure: every trial made), with variables of several
+    blocks (the alike ones tried in the strongest's place) and physical alternatives, making
+    fewer trials."""
+    from deltatwin.calibration.diagnosis import model_form
+
+    rng = np.random.default_rng(23)
+    frame, pairs = _screened_frame(rng, n=900, n_val=450)
+    joint = frame.joint
+    n, n_val = joint.r.size, joint.b.size
+    x = rng.normal(size=n)
+    # a variable's powers on three "axes" (blocks of its own), one the residual follows
+    for k in (1, 2, 3):
+        P = np.column_stack([x ** k, rng.normal(size=n)])
+        pairs.append((P, rng.normal(size=(n_val, 2))))
+    joint.r = joint.r + 0.2 * pairs[-2][0] @ [1.0, 0.3]
+    joint.b = joint.b + 0.2 * pairs[-2][1] @ [1.0, 0.3]
+    blocks = [(P, D, int(i % 3 == 0)) for i, (P, D) in enumerate(pairs)]
+    variable_of = ["a", "a", "a", "z", "b", "c", "d", "e", "x", "x", "x"]
+    physical = {8: [4, 9], 10: [5]}
+    made, chosen = [], []
+    orthonormal = model_form._orthonormal
+    monkeypatch.setattr(model_form, "_orthonormal", lambda X: (made.append(1), orthonormal(X))[1])
+    for alpha, min_share in ((1e-3, 0.02), (1.0, 0.0), (1e-3, 0.5)):
+        args = (joint, blocks, alpha, min_share, lambda chosen, i: len(chosen) < 5,
+                frozenset({7}), physical, variable_of)
+        made.clear()
+        got = model_form._forward(*args)
+        n_screened = len(made)
+        monkeypatch.setattr(joint, "gains", lambda basis, Ps: [None] * len(Ps))
+        made.clear()
+        want = model_form._forward(*args)
+        monkeypatch.undo()
+        monkeypatch.setattr(model_form, "_orthonormal",
+                            lambda X: (made.append(1), orthonormal(X))[1])
+        assert got == want, (alpha, min_share)
+        assert n_screened < len(made), (alpha, min_share)
+        chosen.append(got)
+    assert len(chosen[0]) >= 2 and len(chosen[1]) > len(chosen[0]) and not chosen[2]
+
+
+def test_the_screened_forward_selection_makes_the_trials_its_choice_depends_on():
+    """_forward's strongest block fails on validation; a weaker block of the same variable
+    (not significantly weaker on the calibration rows) would join in its place, and before it
+    its physical form (not significantly weaker than it) does: the screen makes those trials
+    though their gains are below the strongest's."""
+    from deltatwin.calibration.diagnosis import model_form
+
+    rng = np.random.default_rng(29)
+    frame, _ = _screened_frame(rng, n=3000, n_val=1500)
+    joint = frame.joint
+    n, n_val = joint.r.size, joint.b.size
+    u, v = rng.normal(size=n), rng.normal(size=n_val)
+    joint.r = rng.normal(size=n) + 0.3 * u
+    joint.b = rng.normal(size=n_val) + 0.3 * v
+    col = lambda x: x[:, None]
+    blocks = [(col(u + 0.02 * rng.normal(size=n)), col(rng.normal(size=n_val)), 0),   # x: fails
+              (col(u + 0.15 * rng.normal(size=n)), col(v), 0),                         # x
+              (col(u + 0.20 * rng.normal(size=n)), col(v + 0.01 * rng.normal(size=n_val)), 0),
+              (col(rng.normal(size=n)), col(rng.normal(size=n_val)), 0)]
+    args = (joint, blocks, 1e-3, 0.02, lambda chosen, i: len(chosen) < 1, frozenset(),
+            {1: [2]}, ["x", "x", "load", "y"])
+    want = [2]                      # the physical form of the weaker block of x
+    assert model_form._forward(*args) == want
+    gains = joint.gains(np.zeros((n, 0)), [P for P, _, _ in blocks])
+    assert all(g is not None for g in gains) and gains[0][0] > gains[1][0] + 10 * gains[1][1]
+    assert gains[1][0] > gains[2][0] + 10 * gains[2][1]
