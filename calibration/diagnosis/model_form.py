@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import functools
 import math
+import weakref
 from typing import NamedTuple
 
 import numpy as np
@@ -261,7 +262,6 @@ class _Joint:
     def __init__(self, fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray,
                  span: ModelSpan | None = None):
         meas = self.meas = fit.measurements_
-        self._grams = {}    # id of a block -> (the block, its Gram matrix, norms): estimates
         span = ModelSpan(Jm) if span is None else span
         self.Qm = span.orthonormal()
         self.r = r0 - self.Qm @ (self.Qm.T @ r0)
@@ -489,11 +489,14 @@ class _Joint:
         return out
 
     def _gram(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(P^T P with P's columns at unit norm, their norms) of a block, made once."""
-        kept = self._grams.get(id(P))
-        if kept is None or kept[0] is not P:
+        """(P^T P with P's columns at unit norm, their norms) of a block, made once (kept by
+        the block's id with a weak reference to it: an id reused by a new block is not taken,
+        and the block is not kept alive)."""
+        grams = self.__dict__.setdefault("_grams", {})
+        kept = grams.get(id(P))
+        if kept is None or kept[0]() is not P:
             norm = _column_norms(P)
-            kept = self._grams[id(P)] = (P, (P.T @ P) / np.outer(norm, norm), norm)
+            kept = grams[id(P)] = (weakref.ref(P), (P.T @ P) / np.outer(norm, norm), norm)
         return kept[1:]
 
     def best_step(self, t: np.ndarray) -> float | None:

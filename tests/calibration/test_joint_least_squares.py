@@ -167,7 +167,7 @@ def _screened_frame(rng, n=600, n_val=300):
     joint = object.__new__(_Joint)
     joint.r, joint.b = rng.normal(size=n), rng.normal(size=n_val)
     joint.axis_of = np.repeat(np.arange(3), n_val // 3)
-    joint.Qm, joint.n_groups, joint._grams = np.zeros((n, 0)), 3, {}
+    joint.Qm, joint.n_groups = np.zeros((n, 0)), 3
     frame = object.__new__(JointFrame)
     frame.joint, frame.axes, frame.n_axes = joint, [0, 1, 2], 3
     x, y = rng.normal(size=n), rng.normal(size=n_val)
