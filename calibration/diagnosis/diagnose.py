@@ -15,6 +15,10 @@ least-squares refit on the calibration rows (session zeros projected out) then g
 * the validation residual after (zeros re-estimated on the calibration rows): the explained
   fraction of the validation residual's power and its 90 % error.
 
+A direction also counts when the data know it to within one typical size and the calibration
+rows put it far beyond that size (``_determined``: an effect ten times the library's, absorbed
+at one typical size); the ladder then refits the candidate from that estimate.
+
 An effect is *significant* when p < ``alpha``, the BIC falls, and it explains at least
 ``min_explained`` of the validation residual — the guard against fitting noise with many
 parameters — or, when the calibration rows alone are not conclusive, when it closes half the
@@ -67,7 +71,11 @@ from deltatwin.calibration.diagnosis.model_form import (
 )
 from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
-from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
+from deltatwin.calibration.physics.fit import (
+    PhysicsFit,
+    fit_from_starts,
+    fitted_again_where_it_ended,
+)
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
     _projected,
@@ -97,6 +105,14 @@ REFITTED_AT_MOST = 2
 # a candidate's verdict when what its determined directions leave of its start is held off
 HELD_OFF = (" (its parameter combinations the data do not determine held at zero, not at "
             "the library's starting values)")
+
+
+def _sized_words(c: dict) -> str:
+    """What a significant candidate's verdict adds when some of its directions are determined
+    at their estimated size only (``_determined``)."""
+    k = c.get("sized_directions", 0)
+    return (f" ({k} of its directions determined at the size the calibration rows give them, "
+            "beyond what its typical size resolves: refitted from that estimate)") if k else ""
 
 
 def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
@@ -152,11 +168,12 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
     absorbed = _absorbed(Qm, Pc_all, _projected(meas, cal, delta0), effect_spans)
     # the candidate's directions beyond the model's own, that the data determine
     Pc = Pc_all - Qm @ (Qm.T @ Pc_all) if Jm.shape[1] else Pc_all
-    k_c = 0
+    k_c = k_sized = 0
     if Pc.shape[1]:
-        _, s, Vt = np.linalg.svd(Pc, full_matrices=False)
-        keep = s > (fit.noise_nm * 1e-9) / fit.identifiable_ratio
-        k_c = int(keep.sum())
+        U, s, Vt = np.linalg.svd(Pc, full_matrices=False)
+        determined, sized = _determined(fit, U, s, r)
+        keep = determined | sized
+        k_c, k_sized = int(keep.sum()), int(sized.sum())
         Vc = Vt[keep].T
     X = np.hstack([Jm, Pc_all @ Vc]) if k_c else Jm
     # the same change on every row (the model's own columns re-adjust too)
@@ -174,13 +191,20 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
     verdicts = [_refit_verdict(fit, X, full, h, r_h, d_h, e0, n, k_m, k_c, before,
                                floor_all_nm, Jm, generic, ALPHA / len(tried))
                 for h, r_h, d_h in tried]
-    held, verdict, after = min(verdicts, key=lambda v: (not v[1]["significant"],
-                                                        v[1]["delta_bic"]))
+    held, verdict, after, coef = min(verdicts, key=lambda v: (not v[1]["significant"],
+                                                              v[1]["delta_bic"]))
+    # where directions count at their estimated size, the model refitted with the candidate
+    # holds what its fit does not determine at that estimate (``effect_ladder``), not at the
+    # library's start: the fit's rule, at a typical size, would hold them there again
+    estimate = (_estimate(model, new, Vc @ coef[k_m:]) if k_sized and held != "off"
+                else None)
     fig = figures_nm(after, meas.val)
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],
             "val_err90_after_nm": fig["all"]["err_p90"],
             "val_err90_after_by_axis_nm": {a: fig[a]["err_p90"] for a in AXES if a in fig},
-            "new_directions": k_c, "held_at": held, "p_value": verdict["p_value"],
+            "new_directions": k_c - k_sized, "sized_directions": k_sized,
+            **({"estimate": estimate} if estimate else {}),
+            "held_at": held, "p_value": verdict["p_value"],
             "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
             "p_validation": verdict["p_validation"], "p_combined": verdict["p_combined"],
             "significant": verdict["significant"],
@@ -201,7 +225,7 @@ def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
     and the model's (``X`` on the calibration readings, ``full`` on every row) refitted to
     ``r`` (the calibration residual with ``delta0`` on), against the model's ``e0`` (its
     residual after its own directions' step), significant at ``alpha``: (held, verdict,
-    residual after)."""
+    residual after, the coefficients of ``X``'s columns)."""
     meas = fit.measurements_
     coef = np.linalg.lstsq(X, r, rcond=None)[0] if X.shape[1] else np.zeros(0)
     e1 = r - X @ coef
@@ -222,7 +246,43 @@ def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
         confirmed = verdict["gap_closed"] >= GAP_CLOSED and verdict["p_combined"] < alpha
         verdict["matched_by_generic"] &= verdict["significant"] and not confirmed
         verdict["significant"] &= not verdict["matched_by_generic"]
-    return held, verdict, after
+    return held, verdict, after, coef
+
+
+def _determined(fit: PhysicsFit, U: np.ndarray, s: np.ndarray, r: np.ndarray):
+    """Which of a candidate's directions beyond the model's span (``U`` (n, m) orthonormal on
+    the calibration readings, ``s`` their changes at one typical size, ``r`` the calibration
+    residual with the candidate at its start) the data determine: (by the fit's rule, at their
+    estimated size), boolean masks. The fit's rule (a change above noise / identifiable_ratio
+    per typical size: the direction known to that fraction of its typical size) judges a
+    direction by the size the library expects; an effect far beyond it (beam misalignment at
+    ten times the library's angles and offsets: its directions beyond geometric_errors' span
+    change the readings by 0.4-0.7 of the threshold per typical size, the calibration rows put
+    5-10 typical sizes on them, calibration p = 6e-33) is determined at its own size. A
+    direction counts so when the data know it to within one typical size (its change per
+    typical size at least the noise) and the residual's component along it, its change at the
+    calibration rows' estimate, exceeds the threshold: known to identifiable_ratio of its
+    estimated size. What it then explains is judged as any direction's (``_verdict``).
+
+    Only for a candidate the fit's rule determines nothing of (absorbed at one typical size,
+    its start all it has): one with determined directions is held along the rest at its start
+    or off (``_held_at``), and estimating that rest on calibration rows that barely see it
+    lost loop drift x1 on a force campaign (its start, the twin's value, closed 97 % of the
+    gap to the floor, validation p = 4e-17; the rest estimated, 45 %, not named)."""
+    noise = fit.noise_nm * 1e-9
+    threshold = noise / fit.identifiable_ratio
+    determined = s > threshold
+    sized = ~determined & (s >= noise) & (np.abs(U.T @ r) > threshold) & ~determined.any()
+    return determined, sized
+
+
+def _estimate(model: PhysicsModel, new: np.ndarray, step: np.ndarray) -> dict:
+    """The candidate's parameters (``new``: its mask over ``model``'s free parameters) at its
+    start plus ``step`` (in typical sizes): {parameter: value}."""
+    theta = model.theta()
+    theta[new] += model.scales[new] * step
+    return {f.name: (theta[f.sl].reshape(f.shape).tolist() if f.shape else float(theta[f.sl][0]))
+            for f in model.free if new[f.sl].all()}
 
 
 def _held_at(fit: PhysicsFit, X: np.ndarray, d0: np.ndarray) -> str | None:
@@ -446,17 +506,18 @@ def _in_words(c: dict, effects: list) -> str:
                 f"{100 * c['gap_closed']:.0f} % of the gap to the floor (calibration p = "
                 f"{c['p_value']:.2g}, with validation p = {c['p_combined']:.2g}): the "
                 "calibration rows alone barely vary what it depends on"
-                + HELD_OFF * (c.get("held_at") == "off"))
+                + HELD_OFF * (c.get("held_at") == "off") + _sized_words(c))
     if c["significant"] and "refit_explained_fraction" in c:
         return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
                 "the validation residual linearised at the model's fit, "
                 f"{100 * c['refit_explained_fraction']:.0f} % refitted with the model (closing "
                 f"{100 * c['refit_gap_closed']:.0f} % of the gap to the floor; calibration p = "
                 f"{c['refit_p_value']:.2g}, with validation p = {c['refit_p_combined']:.2g})"
-                + HELD_OFF * (c.get("held_at") == "off"))
+                + HELD_OFF * (c.get("held_at") == "off") + _sized_words(c))
     if c["significant"]:
         return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
-                "the validation residual" + HELD_OFF * (c.get("held_at") == "off"))
+                "the validation residual" + HELD_OFF * (c.get("held_at") == "off")
+                + _sized_words(c))
     if "refit_rejected" in c:
         # the validation rows see it, the calibration rows cannot determine it: say so, with
         # what would separate it, rather than a bare "not significant"
@@ -780,8 +841,12 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     last rung's first start), reused instead of refitted (``fit_from_starts``). Each model
     is fitted from the priors and from the previous model's values, the baseline from the
     priors and from the baseline without each of its effects after the first; another start
-    than the priors is kept when it lowers the calibration cost beyond chance (ALPHA). The
-    fits may evaluate LADDER_EVALUATIONS points unless ``fit_options`` say otherwise.
+    than the priors is kept when it lowers the calibration cost beyond chance (ALPHA); a
+    model that added an effect is then fitted again from where it ended, in the directions
+    identified there, if they leave a step (``fitted_again_where_it_ended``: kept when its
+    calibration cost is lower; the baseline is not, its linearised candidates are judged
+    where its fit ends). The fits may evaluate LADDER_EVALUATIONS points unless
+    ``fit_options`` say otherwise.
 
     An effect is kept only if its refit lowers the validation error: a refit that predicts
     the validation rows worse than the model without the effect (its parameters taking
@@ -805,7 +870,8 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
 
     Returns (ladder, diagnoses, fits): one ladder row per model kept ({model, effects, added,
     n_parameters, n_identified, val_err90_nm, val_err90_by_axis_nm, noise_floor_nm,
-    achievable_floor_nm, fit_status, fit_start: the start its fit was kept from}), the
+    achievable_floor_nm, fit_status, fit_start: the start its fit was kept from,
+    fitted_again: whether ``fitted_again_where_it_ended`` replaced it}), the
     diagnosis of every model, and the fits."""
     noise = ((meta or {}).get("truth") or {}).get("noise_floor_nm")
     achievable = ((meta or {}).get("truth") or {}).get("achievable_floor_nm")
@@ -830,6 +896,18 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                 fits[-1].model_.values(), effects[-1], known)}
         elif fits:
             starts["previous fit"] = {"start": _with_known(fits[-1].model_.values(), known)}
+            # a candidate named through directions determined at their estimated size
+            # (``_determined``): from the calibration rows' estimate, held there along what
+            # the fit does not determine (at the library's start its fit holds them where the
+            # linearisation found nothing: beam misalignment at ten times the library's
+            # values, 17.2 nm validation against 14.3 from the estimate, floor 14.2)
+            estimate = next((c.get("estimate") for c in diagnoses[-1]["ranking"]
+                             if c["effect"] == effects[-1]), None)
+            if estimate:
+                at = {effects[-1]: estimate}
+                starts[f"previous fit, {effects[-1]} at the calibration rows' estimate"] = {
+                    "start": _with_known({**fits[-1].model_.values(), **at}, known),
+                    "prior": at}
         else:
             # the baseline has no previous model: the baseline without each of its effects
             # after the first plays that part (a thermal null case's baseline from the priors
@@ -845,6 +923,10 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                                                                      known)}
         fit = fit_from_starts(effects, starts, df, meta, made=made, chance_alpha=ALPHA,
                               **fit_options)
+        if fits:
+            # a rung that added an effect: its fit chose its directions at its start, where
+            # the added effect sat at the library's guess (fitted_again_where_it_ended)
+            fit = fitted_again_where_it_ended(fit)
         if fits and fit.val_["all"]["err_p90"] > fits[-1].val_["all"]["err_p90"]:
             d = diagnoses[-1]
             if "refit_rejected" in d:
@@ -877,7 +959,8 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                        "val_err90_by_axis_nm": {a: fit.val_[a]["err_p90"] for a in AXES
                                                 if a in fit.val_},
                        "noise_floor_nm": noise, "achievable_floor_nm": achievable,
-                       "fit_status": fit.status_, "fit_start": fit.start_label_})
+                       "fit_status": fit.status_, "fit_start": fit.start_label_,
+                       "fitted_again": fit.fitted_again_})
         if progress:
             progress(f"diagnose {'+'.join(effects) or 'nominal robot'}")
         d = diagnose(fit, data)
