@@ -122,15 +122,22 @@ def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
     return residuals(meas, pred, group_offsets(meas, pred, meas.cal))
 
 
-def _response(fit: PhysicsFit, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """The fitted model with the candidate effect ``name`` added at its start: its prediction
-    (N,3) m and the Jacobian columns of the candidate's parameters at their typical size
-    (N,3,k)."""
+def _with_candidate(fit: PhysicsFit, name: str) -> tuple[PhysicsModel, np.ndarray]:
+    """The fitted model with the candidate effect ``name`` added at its start, and the mask of
+    the candidate's parameters among its free ones."""
     model = PhysicsModel(fit.effects + [name], fit.model_.params,
                          {**fit.model_.values(), name: fit.known_.get(name, {})})
     new = np.zeros(model.n_free, bool)
     for f in model.free:
         new[f.sl] = f.effect == name
+    return model, new
+
+
+def _response(fit: PhysicsFit, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted model with the candidate effect ``name`` added at its start
+    (``_with_candidate``): its prediction (N,3) m and the Jacobian columns of the candidate's
+    parameters at their typical size (N,3,k)."""
+    model, new = _with_candidate(fit, name)
     A, J = model.jacobian(fit.measurements_, model.theta(), columns=new)
     return A, J[:, :, new] * model.scales[new]
 
@@ -196,8 +203,8 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
     # where directions count at their estimated size, the model refitted with the candidate
     # holds what its fit does not determine at that estimate (``effect_ladder``), not at the
     # library's start: the fit's rule, at a typical size, would hold them there again
-    estimate = (_estimate(model, new, Vc @ coef[k_m:]) if k_sized and held != "off"
-                else None)
+    estimate = (_estimate(*_with_candidate(fit, name), Vc @ coef[k_m:])
+                if k_sized and held != "off" else None)
     fig = figures_nm(after, meas.val)
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],
             "val_err90_after_nm": fig["all"]["err_p90"],
