@@ -529,11 +529,13 @@ def _joins(term: Term, after: dict, current: dict, n_axes: int, limit: float,
     tolerances: whether it can qualify when ``after``'s sum of squares and validation power
     are within them (the most favourable of those)."""
     gain = current["val_power"] - after["val_power"] + val_tol
-    rss = after["rss_cal"] - rss_tol
+    # the most favourable sum of squares is no less than zero: a fit within its tolerance of
+    # exact is the strongest trial there is, not one whose F test is undefined
+    rss = max(after["rss_cal"] - rss_tol, 0.0)
     k = after["rank"] - current["rank"] + term.scanned * n_axes
     if k <= 0 or after["dof"] <= 0 or rss >= current["rss_cal"]:
         return None
-    F = ((current["rss_cal"] - rss) / k) / (rss / after["dof"])
+    F = math.inf if rss == 0 else ((current["rss_cal"] - rss) / k) / (rss / after["dof"])
     p = float(special.fdtrc(k, after["dof"], F))
     return (gain, p) if p < limit and gain >= min_gain else None
 

@@ -109,8 +109,9 @@ HELD_OFF = (" (its parameter combinations the data do not determine held at zero
 
 def _sized_words(c: dict) -> str:
     """What a significant candidate's verdict adds when some of its directions are determined
-    at their estimated size only (``_determined``)."""
-    k = c.get("sized_directions", 0)
+    at their estimated size only (``_determined``) and the ladder refits it from that estimate
+    (none is made where the candidate held off won: no such refit to promise)."""
+    k = c.get("sized_directions", 0) if "estimate" in c else 0
     return (f" ({k} of its directions determined at the size the calibration rows give them, "
             "beyond what its typical size resolves: refitted from that estimate)") if k else ""
 

@@ -444,15 +444,13 @@ class _Joint:
         vv = float(v @ v)
         out = []
         for P, D in trials:
-            gram, norm = self._gram(P)
-            K = (P.T @ A) / norm[:, None]            # (c, lead + 1), columns at unit norm
-            W = K[:, :n_lead].T                      # the block on the lead's basis
-            S = gram - W.T @ W                       # Y^T Y, Y: the block less its lead part
-            if np.linalg.eigvalsh(S)[0] < SURE_EIGENVALUE:
+            beyond = self._beyond(P, A)
+            if beyond is None or np.linalg.eigvalsh(beyond[1])[0] < SURE_EIGENVALUE:
                 out.append(None)
                 continue
+            W, S, Pr, norm = beyond
             L = np.linalg.cholesky(S)
-            t = np.linalg.solve(L, K[:, n_lead] - W.T @ Qr)      # r on Y's orthonormal basis
+            t = np.linalg.solve(L, Pr - W.T @ Qr)    # r on Y's orthonormal basis
             coef = np.linalg.solve(L.T, t)
             z = D @ (coef / norm) - (H @ (W @ coef) if n_lead else 0.0)
             e = v - z
@@ -472,10 +470,11 @@ class _Joint:
         A = np.column_stack([basis, self.r])
         out = []
         for P in Ps:
-            gram, norm = self._gram(P)
-            K = A.T @ P
-            W = K[:-1] / norm
-            S = gram - W.T @ W
+            beyond = self._beyond(P, A)
+            if beyond is None:
+                out.append(None)
+                continue
+            W, S, Pr, norm = beyond
             eig = np.linalg.eigvalsh(S)
             # full rank for sure (singular values of P less its basis part well above 1e-10
             # of the largest, unscaled), the estimate sure to SURE_EIGENVALUE (scaled)
@@ -484,9 +483,21 @@ class _Joint:
                 out.append(None)
                 continue
             L = np.linalg.cholesky(S)
-            t = np.linalg.solve(L, K[-1] / norm - W.T @ Br)
+            t = np.linalg.solve(L, Pr - W.T @ Br)
             out.append((float(t @ t), 1e-6 * float(self.r @ self.r)))
         return out
+
+    def _beyond(self, P: np.ndarray, A: np.ndarray):
+        """A block P (columns at unit norm) against ``A`` = [an orthonormal basis Q, the
+        residual r]: (W = Q^T P, S = Y^T Y with Y = P - Q W the block less its part in the
+        basis, P^T r, the columns' norms), or None for a block without columns (nothing to
+        estimate: it is fitted exactly)."""
+        if not P.shape[1]:
+            return None
+        gram, norm = self._gram(P)
+        K = (A.T @ P) / norm                         # (basis + 1, c)
+        W = K[:-1]
+        return W, gram - W.T @ W, K[-1], norm
 
     def _gram(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(P^T P with P's columns at unit norm, their norms) of a block, made once (kept by

@@ -244,6 +244,31 @@ def test_the_screened_forward_step_is_the_exhaustive_one():
             assert len(fitted) <= 6, (chosen, fitted)
 
 
+def test_the_screened_forward_step_keeps_a_trial_that_explains_the_residual_exactly():
+    """A residual that one block explains to round-off (a drift a term fits exactly, no noise):
+    its estimate's sum of squares is within its tolerance of zero, the most favourable F
+    infinite, and _best_addition chooses it as fitting every trial does (not a trial whose
+    undefined F test ruled it out)."""
+    from deltatwin.calibration.diagnosis.attribution import Term, _best_addition, _joins
+
+    frame, blocks = _screened_frame(np.random.default_rng(10))
+    P, D = blocks[5]
+    beta = np.array([1.0, -2.0, 0.5])
+    frame.joint.r, frame.joint.b = P @ beta, D @ beta
+    terms = [Term(f"v{i}", "power 1", np.zeros((1, 1))) for i in range(len(blocks))]
+    current = frame.fit([])
+    trials = list(range(len(blocks)))
+    limit, min_gain = 1e-3, 0.001 * current["val_power"]
+    want = None
+    for i in trials:
+        joins = _joins(terms[i], frame.fit([blocks[i]]), current, 3, limit, min_gain)
+        if joins is not None and (want is None or joins[0] > want[1]):
+            want = (i, *joins)
+    assert want[0] == 5
+    got = _best_addition(frame, terms, blocks, [], trials, current, limit, min_gain)
+    assert got is not None and got[:3] == want
+
+
 def test_rss_each_is_the_fit_of_each_column_alone():
     """attribution.Residual.rss_each (the ramp's moment scanned in one pass) is the calibration
     sum of squares ``Residual.fit`` leaves after each column alone: two axes, sessions with
