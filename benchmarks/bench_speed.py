@@ -128,8 +128,9 @@ def full_loop(df, meta, repeats: int) -> None:
 
 def cli_diagnose(data: Path, repeats: int) -> None:
     """``deltatwin diagnose`` of the model ``deltatwin fit`` wrote, as a researcher runs it
-    (whole process: imports, reading, the kept model's Jacobian, the diagnosis; the attribution
-    in a second process where there are two cores), against the 3 s target in wall time."""
+    (whole process: imports, reading, the kept model's Jacobian, the diagnosis; the attribution,
+    and the candidates' Jacobians, in second processes where there are two cores), against the
+    3 s target in wall time."""
     model = data.with_name("seven-effects.toml")
     known = ",".join(str(x) for x in FRAME_ARM["loop_drift"]["frame_arm_m"])
     _run_children([["fit", str(data), "--effects", ",".join(SEVEN), "--set",

@@ -37,6 +37,7 @@ readings of the part the variable alone explains).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -201,6 +202,20 @@ class Residual:
             rank += int(rk)
             per_axis.append((k, rows, coef, fitted, e))
         return per_axis, {"rss_cal": rss, "n_cal": n_cal, "val_power": val_power, "rank": rank}
+
+    def rss_each(self, X: np.ndarray) -> np.ndarray:
+        """The calibration sum of squares (every axis) after each column of X (N,c) fitted
+        alone, as ``fit`` fits one column (its least squares in closed form: a column of
+        zeros fits nothing), for a scan over c columns in one pass: (c,)."""
+        out = np.zeros(X.shape[1])
+        for _, rows, r in self.axes:
+            c = self.cal[rows]
+            Xc, rc = self.demeaned(X, rows)[c], r[c]
+            xx = np.einsum("ij,ij->j", Xc, Xc)
+            coef = (Xc.T @ rc) / np.where(xx > 0, xx, 1.0)
+            e = rc[:, None] - Xc * coef
+            out += np.einsum("ij,ij->j", e, e)
+        return out
 
     def val_power(self) -> float:
         return sum(float(np.sum(r[self.val[rows]] ** 2)) for _, rows, r in self.axes)
@@ -447,6 +462,11 @@ class AxisFrame:
     def n_val(self) -> dict:
         return {k: int(self.target.val[rows].sum()) for k, rows, _ in self.target.axes}
 
+    def estimates(self, lead: list, trials: list) -> list:
+        """Estimates of ``fit`` of the ``lead`` blocks with each of ``trials`` in turn, None
+        for each: every trial is fitted (model_form.JointFrame's are estimated)."""
+        return [None] * len(trials)
+
     def fit(self, blocks: list) -> dict:
         """{rss_cal, rank, dof (calibration residual's degrees of freedom), val_power,
         val_by_axis {axis: power}} of the blocks fitted together."""
@@ -501,6 +521,54 @@ def scan_together(variables: list[Variable], targets: list[Residual], step=None)
             t.scans[var.name] = info
 
 
+def _joins(term: Term, after: dict, current: dict, n_axes: int, limit: float,
+           min_gain: float, rss_tol: float = 0.0, val_tol: float = 0.0):
+    """(validation gain, p value) of ``term`` joining a fit (``current`` -> ``after``), None
+    where it does not qualify: significant on the calibration rows (partial F test, its scanned
+    parameters counted on every axis) and lowering the validation power by ``min_gain``. With
+    tolerances: whether it can qualify when ``after``'s sum of squares and validation power
+    are within them (the most favourable of those)."""
+    gain = current["val_power"] - after["val_power"] + val_tol
+    rss = after["rss_cal"] - rss_tol
+    k = after["rank"] - current["rank"] + term.scanned * n_axes
+    if k <= 0 or after["dof"] <= 0 or rss >= current["rss_cal"]:
+        return None
+    F = ((current["rss_cal"] - rss) / k) / (rss / after["dof"])
+    p = float(special.fdtrc(k, after["dof"], F))
+    return (gain, p) if p < limit and gain >= min_gain else None
+
+
+def _best_addition(frame, terms: list, blocks: list, chosen: list, trials: list,
+                   current: dict, limit: float, min_gain: float):
+    """The term of ``trials`` (indices) that, added to the ``chosen``, lowers the validation
+    power most among those that qualify (``_joins``; the first of equal gains): (index, gain,
+    p, the fit with it), or None. The frame's estimates (``estimates``: with error bounds)
+    rule out the trials that cannot qualify, and the others are fitted in the order of the
+    most they can gain until none can gain more than the best fitted: the same choice as
+    fitting every trial, fitting a few."""
+    lead = [blocks[j] for j in chosen]
+    bounds = []
+    for i, est in zip(trials, frame.estimates(lead, [blocks[i] for i in trials])):
+        if est is None:
+            bounds.append((math.inf, i))
+            continue
+        can = _joins(terms[i], {"rss_cal": est["rss"], "val_power": est["val_power"],
+                                "rank": est["rank"], "dof": est["dof"]},
+                     current, frame.n_axes, limit, min_gain, est["rss_tol"], est["val_tol"])
+        if can is not None:
+            bounds.append((can[0], i))
+    best = None
+    for bound, i in sorted(bounds, key=lambda b: (-b[0], b[1])):
+        if best is not None and bound < best[1]:
+            break
+        after = frame.fit(lead + [blocks[i]])
+        joins = _joins(terms[i], after, current, frame.n_axes, limit, min_gain)
+        if joins is not None and (best is None or joins[0] > best[1]
+                                  or (joins[0] == best[1] and i < best[0])):
+            best = (i, *joins, after)
+    return best
+
+
 def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
               min_share: float = MIN_SHARE, variables: list[Variable] | None = None,
               frame=None, extra_terms: tuple = ()) -> dict:
@@ -533,21 +601,10 @@ def attribute(df: pd.DataFrame, target: Residual, alpha: float = ALPHA,
     limit = alpha / max(len(terms), 1)
     conditions_only = bool(responses)
     while len(chosen) < MAX_TERMS:
-        best = None
-        for i, term in enumerate(terms):
-            if i in chosen or (conditions_only and term.variable in responses):
-                continue
-            after = frame.fit([blocks[j] for j in chosen + [i]])
-            gain = current["val_power"] - after["val_power"]
-            if best is not None and gain <= best[1]:
-                continue
-            k = after["rank"] - current["rank"] + term.scanned * frame.n_axes
-            if k <= 0 or after["dof"] <= 0 or after["rss_cal"] >= current["rss_cal"]:
-                continue
-            F = ((current["rss_cal"] - after["rss_cal"]) / k) / (after["rss_cal"] / after["dof"])
-            p = float(special.fdtrc(k, after["dof"], F))
-            if p < limit and gain >= min_share * p0:
-                best = (i, gain, p, after)
+        best = _best_addition(frame, terms, blocks, chosen, [
+            i for i, term in enumerate(terms)
+            if i not in chosen and not (conditions_only and term.variable in responses)],
+            current, limit, min_share * p0)
         if best is None:
             if conditions_only:        # no condition explains more: the rotations may
                 conditions_only = False

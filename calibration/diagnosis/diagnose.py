@@ -91,6 +91,9 @@ from deltatwin.twin.effects import LIBRARY, EffectError
 from deltatwin.twin.instruments.optics import AXES
 
 ALPHA = 1e-3
+# what a candidate the model cannot take on raises (a pose out of reach, an impossible value):
+# its row of the ranking says so, the others are still ranked
+CANDIDATE_ERRORS = (CalibrationInputError, EffectError, KinematicsError, np.linalg.LinAlgError)
 MIN_EXPLAINED = 0.1
 ABSORBED = 0.9   # a candidate whose signature lies this much in the model's span is absorbed
 GAP_CLOSED = 0.5   # or a candidate closes half the gap between the model and the floor
@@ -119,23 +122,53 @@ def _val_after(meas, fit: PhysicsFit, change: np.ndarray) -> np.ndarray:
     return residuals(meas, pred, group_offsets(meas, pred, meas.cal))
 
 
-def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, e0: np.ndarray,
-               n: int, k_m: int, before: np.ndarray, floor_all_nm: float | None,
-               generic: tuple[np.ndarray, float] | None, JS: np.ndarray, effect_spans: dict):
-    """One candidate's row of the ranking. ``JS``: the model's identified directions on every
-    row (N,3,k_m), ``effect_spans``: ``_effect_spans(fit)``; both the same for every
-    candidate; ``e0``: the model's calibration residual (readings, session means out) after
-    its own directions' linear step, what the candidate is tested against."""
-    meas = fit.measurements_
+def _with_candidate(fit: PhysicsFit, name: str) -> tuple[PhysicsModel, np.ndarray]:
+    """The fitted model with the candidate effect ``name`` added at its start, and the mask of
+    the candidate's parameters among its free ones."""
     model = PhysicsModel(fit.effects + [name], fit.model_.params,
                          {**fit.model_.values(), name: fit.known_.get(name, {})})
-    theta = model.theta()
     new = np.zeros(model.n_free, bool)
     for f in model.free:
         new[f.sl] = f.effect == name
-    A, J = model.jacobian(meas, theta, columns=new)
+    return model, new
+
+
+def _response(fit: PhysicsFit, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted model with the candidate effect ``name`` added at its start
+    (``_with_candidate``): its prediction (N,3) m and the Jacobian columns of the candidate's
+    parameters at their typical size (N,3,k)."""
+    model, new = _with_candidate(fit, name)
+    A, J = model.jacobian(fit.measurements_, model.theta(), columns=new)
+    return A, J[:, :, new] * model.scales[new]
+
+
+def _responses(fit: PhysicsFit, names: list, spans: bool) -> tuple[dict, dict]:
+    """``_response`` of each candidate (or the error that stopped it, raised where its row of
+    the ranking is made), and ``_effect_spans(fit)`` if ``spans`` (else {}): they depend on the
+    fit alone, so ``diagnose`` makes them beside what it computes first
+    (models.batched.in_background)."""
+    out = {}
+    for name in names:
+        try:
+            out[name] = _response(fit, name)
+        except CANDIDATE_ERRORS as exc:
+            out[name] = exc
+    return out, _effect_spans(fit) if spans else {}
+
+
+def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: np.ndarray,
+               e0: np.ndarray, n: int, k_m: int, before: np.ndarray, floor_all_nm: float | None,
+               generic: tuple[np.ndarray, float] | None, JS: np.ndarray, effect_spans: dict):
+    """One candidate's row of the ranking. ``response``: its ``_response`` (or the error that
+    stopped it, raised here); ``JS``: the model's identified directions on every row
+    (N,3,k_m), ``effect_spans``: ``_effect_spans(fit)``; both the same for every candidate;
+    ``e0``: the model's calibration residual (readings, session means out) after its own
+    directions' linear step, what the candidate is tested against."""
+    if isinstance(response, Exception):
+        raise response
+    meas = fit.measurements_
+    A, Jc = response
     delta0 = A - fit.prediction_
-    Jc = J[:, :, new] * model.scales[new]
     cal = meas.cal
     r = _projected(meas, cal, meas.y - A)              # residual with the candidate on
     Pc_all = _projected(meas, cal, Jc)
@@ -170,8 +203,8 @@ def _candidate(fit: PhysicsFit, name: str, Jm: np.ndarray, Qm: np.ndarray, e0: n
     # where directions count at their estimated size, the model refitted with the candidate
     # holds what its fit does not determine at that estimate (``effect_ladder``), not at the
     # library's start: the fit's rule, at a typical size, would hold them there again
-    estimate = (_estimate(model, new, Vc @ coef[k_m:]) if k_sized and held != "off"
-                else None)
+    estimate = (_estimate(*_with_candidate(fit, name), Vc @ coef[k_m:])
+                if k_sized and held != "off" else None)
     fig = figures_nm(after, meas.val)
     return {"effect": name, "explained_fraction": verdict["explained_fraction"],
             "val_err90_after_nm": fig["all"]["err_p90"],
@@ -674,6 +707,11 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     meas = fit.measurements_
     cal = meas.cal
     k_m = fit.identifiability_["n_identified_directions"]
+    # the candidates' Jacobians and the model effects' spans depend on the fit alone: on a
+    # second core where the command has one (docs/performance.md), beside the model's
+    # directions, the scans and the form
+    candidates = [e for e in model_effects() if e not in fit.effects]
+    responses_made = in_background(_responses, fit, candidates, bool(candidates and k_m))
     # the model's identified directions on every row, made once for the form, the attribution
     # and every candidate: one (3N, p) x (p, k) product (the (N,3,p) Jacobian scaled first and
     # multiplied as a stack of N (3, p) matrices took 4x longer), then on the calibration
@@ -694,7 +732,6 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     before = _val_after(meas, fit, JS @ coef_m if k_m else 0.0)
     n = r0.size
     Qm = span.U                                     # the model's span, once for all candidates
-    candidates = [e for e in model_effects() if e not in fit.effects]
     floor, floor_kind = floor_of(fit.meta_)
     floor_all = (floor.get("all") or max(floor[a] for a in AXES if a in floor)) if floor else None
     # the missing term's form fitted jointly with the model's directions: what a library
@@ -721,15 +758,14 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     generic = _generic(Jm, _projected(meas, cal, G), generic_explained, r0,
                        _above_floor_share(fit.val_["all"]["err_p90"], floor_all))
     ranking = []
-    effect_spans = _effect_spans(fit) if candidates and k_m else {}
+    responses, effect_spans = responses_made()
     for name in candidates:
         if progress:
             progress(name)
         try:
-            ranking.append(_candidate(fit, name, Jm, Qm, e0, n, k_m, before, floor_all,
-                                      generic, JS, effect_spans))
-        except (CalibrationInputError, EffectError, KinematicsError,
-                np.linalg.LinAlgError) as exc:
+            ranking.append(_candidate(fit, name, responses[name], Jm, Qm, e0, n, k_m, before,
+                                      floor_all, generic, JS, effect_spans))
+        except CANDIDATE_ERRORS as exc:
             # a candidate the model cannot take on (a pose out of reach, an impossible value)
             # says so in its row; the others are still ranked
             ranking.append({"effect": name, "failed": str(exc), "explained_fraction": math.nan,

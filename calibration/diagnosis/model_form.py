@@ -35,6 +35,9 @@ it).
 """
 from __future__ import annotations
 
+import functools
+import math
+import weakref
 from typing import NamedTuple
 
 import numpy as np
@@ -69,6 +72,12 @@ POWERS = (1, 2, 3)
 # columns projected in one pass of the model's directions (_Joint.columns): enough to
 # amortise the pass, few enough to keep the arrays small (n readings x this)
 COLUMNS_AT_ONCE = 64
+# _Joint.estimates: a block's estimate is sure when the smallest eigenvalue of its Gram matrix
+# (columns at unit norm, the lead's part out) is at least this (condition <= ~2,500: digits
+# lost to the Gram matrix ~1e-16 / this), the lead's when its singular values span less than
+# 1 / SURE_LEAD (its rank not in doubt)
+SURE_EIGENVALUE = 1e-6
+SURE_LEAD = 1e-3
 
 
 class CurrentLoad(Effect):
@@ -403,6 +412,93 @@ class _Joint:
     def axis_power(self, e: np.ndarray) -> np.ndarray:
         return np.bincount(self.axis_of, e ** 2, minlength=3)
 
+    def estimates(self, lead: list, trials: list) -> list:
+        """For each block (P, D) of ``trials`` fitted with the blocks ``lead``: estimates of
+        ``fit``'s calibration sum of squares, total validation power and rank, with bounds on
+        their error ({rss, rss_tol, val_power, val_tol, rank}), or None where the estimate
+        is not sure (the block nearly in the span of the others, or the lead blocks nearly
+        dependent: a rank to decide). From the products of each block with the lead's
+        orthonormal basis and the residual (one pass over its columns) and its Gram matrix
+        (made once per block): a forward selection screens its hundred blocks per step this
+        way and fits exactly only those that can win (attribution.attribute), instead of an
+        orthogonal factorisation per block. Exact in exact arithmetic; in floating point the
+        Gram matrix loses digits by the square of the block's condition, so a block is
+        estimated only when that condition (columns at unit norm, the lead's part out) is
+        below 1 / sqrt(SURE_EIGENVALUE), and the bounds hold with a margin of ~100."""
+        r, n_lead = self.r, sum(P.shape[1] for P, _ in lead)
+        if lead:
+            X = np.hstack([P for P, _ in lead])
+            norm = _column_norms(X)
+            Q, R = np.linalg.qr(X / norm)
+            sv = np.linalg.svd(R, compute_uv=False)
+            if sv[-1] < SURE_LEAD * sv[0]:
+                return [None] * len(trials)
+            # the lead's validation columns per unit of its basis' coefficients: D R^-1
+            H = np.linalg.solve(R.T, (np.hstack([D for _, D in lead]) / norm).T).T
+            Qr = Q.T @ r
+            v = self.b - H @ Qr                     # the validation residual of the lead alone
+            rss_lead = float(r @ r - Qr @ Qr)
+        else:
+            Q, H, Qr, v, rss_lead = np.zeros((r.size, 0)), None, np.zeros(0), self.b, float(r @ r)
+        A = np.column_stack([Q, r])
+        vv = float(v @ v)
+        out = []
+        for P, D in trials:
+            gram, norm = self._gram(P)
+            K = (P.T @ A) / norm[:, None]            # (c, lead + 1), columns at unit norm
+            W = K[:, :n_lead].T                      # the block on the lead's basis
+            S = gram - W.T @ W                       # Y^T Y, Y: the block less its lead part
+            if np.linalg.eigvalsh(S)[0] < SURE_EIGENVALUE:
+                out.append(None)
+                continue
+            L = np.linalg.cholesky(S)
+            t = np.linalg.solve(L, K[:, n_lead] - W.T @ Qr)      # r on Y's orthonormal basis
+            coef = np.linalg.solve(L.T, t)
+            z = D @ (coef / norm) - (H @ (W @ coef) if n_lead else 0.0)
+            e = v - z
+            val = float(e @ e)
+            out.append({"rss": rss_lead - float(t @ t), "rss_tol": 1e-6 * rss_lead,
+                        "val_power": val, "val_tol": 1e-5 * (vv + float(z @ z)),
+                        "rank": n_lead + P.shape[1]})
+        return out
+
+    def gains(self, basis: np.ndarray, Ps: list) -> list:
+        """For each block P of ``Ps``: an estimate of what it adds to the orthonormal ``basis``
+        (n,m) in the residual's sum of squares, |Pn^T r|^2 (Pn: an orthonormal basis of P less
+        its part in ``basis``), and a bound on its error (gain, bound), or None where that is
+        not sure (the block nearly in the span of the basis, or of rank in doubt by
+        ``_orthonormal``'s rule): as ``estimates``, for model_form._forward."""
+        Br = basis.T @ self.r
+        A = np.column_stack([basis, self.r])
+        out = []
+        for P in Ps:
+            gram, norm = self._gram(P)
+            K = A.T @ P
+            W = K[:-1] / norm
+            S = gram - W.T @ W
+            eig = np.linalg.eigvalsh(S)
+            # full rank for sure (singular values of P less its basis part well above 1e-10
+            # of the largest, unscaled), the estimate sure to SURE_EIGENVALUE (scaled)
+            unscaled = np.linalg.eigvalsh(S * np.outer(norm, norm))
+            if eig[0] < SURE_EIGENVALUE or unscaled[0] < 1e-12 * unscaled[-1]:
+                out.append(None)
+                continue
+            L = np.linalg.cholesky(S)
+            t = np.linalg.solve(L, K[-1] / norm - W.T @ Br)
+            out.append((float(t @ t), 1e-6 * float(self.r @ self.r)))
+        return out
+
+    def _gram(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(P^T P with P's columns at unit norm, their norms) of a block, made once (kept by
+        the block's id with a weak reference to it: an id reused by a new block is not taken,
+        and the block is not kept alive)."""
+        grams = self.__dict__.setdefault("_grams", {})
+        kept = grams.get(id(P))
+        if kept is None or kept[0]() is not P:
+            norm = _column_norms(P)
+            kept = grams[id(P)] = (weakref.ref(P), (P.T @ P) / np.outer(norm, norm), norm)
+        return kept[1:]
+
     def best_step(self, t: np.ndarray) -> float | None:
         """The time (s) of the single step in ``t`` (N,) that, on one reading axis, lowers the
         calibration residual most with the model's directions re-adjusted, summed over the
@@ -516,6 +612,16 @@ class JointFrame:
         tau = self.joint.best_step(t)
         return best_step(t, target) if tau is None else tau
 
+    def estimates(self, lead: list, trials: list) -> list:
+        """As attribution.AxisFrame.estimates: ``_Joint.estimates``, with ``fit``'s degrees of
+        freedom."""
+        joint = self.joint
+        out = joint.estimates(lead, trials)
+        for est in out:
+            if est is not None:
+                est["dof"] = joint.r.size - joint.Qm.shape[1] - est["rank"] - joint.n_groups
+        return out
+
     def fit(self, blocks: list) -> dict:
         """As attribution.AxisFrame.fit."""
         joint = self.joint
@@ -583,20 +689,34 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
     chosen, basis = [], np.zeros((n, 0))
     rss, val_power = float(r @ r), p0
     while True:
-        best, trials = None, {}
-        for i, (P, _, scanned) in enumerate(blocks):
-            if i in chosen or i in deferred or not limit_of(chosen, i):
-                continue
-            Pn = _orthonormal(P - basis @ (basis.T @ P))
-            if not Pn.shape[1]:
-                continue
-            gain = float(np.sum((Pn.T @ r) ** 2))
-            kk = Pn.shape[1] + scanned
-            df2 = n - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1] - joint.n_groups
-            if df2 > 0 and gain < rss:
-                trials[i] = (i, gain, Pn, kk, df2)
-                if best is None or gain > best[1]:
-                    best = trials[i]
+        # the trials (i, gain, Pn, kk, df2) of the blocks that can join: the strongest among
+        # them found from the gains' estimates with their bounds (_Joint.gains), then the
+        # others that decide its tries (its variable's, their physical forms') made too
+        eligible = [i for i in range(len(blocks))
+                    if i not in chosen and i not in deferred and limit_of(chosen, i)]
+        made = {}                  # block -> its trial, or None where it cannot join
+        make = functools.partial(_made, made, joint, blocks, basis, rss)
+        best = None
+        bounds = [(math.inf if est is None else est[0] + est[1], i)
+                  for i, est in zip(eligible, joint.gains(basis, [blocks[i][0]
+                                                                  for i in eligible]))]
+        for bound, i in sorted(bounds, key=lambda b: (-b[0], b[1])):
+            if best is not None and bound < best[1]:
+                break
+            t = make(i)
+            if t is not None and (best is None or t[1] > best[1]
+                                  or (t[1] == best[1] and i < best[0])):
+                best = t
+        if best is not None:
+            same = [i for i in eligible
+                    if variable_of is not None and variable_of[i] == variable_of[best[0]]]
+            for i in [best[0]] + same:
+                make(i)
+                for j in physical.get(i, ()):
+                    if j in eligible:
+                        make(j)
+        # the trials made, in the order of the blocks (the sort below keeps it among ties)
+        trials = {i: made[i] for i in sorted(made) if made[i] is not None}
         # the blocks tried, in order: the strongest, then those the calibration rows cannot
         # tell from it, strongest first; each preceded by its physical alternative where it
         # is not significantly better than that
@@ -630,6 +750,23 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
             break
         chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
     return _backward(joint, blocks, chosen, limit, min_share * p0)
+
+
+def _made(made: dict, joint: _Joint, blocks: list, basis: np.ndarray, rss: float, i: int):
+    """_forward's trial of block i (P, D, scanned) beside the chosen blocks' orthonormal
+    ``basis``, made once (kept in ``made``): (i, gain in the calibration sum of squares
+    ``rss``, the block's new orthonormal columns Pn, its parameters, the residual's degrees of
+    freedom after it), or None where it adds no column or leaves no degree of freedom or no
+    residual."""
+    if i not in made:
+        P, _, scanned = blocks[i]
+        Pn = _orthonormal(P - basis @ (basis.T @ P))
+        df2 = (joint.r.size - joint.Qm.shape[1] - basis.shape[1] - Pn.shape[1]
+               - joint.n_groups)
+        gain = float(np.sum((Pn.T @ joint.r) ** 2))
+        made[i] = ((i, gain, Pn, Pn.shape[1] + scanned, df2)
+                   if Pn.shape[1] and df2 > 0 and gain < rss else None)
+    return made[i]
 
 
 def _better(a: tuple, b: tuple, rss: float, limit: float) -> bool:

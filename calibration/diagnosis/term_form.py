@@ -188,10 +188,9 @@ def candidate_library(variables: list[Variable], target: Residual) -> list[Candi
                                  scanned=1, moment_s=tau))
         if var.kind == "time":
             taus = np.quantile(v[target.cal], np.linspace(0.05, 0.95, 19))
-            ramps = [np.maximum(v - tau, 0.0)[:, None] for tau in taus]
-            rss = [target.fit(r)[1]["rss_cal"] for r in ramps]
-            best = int(np.argmin(rss))
-            out.append(Candidate("ramp", var.name, ramps[best], scanned=1,
+            ramps = np.maximum(v[:, None] - taus, 0.0)
+            best = int(np.argmin(target.rss_each(ramps)))
+            out.append(Candidate("ramp", var.name, ramps[:, best:best + 1].copy(), scanned=1,
                                  moment_s=float(taus[best])))
     # a load's effect depends on where the platform is (the compliance varies over the
     # workspace): powers of the force times the Cartesian position
