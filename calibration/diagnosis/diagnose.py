@@ -398,10 +398,13 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
       generic terms explain above the floor; a thermal case hiding loop drift at the library's
       strength: 13 % linearised, 59 % refitted, the generic terms 80 %, 59 % above the floor);
     * not significant, though the validation rows confirm its linearised change
-      (``p_validation_any`` < ALPHA: either of its tries, held at its start or off) and the
-      change of its verdict closes less than GAP_CLOSED of the gap to the floor (a force
-      case hiding loop drift x1, seed 2222 case001: 20 % of the gap linearised, p_validation
-      2e-57; refitted it determines no direction beyond the model's, so it is not named).
+      (``p_validation_any`` < ALPHA: either of its tries, held at its start or off), whatever
+      share of the gap to the floor the change of its verdict closes (a force case hiding
+      loop drift x1, seed 2222 case001: 20 % of the gap linearised, p_validation 2e-57;
+      refitted it determines no direction beyond the model's, so it is not named; one hiding
+      loop drift x3 beside beam misalignment x10, seed 9292 case005: 63 % of the gap
+      linearised, calibration p = 0.17, validation p = 0.007 held at its start and 2e-7
+      held off, combined 0.009; refitted it closes 93 % of the gap, combined p = 8e-6).
 
     The refit's verdict is ``_verdict`` on the refit itself (the calibration residual sums of
     squares before and after, the new identified directions, the serial factor, the
@@ -509,18 +512,22 @@ def _in_words(c: dict, effects: list) -> str:
                 "validation residual, but generic functions of the laboratory variables explain "
                 f"{100 * c['generic_explained_fraction']:.0f} % and it adds nothing significant "
                 "beyond them: the residual is not its signature (not claimed)")
-    if c["significant"] and (c["p_value"] >= ALPHA or c["delta_bic"] >= 0):
-        return (f"{c['effect']}: significant on the validation rows, closes "
-                f"{100 * c['gap_closed']:.0f} % of the gap to the floor (calibration p = "
-                f"{c['p_value']:.2g}, with validation p = {c['p_combined']:.2g}): the "
-                "calibration rows alone barely vary what it depends on"
-                + HELD_OFF * (c.get("held_at") == "off") + _sized_words(c))
     if c["significant"] and "refit_explained_fraction" in c:
+        # named through its refit: the refit's figures, not the linearisation's that were not
+        # significant (a linearised calibration p of 0.17 is no reason the refit gives)
         return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
                 "the validation residual linearised at the model's fit, "
                 f"{100 * c['refit_explained_fraction']:.0f} % refitted with the model (closing "
                 f"{100 * c['refit_gap_closed']:.0f} % of the gap to the floor; calibration p = "
                 f"{c['refit_p_value']:.2g}, with validation p = {c['refit_p_combined']:.2g})"
+                + (": the calibration rows alone barely vary what it depends on"
+                   if c["refit_p_value"] >= ALPHA or c["refit_delta_bic"] >= 0 else "")
+                + HELD_OFF * (c.get("held_at") == "off") + _sized_words(c))
+    if c["significant"] and (c["p_value"] >= ALPHA or c["delta_bic"] >= 0):
+        return (f"{c['effect']}: significant on the validation rows, closes "
+                f"{100 * c['gap_closed']:.0f} % of the gap to the floor (calibration p = "
+                f"{c['p_value']:.2g}, with validation p = {c['p_combined']:.2g}): the "
+                "calibration rows alone barely vary what it depends on"
                 + HELD_OFF * (c.get("held_at") == "off") + _sized_words(c))
     if c["significant"]:
         return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
@@ -785,12 +792,15 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     # model along its own directions and its own undetermined ones, and what that changes is
     # the model's refit, not the candidate (a force case's gravity sag and air refraction, the
     # latter not hidden, each "closed 170 % of the gap" refitted with the calibration worse,
-    # p = 1). Each refit is a fit of the ladder's budget: the REFITTED_AT_MOST with the
+    # p = 1). A candidate closing GAP_CLOSED of the gap linearised is no exception: its
+    # combined test used the try with the lower BIC, and the linearisation still falls short
+    # (9292 case005's loop drift x3: 63 % linearised, combined p = 0.009; refitted 93 %, 8e-6).
+    # Each refit is a fit of the ladder's budget: the REFITTED_AT_MOST with the
     # strongest validation evidence are refitted
     again = sorted((c for c in ranking if c.get("new_directions", 0) >= 1 and (
         c.get("matched_by_generic") or (
             above_floor and "failed" not in c and not c["significant"]
-            and c["p_validation_any"] < ALPHA and c["gap_closed"] < GAP_CLOSED))),
+            and c["p_validation_any"] < ALPHA))),
         key=lambda c: c["p_validation_any"])
     for c in again[:REFITTED_AT_MOST]:
         _refitted(fit, c, generic_needed, floor_all, reference)

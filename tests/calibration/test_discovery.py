@@ -11,7 +11,7 @@ import pytest
 
 from deltatwin.calibration.diagnosis import diagnose as diagnosis
 from deltatwin.calibration.diagnosis.conditions import extrapolated_variables
-from deltatwin.calibration.diagnosis.floor import achievable_floor, true_model
+from deltatwin.calibration.diagnosis.floor import achievable_floor, true_fit, true_model
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.calibration.physics.measurements import Measurements
@@ -737,3 +737,69 @@ def test_two_effects_too_small_alone_are_added_together_and_reach_the_floor(tmp_
     assert fits[1].effects[-2:] == ["loop_drift", "air_refraction"]
     assert ladder[0]["val_err90_nm"] > 1.2 * floor["all"], ladder
     assert ladder[-1]["val_err90_nm"] <= 1.1 * floor["all"], ladder
+
+
+def test_a_candidate_closing_half_the_gap_but_not_confirmed_linearised_is_judged_refitted(
+        tmp_path):
+    """A generated force campaign in the papers' order hiding loop drift x3 beside beam
+    misalignment x10 and air refraction at a third (seed 9292, its sixth case): loop drift's
+    change linearised at the baseline's fit closes more than half the gap to the floor, but
+    the calibration rows barely see it (p = 0.17) and the try with the lower BIC (held at the
+    library's start) has validation p = 0.007: combined 0.009, not significant, though the
+    other try (held off) has validation p = 2e-7. Such a candidate was not refitted (only
+    those closing less than GAP_CLOSED were) and nothing was named, 1.38x the floor. Judged
+    again refitted, it is named, the verdict gives the refit's figures, and the ladder's
+    refit reaches 1.1x the floor."""
+    case = generate_cases(np.random.default_rng(9292), 12)[5]
+    assert case.kind == "force" and dict(case.hidden) == {
+        "beam_misalignment": 10.0, "air_refraction": 1 / 3, "loop_drift": 3.0}
+    path = tmp_path / "case.toml"
+    path.write_text(case.toml())
+    df, meta = Scenario.load(path).simulate(0.3)
+    floor = achievable_floor(df, meta)["achievable_floor_nm"]
+    meta["truth"]["achievable_floor_nm"] = floor
+    ladder, diagnoses, _ = diagnosis.effect_ladder(df, meta, list(case.baseline), max_added=1,
+                                                   known=case.known)
+    row = next(c for c in diagnoses[0]["ranking"] if c["effect"] == "loop_drift")
+    # linearised: half the gap closed, the combined test not below ALPHA
+    assert row["gap_closed"] >= diagnosis.GAP_CLOSED and row["p_combined"] >= diagnosis.ALPHA
+    assert row["p_validation_any"] < diagnosis.ALPHA and row["new_directions"] >= 1, row
+    # refitted: confirmed
+    assert row["refit_gap_closed"] >= diagnosis.GAP_CLOSED, row
+    assert row["refit_p_combined"] < diagnosis.ALPHA and row["significant"], row
+    assert diagnoses[0]["missing_effect"] == "loop_drift"
+    assert "refitted with the model" in row["verdict"], row["verdict"]
+    assert f"calibration p = {row['refit_p_value']:.2g}" in row["verdict"]
+    assert ladder[-1]["added"] == "loop_drift"
+    assert ladder[0]["val_err90_nm"] > 1.1 * floor["all"] >= ladder[-1]["val_err90_nm"], ladder
+
+
+@pytest.mark.parametrize("seed, index, shown", [(4646, 0, True), (4646, 11, False)])
+def test_the_benchmark_counts_the_rounds_whose_data_show_the_complete_model(tmp_path, seed,
+                                                                             index, shown):
+    """benchmarks/discovery.py's ``shown_by_data``: a thermal case hiding loop drift x1 (seed
+    4646, its first case): the complete model fits the calibration rows far better than the
+    baseline, shown. A force campaign in the papers' order hiding loop drift x1 and air
+    refraction x3 (its twelfth case, the baseline 1.13x the floor): the complete model fitted
+    on the same rows leaves the calibration residual *larger* than the baseline's and its
+    change is not confirmed on the validation rows at ALPHA either: no rule on these rows could
+    name it, not shown. A model against itself is never shown."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "discovery.py"
+    spec = importlib.util.spec_from_file_location("discovery_benchmark", script)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    case = generate_cases(np.random.default_rng(seed), 12)[index]
+    path = tmp_path / "case.toml"
+    path.write_text(case.toml())
+    df, meta = Scenario.load(path).simulate(bench.SCALE[case.kind])
+    complete = true_fit(df, meta)
+    _, _, fits = diagnosis.effect_ladder(df, meta, list(case.baseline), max_added=0,
+                                         known=case.known)
+    data = bench.shown_by_data(fits[0], complete)
+    assert data["shown"] is shown, data
+    if not shown:
+        assert data["p_calibration"] == 1.0 and data["p_validation"] >= diagnosis.ALPHA, data
+    assert not bench.shown_by_data(complete, complete)["shown"]
