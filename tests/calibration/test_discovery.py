@@ -547,17 +547,26 @@ def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor
     assert not with_floor["matched_by_generic"]
 
 
+def _ladder_on(tmp_path, case, scale: float, hidden: bool = True, **ladder_options):
+    """(metadata with the achievable floor, ladder, diagnoses, fits) of ``effect_ladder`` on
+    generated ``case`` simulated at ``scale``, or on the same case with nothing hidden."""
+    if not hidden:
+        case = Case(name="null", kind=case.kind, seed=case.seed, hidden=(),
+                    baseline=case.baseline, known=case.known)
+    path = tmp_path / "case.toml"
+    path.write_text(case.toml())
+    df, meta = Scenario.load(path).simulate(scale)
+    meta["truth"]["achievable_floor_nm"] = achievable_floor(df, meta)["achievable_floor_nm"]
+    return meta, *diagnosis.effect_ladder(df, meta, list(case.baseline), known=case.known,
+                                          **ladder_options)
+
+
 def _loop_drift_x1(tmp_path, seed: int, index: int, kind: str, scale: float):
     """(metadata, the first diagnosis of the ladder, loop drift's row in it) of generated case
     ``index`` of ``seed``, a ``kind`` case hiding loop drift at the library's strength."""
     case = generate_cases(np.random.default_rng(seed), 12)[index]
     assert case.hidden == (("loop_drift", 1.0),) and case.kind == kind
-    path = tmp_path / "case.toml"
-    path.write_text(case.toml())
-    df, meta = Scenario.load(path).simulate(scale)
-    meta["truth"]["achievable_floor_nm"] = achievable_floor(df, meta)["achievable_floor_nm"]
-    _, diagnoses, _ = diagnosis.effect_ladder(df, meta, list(case.baseline), max_added=0,
-                                              known=case.known)
+    meta, _, diagnoses, _ = _ladder_on(tmp_path, case, scale, max_added=0)
     return meta, diagnoses, next(c for c in diagnoses[0]["ranking"]
                                  if c["effect"] == "loop_drift")
 
@@ -679,16 +688,8 @@ def test_an_absorbed_effect_far_beyond_its_typical_size_is_named_and_refitted(tm
     stopped at 17.2 nm against 16.5). The same case with nothing hidden names nothing."""
     case = generate_cases(np.random.default_rng(3737), 12)[10]
     assert case.hidden == (("beam_misalignment", 10.0),) and case.kind == "thermal"
-    if not hidden:
-        case = Case(name="null", kind=case.kind, seed=case.seed, hidden=(),
-                    baseline=case.baseline, known=case.known)
-    path = tmp_path / "case.toml"
-    path.write_text(case.toml())
-    df, meta = Scenario.load(path).simulate(0.02)
-    floor = achievable_floor(df, meta)["achievable_floor_nm"]
-    meta["truth"]["achievable_floor_nm"] = floor
-    ladder, diagnoses, _ = diagnosis.effect_ladder(df, meta, list(case.baseline), max_added=1,
-                                                   known=case.known)
+    meta, ladder, diagnoses, _ = _ladder_on(tmp_path, case, 0.02, hidden, max_added=1)
+    floor = meta["truth"]["achievable_floor_nm"]
     if not hidden:
         assert all(d["missing_effect"] is None for d in diagnoses), diagnoses[0]["ranking"]
         return
@@ -714,16 +715,8 @@ def test_two_effects_too_small_alone_are_added_together_and_reach_the_floor(tmp_
     case = generate_cases(np.random.default_rng(6363), 12)[3]
     assert case.kind == "thermal" and [e for e, _ in case.hidden] == [
         "beam_misalignment", "loop_drift", "air_refraction"]
-    if not hidden:
-        case = Case(name="null", kind=case.kind, seed=case.seed, hidden=(),
-                    baseline=case.baseline, known=case.known)
-    path = tmp_path / "case.toml"
-    path.write_text(case.toml())
-    df, meta = Scenario.load(path).simulate(0.02)
-    floor = achievable_floor(df, meta)["achievable_floor_nm"]
-    meta["truth"]["achievable_floor_nm"] = floor
-    ladder, diagnoses, fits = diagnosis.effect_ladder(df, meta, list(case.baseline),
-                                                      known=case.known)
+    meta, ladder, diagnoses, fits = _ladder_on(tmp_path, case, 0.02, hidden)
+    floor = meta["truth"]["achievable_floor_nm"]
     if not hidden:
         assert all(d["missing_effect"] is None and "pair" not in d for d in diagnoses)
         return
@@ -753,13 +746,8 @@ def test_a_candidate_closing_half_the_gap_but_not_confirmed_linearised_is_judged
     case = generate_cases(np.random.default_rng(9292), 12)[5]
     assert case.kind == "force" and dict(case.hidden) == {
         "beam_misalignment": 10.0, "air_refraction": 1 / 3, "loop_drift": 3.0}
-    path = tmp_path / "case.toml"
-    path.write_text(case.toml())
-    df, meta = Scenario.load(path).simulate(0.3)
-    floor = achievable_floor(df, meta)["achievable_floor_nm"]
-    meta["truth"]["achievable_floor_nm"] = floor
-    ladder, diagnoses, _ = diagnosis.effect_ladder(df, meta, list(case.baseline), max_added=1,
-                                                   known=case.known)
+    meta, ladder, diagnoses, _ = _ladder_on(tmp_path, case, 0.3, max_added=1)
+    floor = meta["truth"]["achievable_floor_nm"]
     row = next(c for c in diagnoses[0]["ranking"] if c["effect"] == "loop_drift")
     # linearised: half the gap closed, the combined test not below ALPHA
     assert row["gap_closed"] >= diagnosis.GAP_CLOSED and row["p_combined"] >= diagnosis.ALPHA
