@@ -47,14 +47,12 @@ import pandas as pd
 from deltatwin.calibration.diagnosis.diagnose import (
     ABSORBED,
     ALPHA,
-    _serial_inflation,
-    _verdict,
     diagnose,
     effect_ladder,
+    nested_verdict,
 )
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, achievable_floor, true_fit
 from deltatwin.calibration.physics.fit import PhysicsFit
-from deltatwin.calibration.physics.model import _projected
 from deltatwin.twin.cases import FRAME_ARM_M, generate_cases
 from deltatwin.twin.scenario import Scenario
 
@@ -84,7 +82,7 @@ def run_case(case, directory: Path, max_added: int, dump: Path | None = None) ->
 def shown_by_data(fit: PhysicsFit, complete: PhysicsFit) -> dict:
     """Whether the data show that ``fit``'s model lacks something: the complete (true) model
     fitted on the same rows (``complete``, the achievable floor's fit) against it, by the
-    diagnosis' own tests (``_verdict``): the calibration residual sums of squares (session means
+    diagnosis' own tests (``nested_verdict``): the calibration residual sums of squares (session means
     out), the F test over the directions the complete model identifies beyond the model's (at
     least one) with the rows' serial factor, and the one-sided validation test of the complete
     model's change. {p_calibration, p_validation, shown: either below ALPHA}. An oracle, for
@@ -92,14 +90,7 @@ def shown_by_data(fit: PhysicsFit, complete: PhysicsFit) -> dict:
     twin's values or the library's can fit the calibration rows *worse* than a model lacking
     loop drift (4646 case011: 1.047x the residual sum of squares; validation p = 0.04): no
     rule on the rows could name it there."""
-    meas = fit.measurements_
-    r0 = _projected(meas, meas.cal, fit.residual_)
-    r1 = _projected(meas, meas.cal, complete.residual_)
-    k_model = fit.identifiability_["n_identified_directions"]
-    k_complete = complete.identifiability_["n_identified_directions"]
-    v = _verdict(float(r0 @ r0), float(r1 @ r1), max(k_complete - k_model, 1), r0.size,
-                 meas.residual_dof(r0.size, k_complete), fit.residual_, complete.residual_,
-                 meas.val, inflation=_serial_inflation(meas, r0 - r1, r1))
+    v = nested_verdict(fit, complete)
     return {"p_calibration": v["p_value"], "p_validation": v["p_validation"],
             "shown": v["p_value"] < ALPHA or v["p_validation"] < ALPHA}
 

@@ -1082,20 +1082,35 @@ def _joint_verdict(fit: PhysicsFit, pair: PhysicsFit, alpha: float) -> dict:
     rows alone would name it (a force case hiding loop drift x3, seed 2929 case003: beam
     misalignment with loop drift, calibration p = 1, closing 90 % of the gap on validation,
     was named with beam misalignment not hidden)."""
-    meas = fit.measurements_
-    r0 = _projected(meas, meas.cal, fit.residual_)
-    r1 = _projected(meas, meas.cal, pair.residual_)
-    k1 = pair.identifiability_["n_identified_directions"]
-    k = k1 - fit.identifiability_["n_identified_directions"]
-    if k < 1 or not float(r1 @ r1) < float(r0 @ r0):
-        return {"significant": False, "new_directions": k,
-                "calibration_better": bool(float(r1 @ r1) < float(r0 @ r0))}
     floor, _ = floor_of(fit.meta_)
     floor_all = (floor.get("all") or max(floor[a] for a in AXES if a in floor)) if floor else None
-    return {**_verdict(float(r0 @ r0), float(r1 @ r1), k, r0.size,
-                       meas.residual_dof(r0.size, k1), fit.residual_, pair.residual_,
-                       meas.val, floor_all, alpha, _serial_inflation(meas, r0 - r1, r1)),
-            "new_directions": k}
+    verdict = nested_verdict(fit, pair, alpha, floor_all)
+    better = verdict.pop("calibration_better")
+    if verdict["new_directions"] < 1 or not better:
+        return {"significant": False, "new_directions": verdict["new_directions"],
+                "calibration_better": better}
+    return verdict
+
+
+def nested_verdict(fit: PhysicsFit, other: PhysicsFit, alpha: float = ALPHA,
+                   floor_all_nm: float | None = None) -> dict:
+    """``_verdict`` of the model ``other`` against ``fit``'s, both fitted on the same rows
+    (``other`` with more effects): the nested F test of the calibration residual sums of
+    squares (session means out) over the directions ``other`` identifies beyond ``fit``'s, with
+    the rows' serial factor, the BIC, the validation residuals (and the gap to
+    ``floor_all_nm`` closed), at ``alpha``; with ``new_directions`` and ``calibration_better``
+    (``other`` leaves the calibration rows' sum of squares lower). Used by ``_joint_verdict``
+    and by benchmarks/discovery.py to ask whether a round's data show the complete model."""
+    meas = fit.measurements_
+    r0 = _projected(meas, meas.cal, fit.residual_)
+    r1 = _projected(meas, meas.cal, other.residual_)
+    rss0, rss1 = float(r0 @ r0), float(r1 @ r1)
+    k1 = other.identifiability_["n_identified_directions"]
+    k = k1 - fit.identifiability_["n_identified_directions"]
+    return {**_verdict(rss0, rss1, k, r0.size, meas.residual_dof(r0.size, k1), fit.residual_,
+                       other.residual_, meas.val, floor_all_nm, alpha,
+                       _serial_inflation(meas, r0 - r1, r1)),
+            "new_directions": k, "calibration_better": rss1 < rss0}
 
 
 def _tried(effect: str, fit: PhysicsFit, kept: bool, held_off: bool) -> dict:
