@@ -30,6 +30,8 @@ additions). Prints per case and then the issue's scores against its targets:
     python benchmarks/discovery.py --cases 18 --seed 4242 --skip-full   # held-back: another seed
     python benchmarks/discovery.py                      # 8 cases, seed 15, and the full-scale time
     python benchmarks/discovery.py --cases 12 --seed 1234 --skip-full --only case010   # one case
+    python benchmarks/discovery.py --cases 12 --seeds 10501-10540 --jobs 2 --skip-full
+        # 480 cases pooled (docs/calibration.md, session 15): each score with its 95 % interval
 """
 from __future__ import annotations
 
@@ -39,10 +41,13 @@ import os
 import pickle
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from statsmodels.stats.proportion import proportion_confint
 
 from deltatwin.calibration.diagnosis.diagnose import (
     ABSORBED,
@@ -180,79 +185,134 @@ def _share(flags: list) -> str:
     return f"{sum(flags)}/{len(flags)}" + (f" ({100 * np.mean(flags):.0f} %)" if flags else "")
 
 
+def _seeds(text: str) -> list[int]:
+    """``--seeds``: "A-B" (A to B inclusive) or "A,B,C"."""
+    try:
+        if "-" in text.strip("-"):
+            a, b = (int(x) for x in text.split("-", 1))
+            if b < a or a < 0:
+                raise ValueError
+            return list(range(a, b + 1))
+        seeds = [int(x) for x in text.split(",") if x.strip()]
+        if seeds and min(seeds) >= 0:
+            return seeds
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"{text!r}: give seeds (integers >= 0) as A-B (A <= B) "
+                                     "or A,B,C")
+
+
+def _scored(job: tuple) -> dict:
+    """One case through ``run_case`` in its own folder, its table row (or its crash): the
+    unit a worker runs. ``job``: (seed, case, max_added, dump)."""
+    seed, case, max_added, dump = job
+    start = time.process_time()
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            r = run_case(case, Path(tmp), max_added,
+                         dump / str(seed) if dump else None)
+        except Exception as exc:        # a crash is the score being measured
+            return {"seed": seed, "case": case.name, "crash": f"{type(exc).__name__}: {exc}",
+                    "cpu_s": time.process_time() - start}
+    row = {"seed": seed, "case": case.name.split("-")[0], "kind": case.kind,
+           "hidden": ", ".join(f"{e} x{m:.2g}" for e, m in case.hidden) or "-",
+           "baseline_nm": r["baseline_nm"], "added": ", ".join(r["added"]) or "-",
+           "final_nm": r["final_nm"], "floor_nm": r["floor_nm"],
+           "ratio": r["final_nm"] / r["floor_nm"], "named_first": _flags(r["named_first"]),
+           "shown": _flags(r["named_first_shown"]),
+           "absorbed_reported": _flags(r["absorbed_reported"]),
+           "wrong_claims": ", ".join(r["wrong"]) or "-",
+           "missing_effects_by_round": " ".join(
+               f"{k}:{n}" for k, n in sorted(r["separability"].items())) or "-",
+           "cpu_s": time.process_time() - start}
+    return {"seed": seed, "case": case.name, "result": r, "row": row, "cpu_s": row["cpu_s"]}
+
+
+def _interval(flags: list) -> str:
+    """The share's 95 % Clopper-Pearson interval (statsmodels), for pooled figures."""
+    if not flags:
+        return ""
+    lo, hi = proportion_confint(sum(flags), len(flags), alpha=0.05, method="beta")
+    return f", 95 % interval {100 * lo:.0f}-{100 * hi:.0f} %"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--cases", type=int, default=8)
+    ap.add_argument("--cases", type=int, default=8, help="cases per seed")
     ap.add_argument("--seed", type=int, default=15)
+    ap.add_argument("--seeds", type=_seeds, help="several seeds, A-B or A,B,C (instead of "
+                    "--seed): the scores pooled over all their cases, with 95 %% intervals")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run at once (processes)")
     ap.add_argument("--max-added", type=int, default=3)
     ap.add_argument("--dump", type=Path, help="write each case's ladder and diagnoses here "
-                    "(pickle) to study its failures")
+                    "(pickle, one folder per seed) to study its failures")
     ap.add_argument("--skip-full", action="store_true", help="skip the full-scale timing")
     ap.add_argument("--only", default="",
                     help="run only the cases whose names start so (comma separated, e.g. "
                     "case003,case010) of those the seed generates, to study one failure")
     args = ap.parse_args()
+    if args.jobs < 1:
+        ap.error(f"--jobs {args.jobs}: need at least 1")
     if args.dump:
         # a bad --dump is the command line's error, not a crash of every case being scored
         if args.dump.exists() and not args.dump.is_dir():
             ap.error(f"--dump {args.dump}: not a folder")
-        args.dump.mkdir(parents=True, exist_ok=True)
-    cases = generate_cases(np.random.default_rng(args.seed), args.cases)
+    seeds = args.seeds or [args.seed]
     only = [c.strip() for c in args.only.split(",") if c.strip()]
-    unmatched = [o for o in only if not any(c.name.startswith(o) for c in cases)]
-    if unmatched:
-        ap.error(f"--only {','.join(unmatched)}: no case of seed {args.seed} starts so; its cases: "
-                 + ", ".join(c.name for c in cases))
-    if only:
-        # the cases are generated from the seed first, so a case is the same with or without --only
-        cases = [c for c in cases if any(c.name.startswith(o) for o in only)]
-    print(f"{len(cases)} cases from seed {args.seed}, simulated at scale {SCALE} of the papers' "
-          "campaigns (their noise, sensors and climate unchanged)", flush=True)
-    results, crashes, table = [], [], []
-    t0, c0 = time.perf_counter(), time.process_time()
-    with tempfile.TemporaryDirectory() as tmp:
-        for case in cases:
-            start = time.process_time()
-            try:
-                r = run_case(case, Path(tmp), args.max_added, args.dump)
-            except Exception as exc:        # a crash is the score being measured
-                crashes.append((case.name, f"{type(exc).__name__}: {exc}"))
-                print(f"{case.name}: CRASH {type(exc).__name__}: {exc}", flush=True)
-                continue
-            results.append(r)
-            table.append({"case": case.name.split("-")[0], "kind": case.kind,
-                          "hidden": ", ".join(f"{e} x{m:.2g}" for e, m in case.hidden) or "-",
-                          "baseline_nm": r["baseline_nm"],
-                          "added": ", ".join(r["added"]) or "-", "final_nm": r["final_nm"],
-                          "floor_nm": r["floor_nm"], "ratio": r["final_nm"] / r["floor_nm"],
-                          "named_first": _flags(r["named_first"]),
-                          "shown": _flags(r["named_first_shown"]),
-                          "absorbed_reported": _flags(r["absorbed_reported"]),
-                          "wrong_claims": ", ".join(r["wrong"]) or "-",
-                          "missing_effects_by_round": " ".join(
-                              f"{k}:{n}" for k, n in sorted(r["separability"].items())) or "-",
-                          "cpu_s": time.process_time() - start})
+    jobs = []
+    for seed in seeds:
+        cases = generate_cases(np.random.default_rng(seed), args.cases)
+        unmatched = [o for o in only if not any(c.name.startswith(o) for c in cases)]
+        if unmatched:
+            ap.error(f"--only {','.join(unmatched)}: no case of seed {seed} starts so; its "
+                     "cases: " + ", ".join(c.name for c in cases))
+        # the cases are generated from the seed first: a case is the same with or without --only
+        jobs += [(seed, c, args.max_added, args.dump) for c in cases
+                 if not only or any(c.name.startswith(o) for o in only)]
+        if args.dump:
+            (args.dump / str(seed)).mkdir(parents=True, exist_ok=True)
+    print(f"{len(jobs)} cases from seed(s) {_seed_text(seeds)}, simulated at scale {SCALE} of "
+          "the papers' campaigns (their noise, sensors and climate unchanged)", flush=True)
+    t0 = time.perf_counter()
+    done = []
+    for out in _run(jobs, args.jobs):
+        done.append(out)
+        if "crash" in out:
+            print(f"seed {out['seed']} {out['case']}: CRASH {out['crash']}", flush=True)
+        else:
             print(", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
-                            for k, v in table[-1].items()), flush=True)
+                            for k, v in out["row"].items()), flush=True)
+    results = [o["result"] for o in done if "result" in o]
+    crashes = [(o["seed"], o["case"], o["crash"]) for o in done if "crash" in o]
+    table = [o["row"] for o in done if "row" in o]
+    with pd.option_context("display.width", 250, "display.max_columns", 20,
+                           "display.max_colwidth", 60):
+        print("\n" + pd.DataFrame(table).to_string(index=False, float_format="{:.1f}".format))
+    pooled = len(seeds) > 1
+    if pooled:
+        print("\nper seed:")
+        for seed in seeds:
+            print(f"  {seed}: " + _summary_line(
+                [o["result"] for o in done if o["seed"] == seed and "result" in o]))
+    print(f"\n{len(jobs)} cases (seed(s) {_seed_text(seeds)}, scale {SCALE}): "
+          f"{sum(o['cpu_s'] for o in done):.0f} s CPU, {time.perf_counter() - t0:.0f} s wall "
+          f"({args.jobs} job(s)), load {os.getloadavg()[0]:.1f}")
     named = [x for r in results for x in r["named_first"]]
     named_shown = [x for r in results for x in r["named_first_shown"]]
     absorbed = [x for r in results for x in r["absorbed_reported"]]
     at_floor = [r["at_floor"] for r in results]
     nulls = [r for r in results if not r["case"].hidden]
-    with pd.option_context("display.width", 250, "display.max_columns", 20,
-                           "display.max_colwidth", 60):
-        print("\n" + pd.DataFrame(table).to_string(index=False, float_format="{:.1f}".format))
-    print(f"\n{len(cases)} cases (seed {args.seed}, scale {SCALE}): "
-          f"{time.process_time() - c0:.0f} s CPU, {time.perf_counter() - t0:.0f} s wall, load "
-          f"{os.getloadavg()[0]:.1f}")
-    print(f"  crashes: {len(crashes)} (target 0)" + "".join(f"\n    {n}: {m}" for n, m in crashes))
-    print(f"  hidden effect named first in separable rounds: {_share(named)} (target >= 90 %)")
+    ci = _interval if pooled else (lambda flags: "")
+    print(f"  crashes: {len(crashes)} (target 0)"
+          + "".join(f"\n    seed {s} {n}: {m}" for s, n, m in crashes))
+    print(f"  hidden effect named first in separable rounds: {_share(named)}{ci(named)} "
+          "(target >= 90 %)")
     print(f"    of those whose data show the complete model (calibration or validation rows, p < "
-          f"{ALPHA:g}): {_share(named_shown)}")
-    print(f"  absorbed effects reported as absorbed (or significant): {_share(absorbed)} "
-          "(target >= 90 %)")
-    print(f"  final error within {AT_FLOOR}x the achievable floor: {_share(at_floor)} "
-          "(target >= 90 %)")
+          f"{ALPHA:g}): {_share(named_shown)}{ci(named_shown)}")
+    print(f"  absorbed effects reported as absorbed (or significant): {_share(absorbed)}"
+          f"{ci(absorbed)} (target >= 90 %)")
+    print(f"  final error within {AT_FLOOR}x the achievable floor: {_share(at_floor)}"
+          f"{ci(at_floor)} (target >= 90 %)")
     print(f"  null cases with a false claim: {sum(r['false_claim'] for r in nulls)} of "
           f"{len(nulls)} (target 0); effects named that were not hidden, all cases: "
           f"{sum(len(r['wrong']) for r in results)}")
@@ -262,6 +322,31 @@ def main() -> None:
               f"wall, {f['cpu_s']:.1f} s CPU, load {f['load']:.1f} (target <= {FULL_TARGET_S:.0f} "
               f"s: {'met' if f['wall_s'] <= FULL_TARGET_S else 'NOT met'}); converged "
               f"{f['converged']}, val err90 {f['val_err90_nm']:.1f} nm, names {f['missing']}")
+
+
+def _run(jobs: list, workers: int):
+    """``_scored`` of every job, in order; in ``workers`` fresh processes when more than one
+    (spawn: no forked copy of a threaded parent)."""
+    if workers == 1:
+        yield from map(_scored, jobs)
+        return
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        yield from pool.map(_scored, jobs)
+
+
+def _seed_text(seeds: list) -> str:
+    return (f"{seeds[0]}-{seeds[-1]}" if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1))
+            else ",".join(map(str, seeds)))
+
+
+def _summary_line(results: list) -> str:
+    """A seed's scores in one line: named first, absorbed, at the floor, null false claims."""
+    named = [x for r in results for x in r["named_first"]]
+    absorbed = [x for r in results for x in r["absorbed_reported"]]
+    nulls = [r for r in results if not r["case"].hidden]
+    return (f"named {sum(named)}/{len(named)}, absorbed {sum(absorbed)}/{len(absorbed)}, "
+            f"floor {sum(r['at_floor'] for r in results)}/{len(results)}, "
+            f"null claims {sum(r['false_claim'] for r in nulls)}/{len(nulls)}")
 
 
 if __name__ == "__main__":

@@ -658,6 +658,34 @@ def test_the_benchmark_refuses_an_only_prefix_that_selects_no_case():
     assert "Traceback" not in run.stderr
 
 
+def test_the_benchmark_pools_several_seeds_and_refuses_a_bad_range(tmp_path):
+    """benchmarks/discovery.py --seeds: the cases of every seed, run in worker processes
+    (--jobs), each case's row naming its seed, a line per seed and the pooled scores with
+    their 95 % intervals; a range given backwards is named (exit 2), no traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "discovery.py"
+    bad = subprocess.run([sys.executable, str(script), "--seeds", "9-7", "--skip-full"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "'9-7': give seeds" in bad.stderr, bad.stderr
+    assert "Traceback" not in bad.stderr
+    run = subprocess.run([sys.executable, str(script), "--cases", "1", "--seeds", "3,4",
+                          "--jobs", "2", "--skip-full", "--dump", str(tmp_path)],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    for seed in (3, 4):
+        case = generate_cases(np.random.default_rng(seed), 1)[0]
+        assert any(f"seed {seed}, case {case.name.split('-')[0]}" in s for s in lines)
+        assert any(s.startswith(f"  {seed}: named ") for s in lines)
+        assert (tmp_path / str(seed) / f"{case.name}.pkl").is_file()
+    assert "2 cases (seed(s) 3,4" in run.stdout and "(2 job(s))" in run.stdout
+    assert "final error within 1.1x the achievable floor: " in run.stdout
+    assert "95 % interval" in run.stdout
+
+
 def test_a_direction_counts_at_its_estimated_size_only_where_the_data_know_it():
     """``_determined``: the fit's rule (a change above noise / identifiable_ratio per typical
     size), or, for a candidate with no direction determined so, a change of at least the
