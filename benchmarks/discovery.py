@@ -30,8 +30,8 @@ additions). Prints per case and then the issue's scores against its targets:
     python benchmarks/discovery.py --cases 18 --seed 4242 --skip-full   # held-back: another seed
     python benchmarks/discovery.py                      # 8 cases, seed 15, and the full-scale time
     python benchmarks/discovery.py --cases 12 --seed 1234 --skip-full --only case010   # one case
-    python benchmarks/discovery.py --cases 12 --seeds 10501-10540 --jobs 2 --skip-full
-        # 480 cases pooled (docs/calibration.md, session 15): each score with its 95 % interval
+    python benchmarks/discovery.py --cases 12 --seeds 10501-10548 --jobs 2 --skip-full
+        # 576 cases pooled (docs/calibration.md, session 15): each score with its 95 % interval
 """
 from __future__ import annotations
 
@@ -335,8 +335,9 @@ def _run(jobs: list, workers: int):
 
 
 def _seed_text(seeds: list) -> str:
-    return (f"{seeds[0]}-{seeds[-1]}" if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1))
-            else ",".join(map(str, seeds)))
+    """The seeds as the command line gives them: A-B for a run of three or more, else A,B."""
+    run = len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1))
+    return f"{seeds[0]}-{seeds[-1]}" if run else ",".join(map(str, seeds))
 
 
 def _summary_line(results: list) -> str:
