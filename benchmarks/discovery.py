@@ -297,11 +297,7 @@ def main() -> None:
     print(f"\n{len(jobs)} cases (seed(s) {_seed_text(seeds)}, scale {SCALE}): "
           f"{sum(o['cpu_s'] for o in done):.0f} s CPU, {time.perf_counter() - t0:.0f} s wall "
           f"({args.jobs} job(s)), load {os.getloadavg()[0]:.1f}")
-    named = [x for r in results for x in r["named_first"]]
-    named_shown = [x for r in results for x in r["named_first_shown"]]
-    absorbed = [x for r in results for x in r["absorbed_reported"]]
-    at_floor = [r["at_floor"] for r in results]
-    nulls = [r for r in results if not r["case"].hidden]
+    named, named_shown, absorbed, at_floor, nulls = _flags_of(results).values()
     ci = _interval if pooled else (lambda flags: "")
     print(f"  crashes: {len(crashes)} (target 0)"
           + "".join(f"\n    seed {s} {n}: {m}" for s, n, m in crashes))
@@ -340,14 +336,24 @@ def _seed_text(seeds: list) -> str:
     return f"{seeds[0]}-{seeds[-1]}" if run else ",".join(map(str, seeds))
 
 
+def _flags_of(results: list) -> dict:
+    """The scores' flags over ``results`` (``score``'s dicts): the detection rounds named first,
+    those of them the data show, the absorbed effects reported, each case at its floor, and
+    the null cases (their ``false_claim``)."""
+    return {"named": [x for r in results for x in r["named_first"]],
+            "named_shown": [x for r in results for x in r["named_first_shown"]],
+            "absorbed": [x for r in results for x in r["absorbed_reported"]],
+            "at_floor": [r["at_floor"] for r in results],
+            "nulls": [r for r in results if not r["case"].hidden]}
+
+
 def _summary_line(results: list) -> str:
     """A seed's scores in one line: named first, absorbed, at the floor, null false claims."""
-    named = [x for r in results for x in r["named_first"]]
-    absorbed = [x for r in results for x in r["absorbed_reported"]]
-    nulls = [r for r in results if not r["case"].hidden]
-    return (f"named {sum(named)}/{len(named)}, absorbed {sum(absorbed)}/{len(absorbed)}, "
-            f"floor {sum(r['at_floor'] for r in results)}/{len(results)}, "
-            f"null claims {sum(r['false_claim'] for r in nulls)}/{len(nulls)}")
+    f = _flags_of(results)
+    return (f"named {sum(f['named'])}/{len(f['named'])}, "
+            f"absorbed {sum(f['absorbed'])}/{len(f['absorbed'])}, "
+            f"floor {sum(f['at_floor'])}/{len(f['at_floor'])}, "
+            f"null claims {sum(r['false_claim'] for r in f['nulls'])}/{len(f['nulls'])}")
 
 
 if __name__ == "__main__":

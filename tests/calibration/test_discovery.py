@@ -661,16 +661,21 @@ def test_the_benchmark_refuses_an_only_prefix_that_selects_no_case():
 def test_the_benchmark_pools_several_seeds_and_refuses_a_bad_range(tmp_path):
     """benchmarks/discovery.py --seeds: the cases of every seed, run in worker processes
     (--jobs), each case's row naming its seed, a line per seed and the pooled scores with
-    their 95 % intervals; a range given backwards is named (exit 2), no traceback."""
+    their 95 % intervals; a range given backwards, a seed that is no integer >= 0 or no worker
+    is named (exit 2) before any case runs, no traceback."""
     import subprocess
     import sys
     from pathlib import Path
 
     script = Path(__file__).resolve().parents[2] / "benchmarks" / "discovery.py"
-    bad = subprocess.run([sys.executable, str(script), "--seeds", "9-7", "--skip-full"],
-                         capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "'9-7': give seeds" in bad.stderr, bad.stderr
-    assert "Traceback" not in bad.stderr
+    for args, said in ((["--seeds", "9-7"], "'9-7': give seeds"),
+                       (["--seeds", "x"], "'x': give seeds"),
+                       (["--seeds", "-3"], "'-3': give seeds"),
+                       (["--jobs", "0"], "--jobs 0: need at least 1")):
+        bad = subprocess.run([sys.executable, str(script), *args, "--skip-full"],
+                             capture_output=True, text=True, timeout=120)
+        assert bad.returncode == 2 and said in bad.stderr, (args, bad.stderr)
+        assert "Traceback" not in bad.stderr and not bad.stdout, args
     run = subprocess.run([sys.executable, str(script), "--cases", "1", "--seeds", "3,4",
                           "--jobs", "2", "--skip-full", "--dump", str(tmp_path)],
                          capture_output=True, text=True, timeout=600)
