@@ -269,8 +269,9 @@ def main() -> None:
         # the cases are generated from the seed first: a case is the same with or without --only
         jobs += [(seed, c, args.max_added, args.dump) for c in cases
                  if not only or any(c.name.startswith(o) for o in only)]
-        if args.dump:
-            (args.dump / str(seed)).mkdir(parents=True, exist_ok=True)
+    # the folders once every seed's --only is known to match: a refused run writes nothing
+    for seed in seeds if args.dump else ():
+        (args.dump / str(seed)).mkdir(parents=True, exist_ok=True)
     print(f"{len(jobs)} cases from seed(s) {_seed_text(seeds)}, simulated at scale {SCALE} of "
           "the papers' campaigns (their noise, sensors and climate unchanged)", flush=True)
     t0 = time.perf_counter()

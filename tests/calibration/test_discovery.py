@@ -662,7 +662,8 @@ def test_the_benchmark_pools_several_seeds_and_refuses_a_bad_range(tmp_path):
     """benchmarks/discovery.py --seeds: the cases of every seed, run in worker processes
     (--jobs), each case's row naming its seed, a line per seed and the pooled scores with
     their 95 % intervals; a range given backwards, a seed that is no integer >= 0 or no worker
-    is named (exit 2) before any case runs, no traceback."""
+    is named (exit 2) before any case runs, no traceback; an --only that one seed lacks writes
+    no dump folder for any."""
     import subprocess
     import sys
     from pathlib import Path
@@ -676,6 +677,13 @@ def test_the_benchmark_pools_several_seeds_and_refuses_a_bad_range(tmp_path):
                              capture_output=True, text=True, timeout=120)
         assert bad.returncode == 2 and said in bad.stderr, (args, bad.stderr)
         assert "Traceback" not in bad.stderr and not bad.stdout, args
+    # seed 2's first case is a force campaign, seed 1's a thermal one: refused at seed 1,
+    # with no dump folder written for seed 2 either
+    refused = subprocess.run([sys.executable, str(script), "--cases", "1", "--seeds", "2,1",
+                              "--only", "case000-force", "--dump", str(tmp_path / "refused"),
+                              "--skip-full"], capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and "no case of seed 1 starts so" in refused.stderr
+    assert not (tmp_path / "refused").exists()
     run = subprocess.run([sys.executable, str(script), "--cases", "1", "--seeds", "3,4",
                           "--jobs", "2", "--skip-full", "--dump", str(tmp_path)],
                          capture_output=True, text=True, timeout=600)
