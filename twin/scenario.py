@@ -445,6 +445,11 @@ class Scenario:
         return {"source": "twin", "scenario": self.name, "scenario_toml": self.text,
                 "seed": self.seed, "scale": 1.0 if scale is None else scale,
                 "deltatwin_version": __version__, "sensors": dict(self.sensors),
+                # the laboratory's instrument specifications, which a fit's noise model uses
+                "instruments": {"T_noise_C": self.settings.T_noise_C,
+                                "T_resolution_C": self.settings.T_resolution_C,
+                                "interferometer_noise_m": self.settings.noise_floor_m,
+                                "interferometer_resolution_m": self.settings.resolution_m},
                 "truth": {"effects": [e.describe() for e in self.effects],
                           "hidden": self.hidden,
                           "reading_noise_std_nm": self.settings.noise_floor_m * 1e9,

@@ -75,7 +75,7 @@ def run(args) -> int:
         say("refitting the twin's complete model: the achievable floor")
         achievable, floor_fit = record_achievable_floor(df, meta)
     write_dataset(df, meta, data)
-    say(f"{len(df)} rows -> {data}; noise floor (interferometers) "
+    say(f"{len(df)} rows -> {data}; noise floor (interferometers and servo settling) "
         + ", ".join(f"{k} {v:.1f}" for k, v in floor.items()) + " nm; achievable floor (the "
         "complete model, reading its conditions through the lab's other instruments) "
         + ", ".join(f"{k} {v:.1f}" for k, v in achievable.items()) + " nm")
@@ -139,9 +139,10 @@ def run(args) -> int:
         print(f"  {r['model'] + ' (' + (', '.join(r['effects']) or 'nominal') + ')':<60.60} "
               f"{r['val_err90_nm']:10.1f}")
     print("  noise floor: " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items()) + " nm "
-          "(the interferometers alone)")
+          "(the readings' own noise: interferometers and servo settling)")
     print("  achievable floor: " + ", ".join(f"{k} {v:.1f}" for k, v in achievable.items())
-          + f" nm (the twin's complete model refitted on these data; at the floor: within "
+          + f" nm (the twin's complete model fitted on these data from the library's starting "
+          f"values; at the floor: within "
           f"{AT_FLOOR}x). No effect added brings a model much below it: the model reads the "
           "robot's conditions through the lab's instruments, whose errors no effect can remove")
     # measured either way: the complete model's refit gives the interferometers' share and the

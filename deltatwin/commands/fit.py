@@ -21,6 +21,9 @@ def register(sub) -> None:
                    help="a known constant of the laboratory, SI units, comma-separated for a "
                         "vector, e.g. loop_drift.frame_arm_m=-0.6,0 (repeatable; a free "
                         "parameter set this way is the fit's start)")
+    p.add_argument("--max-evaluations", type=int, default=80, metavar="N",
+                   help="the trial points the solver may evaluate, the start included (a "
+                        "Jacobian is not counted; default 80, as the diagnosis's own fits)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("-o", "--output", help="write the fitted model (TOML) here")
     p.set_defaults(func=run_fit)
@@ -67,6 +70,7 @@ def run_fit(args) -> int:
     known = _known_values(args.set)
     df, meta = read_dataset(args.data)
     fit = PhysicsFit(_effects(args.effects), start=known or None, noise_nm=args.noise_nm,
+                     max_evaluations=args.max_evaluations,
                      progress=not args.json).fit(df, meta, where=str(args.data))
     if args.output:
         atomic_write_text(args.output, fitted_toml(fit, str(args.data)))

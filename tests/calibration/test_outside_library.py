@@ -633,7 +633,7 @@ def test_the_joint_frames_step_scan_is_the_model_readjusted_one_made_once():
     on a mirror step whose moment the model's drift shifts (the residual's scan misplaces it)."""
     from deltatwin.calibration.diagnosis.attribution import laboratory_variables, scan_together
     from deltatwin.calibration.diagnosis.model_form import JointFrame, ModelSpan
-    from deltatwin.calibration.physics.model import _projected
+    from deltatwin.calibration.physics.model import projected
     from tests.calibration.outside_effects import simulate_case
 
     # seed 12345 g09: a 230 nm Z mirror step on the portal's force campaign (model_form's
@@ -645,8 +645,8 @@ def test_the_joint_frames_step_scan_is_the_model_readjusted_one_made_once():
     meas, J = fit.measurements_, fit.jacobian_
     JS = (J.reshape(-1, J.shape[2]) @ (fit.model_.scales[:, None] * fit.identified_directions_)
           ).reshape(J.shape[:2] + (fit.identified_directions_.shape[1],))
-    Jm = _projected(meas, meas.cal, JS)
-    r0 = _projected(meas, meas.cal, fit.residual_)
+    Jm = projected(meas, meas.cal, JS)
+    r0 = projected(meas, meas.cal, fit.residual_)
     frames = [JointFrame(fit, Jm, JS, r0, ModelSpan(Jm)) for _ in range(2)]
     variables = laboratory_variables(meas.df)
     frames[0].scan(variables)
