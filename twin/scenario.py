@@ -88,6 +88,21 @@ class ScenarioError(ValueError):
     """A scenario file that cannot be used; the message names file, key and reason."""
 
 
+SCALE_HELP = "fraction of the campaign's points, 0 < SCALE <= 1 (1: the full campaign)"
+
+
+def check_scale(scale, where: str = "scale") -> float | None:
+    """A campaign's scale: None (the full campaign) or a fraction of its points in (0, 1];
+    anything else (0, negative, above 1, NaN, infinite, not a number) raises ScenarioError
+    naming ``where`` (a command line passes its option, ``--scale``)."""
+    if scale is None:
+        return None
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
+            or not 0 < scale <= 1:
+        raise ScenarioError(f"{where} = {scale!r}: expected a {SCALE_HELP}")
+    return float(scale)
+
+
 def _check_keys(where, table: dict, allowed) -> None:
     for key in table:
         if key not in allowed:
@@ -300,6 +315,15 @@ class Scenario:
                                 "thermometers: name at least one (sensor = \"part\")")
         return sc
 
+    def file_name(self) -> str:
+        """The file this scenario was read from, as a user names it: a shipped scenario's
+        name (``quiet/magnetic-force``, which ``load`` accepts), else its path. Its [scenario]
+        name may differ (quiet/magnetic-force.toml is named hidden-magnetic-force)."""
+        path = Path(self.path).resolve()
+        if path.is_relative_to(SCENARIO_DIR.resolve()):
+            return path.relative_to(SCENARIO_DIR.resolve()).with_suffix("").as_posix()
+        return str(self.path)
+
     # -- the laboratory's error sources -------------------------------------------------------
     def sources(self) -> list[str]:
         """The laboratory's error sources (keys of ERROR_SOURCES) present in this scenario: the
@@ -358,7 +382,7 @@ class Scenario:
     def plan(self, rng, scale: float | None = None) -> Plan:
         """The campaign plan, at full scale or scaled (number of points times ``scale``)."""
         c, f = self.campaign, f"{self.path} [campaign]"
-        scale = 1.0 if scale is None else scale
+        scale = 1.0 if scale is None else check_scale(scale)
         stroke = self.params.stroke_rad
         if c["kind"] == "thermal":
             sessions = []

@@ -60,10 +60,10 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
     path = Path(path)
     if path.is_dir():
         raise FitError(f"{path}: is a folder, not a fitted-model TOML file")
+    if not path.exists():
+        raise FitError(f"{path}: no such model file")
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise FitError(f"{path}: not a fitted-model TOML file ({exc})") from exc
     model = doc.get("model")

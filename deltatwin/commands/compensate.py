@@ -62,7 +62,7 @@ def register(sub) -> None:
     g.add_argument("--reduced", action="store_true",
                    help="the calibration campaign was the scenario's reduced scale")
     g.add_argument("--scale", type=float, default=None,
-                   help="the calibration campaign's scale (sets when it ended)")
+                   help="the calibration campaign's scale, 0 < SCALE <= 1 (sets when it ended)")
     p.add_argument("-o", "--output", type=Path, default=None,
                    help="dataset of the compensated campaign (Parquet, or CSV by suffix; "
                         "default SCENARIO-compensated.parquet)")
@@ -180,11 +180,11 @@ def run(args) -> int:
     from deltatwin.commands.output import strict_json
     from deltatwin.files import check_writable
     from deltatwin.twin.campaign import run_campaign
-    from deltatwin.twin.dataset import read_dataset, write_dataset
+    from deltatwin.twin.dataset import check_dataset_path, read_dataset, write_dataset
     from deltatwin.twin.instruments.interface import InstrumentError
     from deltatwin.twin.instruments.optics import AXES
     from deltatwin.twin.journal import Journal
-    from deltatwin.twin.scenario import Scenario
+    from deltatwin.twin.scenario import Scenario, check_scale
 
     if args.targets < 1:
         raise ValueError(f"--targets must be >= 1, got {args.targets}")
@@ -194,8 +194,9 @@ def run(args) -> int:
         raise ValueError("--instruments serial needs --ports FILE")
     if args.instruments == "sim" and args.ports is not None:
         raise ValueError("--ports is only for --instruments serial")
-    if args.scale is not None and not 0 < args.scale <= 1:
-        raise ValueError(f"--scale must be in (0, 1], got {args.scale}")
+    check_scale(args.scale, "--scale")
+    if args.output is not None:
+        check_dataset_path(args.output, "-o")
     if not args.after_h >= 0:
         raise ValueError(f"--after-h must be >= 0 hours, got {args.after_h}")
     if args.view is not None:

@@ -25,8 +25,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale")
-    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points "
-                   "(use the same as the campaign: the twin's time horizon depends on it)")
+    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points, "
+                   "0 < SCALE <= 1 (use the same as the campaign: the twin's time horizon depends on it)")
     p.add_argument("--ports-out", type=Path, default=None, help="write the ports file (TOML)")
     p.add_argument("--dir", type=Path, default=None,
                    help="folder for the device symlinks (default: a temporary folder)")
@@ -48,8 +48,9 @@ TWIN_AC_MAX_STEP_ARCSEC = 200.0
 def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None):
     """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it."""
     from deltatwin.twin.instruments.simulated import SimulatedLab
-    from deltatwin.twin.scenario import Scenario
+    from deltatwin.twin.scenario import Scenario, check_scale
 
+    check_scale(scale, "--scale")
     sc = Scenario.load(scenario, seed=seed)
     scale = sc.reduced_scale if reduced else scale
     twin, _ = sc.build(scale)

@@ -40,7 +40,9 @@ def _effects(text: str) -> list[str]:
 
 
 def _known_values(settings: list[str]) -> dict:
-    """{effect: {parameter: value}} from ``--set EFFECT.PARAM=VALUE`` options."""
+    """{effect: {parameter: value}} from ``--set EFFECT.PARAM=VALUE`` options; an unknown
+    effect or parameter, or a value of the wrong shape, is a FitError quoting the option as
+    the user wrote it, with the valid names."""
     from deltatwin.calibration.errors import FitError
 
     out: dict = {}
@@ -55,8 +57,33 @@ def _known_values(settings: list[str]) -> dict:
         except ValueError:
             raise FitError(f"--set {item!r}: {text!r} is not a number or a comma-separated "
                            "list of numbers (SI units)") from None
-        out.setdefault(effect, {})[param] = numbers[0] if len(numbers) == 1 else numbers
+        value = numbers[0] if len(numbers) == 1 else numbers
+        _check_setting(item, effect.strip(), param.strip(), value)
+        out.setdefault(effect.strip(), {})[param.strip()] = value
     return out
+
+
+def _check_setting(item: str, effect: str, param: str, value) -> None:
+    """``--set item`` names a known effect and one of its parameters, with a valid value."""
+    import difflib
+
+    from deltatwin.calibration.errors import FitError
+    from deltatwin.twin.effects import EffectError, effect_class, make_effect
+
+    try:
+        cls = effect_class(effect, where=f"--set {item}")
+    except EffectError as exc:
+        raise FitError(str(exc)) from None
+    names = [p.name for p in cls.parameters]
+    if param not in names:
+        close = difflib.get_close_matches(param, names, n=1)
+        raise FitError(f"--set {item}: effect {effect!r} has no parameter {param!r}"
+                       + (f" (did you mean {close[0]!r}?)" if close else "")
+                       + f"; its parameters: {names}")
+    try:
+        make_effect(cls, {param: value}, where=effect, check_minimum=False)
+    except EffectError as exc:
+        raise FitError(f"--set {item}: {str(exc).split(': ', 1)[-1]}") from None
 
 
 def run_fit(args) -> int:

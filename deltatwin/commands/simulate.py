@@ -10,11 +10,11 @@ def run_simulate(args) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from deltatwin.twin.dataset import write_dataset
-    from deltatwin.twin.scenario import Scenario
+    from deltatwin.twin.dataset import check_dataset_path, write_dataset
+    from deltatwin.twin.scenario import Scenario, check_scale
 
-
-
+    check_scale(args.scale, "--scale")
+    check_dataset_path(args.output, "-o")
     t0 = time.perf_counter()
     with tqdm(total=4, desc="simulate", unit="stage", disable=args.quiet) as bar:
         bar.set_postfix_str("scenario")
@@ -77,11 +77,14 @@ def register(sub) -> None:
     p.add_argument("scenario", help="a scenario TOML path, or a shipped name (paper-thermal, "
                    "paper-force, hidden/...)")
     p.add_argument("-o", "--output", required=True,
-                   help="dataset to write (.parquet; .csv writes a .meta.json beside it)")
+                   help="dataset to write: .parquet, or .csv (with a .meta.json beside it); "
+                        "another suffix is refused")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale (tests)")
-    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points")
+    g.add_argument("--scale", type=float, default=None,
+                   help="fraction of the campaign's points, 0 < SCALE <= 1 (default 1: the full "
+                        "campaign)")
     p.add_argument("--through-interface", action="store_true",
                    help="run point by point through the instrument interface (same data, slower)")
     p.add_argument("--no-floor", action="store_true",

@@ -47,8 +47,10 @@ LIBRARY: dict[str, type[Effect]] = {cls.name: cls for cls in (
     BeamMisalignment, SensorContact, ServoSettling, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
 
 ENTRY_POINT_GROUP = "deltatwin.effects"
+# every hook a user effect may define (base.py's stage hooks), each guarded by ``_guarded``
 HOOKS = ("robot", "environment", "heat_sources", "motor_settling", "thermometers",
-         "sensed_parts", "part_temperatures", "wrench", "optics")
+         "sensed_parts", "part_temperatures", "motor_angles", "wrench", "wrench_derivatives",
+         "optics")
 
 # user effects resolved so far: by their name, and the spec each was loaded from
 _USER: dict[str, type[Effect]] = {}
