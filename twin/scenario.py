@@ -166,8 +166,12 @@ class Scenario:
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
-    def load(cls, path, seed: int | None = None, scale: float | None = None) -> Scenario:
-        """Read and validate a scenario (a path, or a name in scenarios/)."""
+    def load(cls, path, seed: int | None = None, scale: float | None = None,
+             trust_effects=False) -> Scenario:
+        """Read and validate a scenario (a path, or a name in scenarios/). A user effect its
+        [effects] on names (``file.py:Class``) is code: it runs only with ``trust_effects``
+        True (or a list of the specs whose code may run), else ScenarioError naming the file and
+        the code (twin/effects: ``trust``)."""
         path = Path(path)
         if not path.exists() and (SCENARIO_DIR / f"{path}.toml").exists():
             path = SCENARIO_DIR / f"{path}.toml"
@@ -219,7 +223,8 @@ class Scenario:
         # an entry of ``on`` is a library name or the researcher's own 'file.py:Class' (a
         # relative path from this file's folder); parameter tables go by the effect's name
         try:
-            classes = [effect_class(n, path.parent, f"{f} [effects] on") for n in on]
+            classes = [effect_class(n, path.parent, f"{f} [effects] on", trust_effects)
+                       for n in on]
         except EffectError as exc:
             raise ScenarioError(str(exc)) from exc
         names = [c.name for c in classes]
@@ -303,7 +308,8 @@ class Scenario:
                                     "{parameter = value} (the laboratory's known constants)")
             for x, values in known.items():
                 try:
-                    make_effect(x, values, where=f"{f} [hidden] known", base_dir=path.parent)
+                    make_effect(x, values, where=f"{f} [hidden] known", base_dir=path.parent,
+                                trust=trust_effects)
                 except EffectError as exc:
                     raise ScenarioError(str(exc)) from exc
         sc = cls(path=path, text=text, name=name, seed=seed, params=params, effects=effects,

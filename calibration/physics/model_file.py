@@ -55,8 +55,11 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
                           "`deltatwin compare DATA --model THIS`")
 
 
-def load_fitted(path) -> tuple[PhysicsModel, dict]:
-    """(model, file contents) from a fitted-model TOML file."""
+def load_fitted(path, trust_effects=False) -> tuple[PhysicsModel, dict]:
+    """(model, file contents) from a fitted-model TOML file. A user effect it names
+    (``file.py:Class``) is code: it runs only with ``trust_effects`` True (or a list of the
+    specs whose code may run), else FitError naming the file and the code (twin/effects:
+    ``trust``)."""
     path = Path(path)
     if path.is_dir():
         raise FitError(f"{path}: is a folder, not a fitted-model TOML file")
@@ -77,15 +80,14 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
                        f"deltatwin reads {FORMAT!r} up to version {FORMAT_VERSION}")
     damage = content_damage(doc)
     if damage:
-        raise FitError(f"{path}: {damage}; refit or restore it (or remove the "
-                       f"{CONTENT_SHA256} line to use an edited file)")
+        raise FitError(f"{path}: {damage}; refit or restore it")
     _check_layout(path, doc)
     # a fitted file cut short must not fall back on default values: every effect with free
     # parameters needs its table (a hand-written model without [fit] starts at the defaults)
     tables = doc.get("effects", {})
     try:
         # library names, or where the researcher's own effects came from (file.py:Class)
-        classes = [effect_class(e, where=f"{path} [model] effects")
+        classes = [effect_class(e, where=f"{path} [model] effects", trust=trust_effects)
                    for e in doc["model"]["effects"]]
     except EffectError as exc:
         raise FitError(str(exc)) from exc

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 # exit code of a campaign stopped by an instrument fault (2 = bad input, see deltatwin.cli)
 EXIT_INSTRUMENT_FAULT = 3
@@ -43,6 +44,7 @@ def register(sub) -> None:
     g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points, "
                    "0 < SCALE <= 1 (with serial: the same as `deltatwin emulate` was given)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -113,7 +115,7 @@ def run(args) -> int:
     from deltatwin.twin.journal import journal_path as journal_file
 
     t0 = time.perf_counter()
-    sc = Scenario.load(args.scenario, seed=args.seed)
+    sc = Scenario.load(args.scenario, seed=args.seed, trust_effects=trust_of(args))
     scale = sc.reduced_scale if args.reduced else args.scale
     output = args.output or Path(f"{sc.name}.parquet")
     journal_path = journal_file(output, args.journal, args.resume)

@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+from deltatwin.commands.trust import add_trust_option, trust_of
+
 TARGET_STROKE_FRACTION = 0.8   # targets: nominal readings of q drawn in this share of the stroke
 # the session zero as the mean of this many home settles (twin.campaign.zero_offset): the zero
 # is one more draw of every error a point has, shared by the whole session; 10 makes its
@@ -78,6 +80,7 @@ def register(sub) -> None:
                         "only, evaluates and inverts it; beside it FILE.bin, the same model "
                         "for the portable C evaluator; docs/compensation.md)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON line")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -206,8 +209,8 @@ def run(args) -> int:
     from deltatwin.twin.journal import journal_path as journal_file
 
     t0 = time.perf_counter()
-    sc = Scenario.load(args.scenario)
-    comp = load_compensator(args.model)
+    sc = Scenario.load(args.scenario, trust_effects=trust_of(args))
+    comp = load_compensator(args.model, trust_of(args))
     if args.controller is not None:
         if comp.kind != "physics":
             raise ValueError(f"--controller: {args.model} is a {comp.kind} model; its JSON is "

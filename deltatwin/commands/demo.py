@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 DEFAULT_SCENARIO = "quiet/magnetic-force"
 
@@ -32,6 +33,7 @@ def register(sub) -> None:
                         "refit of the complete model per source, as `deltatwin simulate` "
                         "records it: several times the demo's time); without it the budget is "
                         "the interferometers' share and the other instruments'")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -51,7 +53,7 @@ def run(args) -> int:
 
     check_scale(args.scale, "--scale")
     t0 = time.perf_counter()
-    sc = Scenario.load(args.scenario, seed=args.seed)
+    sc = Scenario.load(args.scenario, seed=args.seed, trust_effects=trust_of(args))
     if not sc.hidden:
         raise ValueError(f"{sc.path}: no [hidden] table (effects = [...], baseline = [...]); "
                          "the demo needs a scenario of scenarios/quiet/ or scenarios/hidden/")

@@ -15,6 +15,7 @@ import threading
 from pathlib import Path
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 
 def register(sub) -> None:
@@ -38,6 +39,7 @@ def register(sub) -> None:
     p.add_argument("--timeout-s", type=float, default=None,
                    help="per-reply timeout written to the ports file (default: per instrument)")
     p.add_argument("--json", action="store_true", help="print the devices as one JSON line")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -45,13 +47,15 @@ def register(sub) -> None:
 # paper-force; steps between points <= 19 arcsec): a step above 200 arcsec is a damaged reply
 TWIN_AC_MAX_STEP_ARCSEC = 200.0
 
-def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None):
-    """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it."""
+def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None,
+                          trust_effects=False):
+    """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it
+    (``trust_effects``: ``Scenario.load``'s)."""
     from deltatwin.twin.instruments.simulated import SimulatedLab
     from deltatwin.twin.scenario import Scenario, check_scale
 
     check_scale(scale, "--scale")
-    sc = Scenario.load(scenario, seed=seed)
+    sc = Scenario.load(scenario, seed=seed, trust_effects=trust_effects)
     scale = sc.reduced_scale if reduced else scale
     twin, _ = sc.build(scale)
     return sc, scale, SimulatedLab(twin, sc.settings).instrument_set()
@@ -92,7 +96,7 @@ def run(args) -> int:
     if args.timeout_s is not None and not args.timeout_s > 0:
         raise ValueError(f"--timeout-s must be > 0, got {args.timeout_s}")
     sc, scale, instruments = simulated_instruments(args.scenario, args.seed, args.reduced,
-                                                   args.scale)
+                                                   args.scale, trust_of(args))
     stop = threading.Event()
     # SIGINT is handled explicitly too: a process started in the background by a shell (`&`)
     # inherits SIGINT ignored, and Ctrl-C / kill -INT would then never stop the emulator

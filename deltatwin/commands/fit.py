@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 from deltatwin.files import atomic_write_text
 
 
@@ -31,6 +32,7 @@ def register(sub) -> None:
                    help="fitted physics model (TOML from `deltatwin fit -o`) or stepwise DGM "
                         "(JSON from `deltatwin calibrate -o`)")
     d.add_argument("--json", action="store_true", help="print one JSON object")
+    add_trust_option(d)
     d.set_defaults(func=run_diagnose)
 
 
@@ -139,7 +141,7 @@ def run_diagnose(args) -> int:
     df, meta = read_dataset(args.data)
     if str(args.model).lower().endswith(".json"):
         return _diagnose_stepwise(args, df, meta)
-    model, doc = load_fitted(args.model)
+    model, doc = load_fitted(args.model, trust_of(args))
     # the laboratory variables the diagnosis scans depend on the data alone: made beside the
     # model's Jacobian on a second core where the command has one (docs/performance.md)
     variables = in_background(laboratory_variables, df)

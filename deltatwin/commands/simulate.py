@@ -4,6 +4,7 @@ from __future__ import annotations
 import time
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 
 def run_simulate(args) -> int:
@@ -18,7 +19,7 @@ def run_simulate(args) -> int:
     t0 = time.perf_counter()
     with tqdm(total=4, desc="simulate", unit="stage", disable=args.quiet) as bar:
         bar.set_postfix_str("scenario")
-        sc = Scenario.load(args.scenario, seed=args.seed)
+        sc = Scenario.load(args.scenario, seed=args.seed, trust_effects=trust_of(args))
         scale = sc.reduced_scale if args.reduced else args.scale
         bar.update()
         bar.set_postfix_str("campaign")
@@ -92,6 +93,7 @@ def register(sub) -> None:
                         "(the floor a model is judged against) and its budget per source (one "
                         "simulation and fit per source)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_trust_option(p)
     p.set_defaults(func=run_simulate)
     e = sub.add_parser("effects", help="list the physical effects and their parameters")
     e.add_argument("--json", action="store_true", help="print one JSON object")
