@@ -289,17 +289,17 @@ def _palette(n: int) -> list[tuple[int, int, int]]:
 def _pose_robot(geom, model, q: np.ndarray, names: list[str], progress: bool):
     """Pose the MuJoCo model at motor coordinates ``q`` (F, 3); geom poses and cube centres."""
     import mujoco
-    from tqdm import tqdm
 
     from deltatwin.models.kinematics import forward
     from deltatwin.models.mjcf import pose_model
+    from deltatwin.progress import progress_bar
     data = mujoco.MjData(model)
     pose = forward(geom, q)
     gid = np.array([model.geom(n).id for n in names])
     cube = model.site("mirror_cube_centre").id
     F = len(q)
     gpos, gmat, cpos = np.empty((F, gid.size, 3)), np.empty((F, gid.size, 3, 3)), np.empty((F, 3))
-    for f in tqdm(range(F), desc="view: posing the robot", disable=not progress, leave=False):
+    for f in progress_bar(range(F), desc="view: posing the robot", disable=not progress, leave=False):
         pose_model(model, data, q[f], pose.p[f], pose.R[f])
         gpos[f] = data.geom_xpos[gid]
         gmat[f] = data.geom_xmat[gid].reshape(-1, 3, 3)

@@ -9,15 +9,15 @@ from deltatwin.commands.trust import add_trust_option, trust_of
 
 def run_simulate(args) -> int:
     import numpy as np
-    from tqdm import tqdm
 
+    from deltatwin.progress import progress_bar
     from deltatwin.twin.dataset import check_dataset_path, write_dataset
     from deltatwin.twin.scenario import Scenario, check_scale
 
     check_scale(args.scale, "--scale")
     check_dataset_path(args.output, "-o")
     t0 = time.perf_counter()
-    with tqdm(total=4, desc="simulate", unit="stage", disable=args.quiet) as bar:
+    with progress_bar(total=4, desc="simulate", unit="stage", disable=args.quiet) as bar:
         bar.set_postfix_str("scenario")
         sc = Scenario.load(args.scenario, seed=args.seed, trust_effects=trust_of(args))
         scale = sc.reduced_scale if args.reduced else args.scale
