@@ -148,10 +148,31 @@ def _check_identification(path: Path, doc: dict, model: PhysicsModel) -> None:
                        "wrote them)") from None
 
 
+# what a fitted file may hold: a key outside these is a typo, refused rather than ignored
+TOP_KEYS = ("format", "format_version", CONTENT_SHA256, "model", "fit", "effects",
+            "identification", "known")
+MODEL_KEYS = ("effects", "data", "data_sha256", "code_sha256", "noise_nm", "identifiable_ratio",
+              "sensors")
+
+
+def _check_keys(path: Path, where: str, table: dict, allowed) -> None:
+    import difflib
+
+    for key in table:
+        if key not in allowed:
+            close = difflib.get_close_matches(key, allowed, n=1)
+            raise FitError(f"{path}: {where}unknown key {key!r}"
+                           + (f" (did you mean {close[0]!r}?)" if close else "")
+                           + f"; allowed: {list(allowed)}")
+
+
 def _check_layout(path: Path, doc: dict) -> None:
     """The types of what a fitted file holds (a hand-written or edited one has no checksum)."""
     def fail(key, what):
         raise FitError(f"{path}: {key} must be {what}")
+
+    _check_keys(path, "", doc, TOP_KEYS)
+    _check_keys(path, "[model] ", doc["model"], MODEL_KEYS)
 
     effects = doc["model"]["effects"]
     if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
