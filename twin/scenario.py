@@ -88,6 +88,21 @@ class ScenarioError(ValueError):
     """A scenario file that cannot be used; the message names file, key and reason."""
 
 
+SCALE_HELP = "fraction of the campaign's points, 0 < SCALE <= 1 (1: the full campaign)"
+
+
+def check_scale(scale, where: str = "scale") -> float | None:
+    """A campaign's scale: None (the full campaign) or a fraction of its points in (0, 1];
+    anything else (0, negative, above 1, NaN, infinite, not a number) raises ScenarioError
+    naming ``where`` (a command line passes its option, ``--scale``)."""
+    if scale is None:
+        return None
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
+            or not 0 < scale <= 1:
+        raise ScenarioError(f"{where} = {scale!r}: expected a {SCALE_HELP}")
+    return float(scale)
+
+
 def _check_keys(where, table: dict, allowed) -> None:
     for key in table:
         if key not in allowed:
@@ -151,8 +166,12 @@ class Scenario:
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
-    def load(cls, path, seed: int | None = None, scale: float | None = None) -> Scenario:
-        """Read and validate a scenario (a path, or a name in scenarios/)."""
+    def load(cls, path, seed: int | None = None, scale: float | None = None,
+             trust_effects=False) -> Scenario:
+        """Read and validate a scenario (a path, or a name in scenarios/). A user effect its
+        [effects] on names (``file.py:Class``) is code: it runs only with ``trust_effects``
+        True (or a list of the specs whose code may run), else ScenarioError naming the file and
+        the code (twin/effects: ``trust``)."""
         path = Path(path)
         if not path.exists() and (SCENARIO_DIR / f"{path}.toml").exists():
             path = SCENARIO_DIR / f"{path}.toml"
@@ -204,7 +223,8 @@ class Scenario:
         # an entry of ``on`` is a library name or the researcher's own 'file.py:Class' (a
         # relative path from this file's folder); parameter tables go by the effect's name
         try:
-            classes = [effect_class(n, path.parent, f"{f} [effects] on") for n in on]
+            classes = [effect_class(n, path.parent, f"{f} [effects] on", trust_effects)
+                       for n in on]
         except EffectError as exc:
             raise ScenarioError(str(exc)) from exc
         names = [c.name for c in classes]
@@ -288,7 +308,8 @@ class Scenario:
                                     "{parameter = value} (the laboratory's known constants)")
             for x, values in known.items():
                 try:
-                    make_effect(x, values, where=f"{f} [hidden] known", base_dir=path.parent)
+                    make_effect(x, values, where=f"{f} [hidden] known", base_dir=path.parent,
+                                trust=trust_effects)
                 except EffectError as exc:
                     raise ScenarioError(str(exc)) from exc
         sc = cls(path=path, text=text, name=name, seed=seed, params=params, effects=effects,
@@ -299,6 +320,15 @@ class Scenario:
             raise ScenarioError(f"{f} [sensors]: no sensor; every campaign scans its "
                                 "thermometers: name at least one (sensor = \"part\")")
         return sc
+
+    def file_name(self) -> str:
+        """The file this scenario was read from, as a user names it: a shipped scenario's
+        name (``quiet/magnetic-force``, which ``load`` accepts), else its path. Its [scenario]
+        name may differ (quiet/magnetic-force.toml is named hidden-magnetic-force)."""
+        path = Path(self.path).resolve()
+        if path.is_relative_to(SCENARIO_DIR.resolve()):
+            return path.relative_to(SCENARIO_DIR.resolve()).with_suffix("").as_posix()
+        return str(self.path)
 
     # -- the laboratory's error sources -------------------------------------------------------
     def sources(self) -> list[str]:
@@ -358,7 +388,7 @@ class Scenario:
     def plan(self, rng, scale: float | None = None) -> Plan:
         """The campaign plan, at full scale or scaled (number of points times ``scale``)."""
         c, f = self.campaign, f"{self.path} [campaign]"
-        scale = 1.0 if scale is None else scale
+        scale = 1.0 if scale is None else check_scale(scale)
         stroke = self.params.stroke_rad
         if c["kind"] == "thermal":
             sessions = []

@@ -211,7 +211,8 @@ class PhysicsFit:
                 (r0, A0, J0) if np.array_equal(theta_of(z_start), theta0) else None,
                 progress=(lambda r: log.info(
                     "fit %s: calibration rms %.3f nm", "+".join(self.effects),
-                    np.sqrt(np.mean(r ** 2)))) if self.progress else None)
+                    np.sqrt(np.mean(r ** 2)), extra={"progress": "fit"}))
+                if self.progress else None)
             theta = theta_of(z)
             if J is not J0 and not seen.all():
                 J[:, :, ~seen] = model.jacobian(meas, theta, ~seen)[1][:, :, ~seen]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 from deltatwin.files import atomic_write_text
 
 
@@ -34,6 +35,7 @@ def register(sub) -> None:
                    help="fitted physics model (TOML from `deltatwin fit -o`) or stepwise DGM "
                         "(JSON from `deltatwin calibrate -o`)")
     d.add_argument("--json", action="store_true", help="print one JSON object")
+    add_trust_option(d)
     d.set_defaults(func=run_diagnose)
 
 
@@ -43,7 +45,9 @@ def _effects(text: str) -> list[str]:
 
 
 def _known_values(settings: list[str]) -> dict:
-    """{effect: {parameter: value}} from ``--set EFFECT.PARAM=VALUE`` options."""
+    """{effect: {parameter: value}} from ``--set EFFECT.PARAM=VALUE`` options; an unknown
+    effect or parameter, or a value of the wrong shape, is a FitError quoting the option as
+    the user wrote it, with the valid names."""
     from deltatwin.calibration.errors import FitError
 
     out: dict = {}
@@ -58,8 +62,33 @@ def _known_values(settings: list[str]) -> dict:
         except ValueError:
             raise FitError(f"--set {item!r}: {text!r} is not a number or a comma-separated "
                            "list of numbers (SI units)") from None
-        out.setdefault(effect, {})[param] = numbers[0] if len(numbers) == 1 else numbers
+        value = numbers[0] if len(numbers) == 1 else numbers
+        _check_setting(item, effect.strip(), param.strip(), value)
+        out.setdefault(effect.strip(), {})[param.strip()] = value
     return out
+
+
+def _check_setting(item: str, effect: str, param: str, value) -> None:
+    """``--set item`` names a known effect and one of its parameters, with a valid value."""
+    import difflib
+
+    from deltatwin.calibration.errors import FitError
+    from deltatwin.twin.effects import EffectError, effect_class, make_effect
+
+    try:
+        cls = effect_class(effect, where=f"--set {item}")
+    except EffectError as exc:
+        raise FitError(str(exc)) from None
+    names = [p.name for p in cls.parameters]
+    if param not in names:
+        close = difflib.get_close_matches(param, names, n=1)
+        raise FitError(f"--set {item}: effect {effect!r} has no parameter {param!r}"
+                       + (f" (did you mean {close[0]!r}?)" if close else "")
+                       + f"; its parameters: {names}")
+    try:
+        make_effect(cls, {param: value}, where=effect, check_minimum=False)
+    except EffectError as exc:
+        raise FitError(f"--set {item}: {str(exc).split(': ', 1)[-1]}") from None
 
 
 def run_fit(args) -> int:
@@ -116,7 +145,7 @@ def run_diagnose(args) -> int:
     df, meta = read_dataset(args.data)
     if str(args.model).lower().endswith(".json"):
         return _diagnose_stepwise(args, df, meta)
-    model, doc = load_fitted(args.model)
+    model, doc = load_fitted(args.model, trust_of(args))
     # the laboratory variables the diagnosis scans depend on the data alone: made beside the
     # model's Jacobian on a second core where the command has one (docs/performance.md)
     variables = in_background(laboratory_variables, df)

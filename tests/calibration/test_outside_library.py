@@ -305,7 +305,7 @@ def test_users_effect_from_a_file_in_a_scenario_fit_and_model_file(tmp_path):
     text = text.replace('on = ["gravity_sag"]', f'on = ["gravity_sag", "./{path.name}:Ripple"]')
     text += "\n[effects.ripple_a]\namplitude_m = 30e-9\n"
     (tmp_path / "lab.toml").write_text(text)
-    sc = Scenario.load(tmp_path / "lab.toml")
+    sc = Scenario.load(tmp_path / "lab.toml", trust_effects=True)
     assert [e.name for e in sc.effects] == ["gravity_sag", "ripple_a"]
     assert sc.effects[1].amplitude_m == 30e-9
     df, meta = sc.simulate(0.1)
@@ -317,7 +317,7 @@ def test_users_effect_from_a_file_in_a_scenario_fit_and_model_file(tmp_path):
     from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 
     (tmp_path / "fitted.toml").write_text(fitted_toml(fit, "data"))
-    model, _ = load_fitted(tmp_path / "fitted.toml")
+    model, _ = load_fitted(tmp_path / "fitted.toml", trust_effects=True)
     assert model.names == ["gravity_sag", "ripple_a"]
 
 
@@ -354,7 +354,7 @@ def test_errors_in_a_users_effect_name_its_file_and_line(tmp_path):
         'on = ["gravity_sag"]', 'on = ["gravity_sag", "./nowhere.py:Ripple"]')
     (tmp_path / "s.toml").write_text(text)
     with pytest.raises(ScenarioError, match=r"s.toml \[effects\] on: .*no such file"):
-        Scenario.load(tmp_path / "s.toml")
+        Scenario.load(tmp_path / "s.toml", trust_effects=True)
 
 
 def test_users_effect_from_an_entry_point(tmp_path, monkeypatch):
