@@ -15,9 +15,10 @@ per-(session, axis) drift offset that every model shares. The rule accounts for 
 - **Validation rows: an offset-immune block test.** ``validation_p`` regresses the smaller
   model's validation residual on the change the bigger one makes, with every (session, axis)
   group's mean removed from both (a constant offset, whatever its size, is no evidence), and
-  judges the slope by a cluster-robust t statistic over contiguous time blocks of each session,
-  every axis of a block in it (Bester, Conley & Hansen 2011, J. Econometrics 165: with a fixed number G of large blocks,
-  the cluster-covariance t statistic follows Student's t with G - 1 degrees of freedom). It
+  judges the slope by a cluster-robust t statistic over contiguous time blocks of each
+  session, every axis of a block in it (Bester, Conley & Hansen 2011, J. Econometrics 165:
+  with a fixed number G of large blocks, the cluster-covariance t statistic follows Student's
+  t with G - 1 degrees of freedom). It
   counts independent blocks, not correlated readings: it holds its level as long as a block
   is longer than the residual's correlation time (tests/calibration/test_stats.py).
 - **Combining the two.** The calibration and validation rows are disjoint readings, so their
