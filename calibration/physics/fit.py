@@ -68,6 +68,9 @@ class PhysicsFit:
     logged warning), ``n_evaluations_`` (model evaluations, a Jacobian counting one per column
     it computes and one), ``n_jacobians_`` (exact Jacobians computed, the start's included),
     ``parameters_`` (list of {label, value, start, unit, uncertainty, identified_fraction}),
+    ``covariance_z_`` ((k, k): the covariance of the fit along its ``identified_directions_``,
+    in fit scales: the sandwich of calibration/stats.py), ``thermometer_information_`` ((p, p):
+    what the thermometers' noise alone puts into the calibration Jacobian's information),
     ``fitted_again_`` (whether ``fitted_again_where_it_ended`` replaced it by its refit).
     """
 
@@ -142,6 +145,7 @@ class PhysicsFit:
         # (below): no SVD chooses directions here, V's report is made from Js alone
         same_data = (fitted_on is not None and fitted_on == self.data_sha256_
                      and start_directions is not None)
+        self.thermometer_information_ = None      # not estimated for a start kept as fitted
         if same_data:
             V = _checked_directions(start_directions, p)
             s, Vt, keep = _directions_report(Js, V)
@@ -264,6 +268,7 @@ class PhysicsFit:
         # correlated: the sandwich), the held directions' from the prior (one typical size)
         cov_z = sandwich_covariance(Jz, r, projected_rows(meas, meas.cal),
                                     meas.df["t_s"].to_numpy())
+        self.covariance_z_ = cov_z
         S = model.scales
         held = np.eye(p) - V @ V.T if k else np.eye(p)
         cov = (S[:, None] * V) @ cov_z @ (S[:, None] * V).T if k else np.zeros((p, p))
@@ -311,6 +316,12 @@ class PhysicsFit:
                 "values": self.model_.values()}
 
     # -- tables (pandas) ----------------------------------------------------------------------
+    def validation_band(self, rng: np.random.Generator | None = None) -> dict:
+        """{axis or "all": (low, high) nm}: the 95 % band of the validation error 90 % if the
+        model is right (calibration/physics/band.py), drawn with ``rng`` (default seeded 0)."""
+        from deltatwin.calibration.physics.band import validation_band
+        return validation_band(self, rng if rng is not None else np.random.default_rng(0))
+
     def parameter_table(self) -> pd.DataFrame:
         """One row per free parameter (index ``effect.parameter[i]``): fitted ``value``,
         ``start``, ``unit``, 1-sigma ``uncertainty`` (same unit: along the directions the data

@@ -104,6 +104,8 @@ def run_fit(args) -> int:
     if args.output:
         atomic_write_text(args.output, fitted_toml(fit, str(args.data)))
     s = fit.summary()
+    band = fit.validation_band()
+    s["val_band_95_nm"] = {a: list(v) for a, v in band.items()}
     if args.json:
         print(strict_json(s))
         return 0
@@ -111,10 +113,15 @@ def run_fit(args) -> int:
     print(f"fitted {', '.join(fit.effects) or 'the nominal robot'} to {args.data}: "
           f"{ident['n_parameters']} parameters, {ident['n_identified_directions']} directions "
           f"identified (condition {ident['condition_number_identified'] or 0:.3g})")
-    print(f"  {'axis':>4} {'cal err90 nm':>13} {'val err90 nm':>13}")
+    print(f"  {'axis':>4} {'cal err90 nm':>13} {'val err90 nm':>13} {'if the model is right':>22}")
     for a in ("x", "y", "z", "all"):
         if a in s["val"]:
-            print(f"  {a:>4} {s['cal'].get(a, float('nan')):13.1f} {s['val'][a]:13.1f}")
+            lo, hi = band.get(a, (float("nan"),) * 2)
+            above = "  above: misspecified" if s["val"][a] > hi else ""
+            print(f"  {a:>4} {s['cal'].get(a, float('nan')):13.1f} {s['val'][a]:13.1f} "
+                  f"{lo:10.1f} - {hi:<9.1f}{above}")
+    print("  (the validation error's 95 % band from the parameters' uncertainty and the "
+          "calibration residual's noise)")
     floor = (meta.get("truth") or {}).get("noise_floor_nm")
     if floor:
         print("  noise floor (twin's truth): " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items())
