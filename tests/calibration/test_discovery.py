@@ -136,15 +136,15 @@ def two_basins(tmp_path_factory):
 
 
 def test_the_achievable_floor_fits_at_least_as_well_as_a_model_with_fewer_effects(two_basins):
-    # the true model holds the baseline's effects and more: at its best it fits the calibration
-    # rows at least as well (from the twin's values alone: 13.0 nm rms against the baseline's
-    # 7.9, and a floor of 26 nm above the baseline's 14 nm validation error)
+    # the true model holds the baseline's effects and more: fitted as a researcher would (from
+    # the library's starting values, never the twin's values) it fits the calibration rows at
+    # least as well (from the twin's values it stopped in a shallower basin: 13.0 nm rms
+    # against the baseline's 7.9, and a floor of 26 nm above the baseline's 14 nm)
     case, df, meta = two_basins
     floor = achievable_floor(df, meta)
     base = fit_from_starts(list(case.baseline), {"priors": {"start": case.known}}, df, meta)
-    assert set(floor["calibration_rms_nm"]) == {"twin's values", "library's starting values"}
+    assert set(floor["calibration_rms_nm"]) == {"library's starting values"}
     kept = floor["calibration_rms_nm"][floor["start"]]
-    assert kept == min(floor["calibration_rms_nm"].values())
     assert kept <= base.start_costs_["priors"] * 1.001, (floor["calibration_rms_nm"],
                                                           base.start_costs_)
     assert floor["achievable_floor_nm"]["all"] <= 1.1 * base.val_["all"]["err_p90"]
