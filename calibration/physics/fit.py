@@ -524,7 +524,7 @@ def fitted_again_where_it_ended(fit: PhysicsFit) -> PhysicsFit:
     ends, seed 6363 case001) other directions are identified where it ends, and the fit
     stops "converged" in its start's (137 nm validation against the achievable floor's 61.2;
     fitted again in the ladder, 66.6). Only the ladder's rungs that add an effect are
-    fitted again (``effect_ladder``): done in every fit (session 12), the shipped quiet
+    fitted again (``effect_ladder``): done in every fit, the shipped quiet
     loop-drift baseline moved to a lower calibration cost where loop drift's linearised
     candidate was no longer significant, and 12 cases cost a third more CPU. Once: up to
     three times left every case of two seeds' 24 as once did."""
