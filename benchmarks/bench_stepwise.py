@@ -1,4 +1,4 @@
-"""Benchmark: calibration.stepwisefit vs a plain loop of statsmodels OLS refits.
+"""Benchmark: stepwisefit (calibration/blackbox/stepwise.py) vs a plain loop of statsmodels OLS refits.
 
 Paper-scale problem (first paper, one axis): 217 candidate terms x 9701 rows — the calibration
 rows of the X/Y session of the twin's paper-thermal campaign at full scale (the paper's 9701):
