@@ -331,7 +331,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     one may only have outrun the trust region), or when an updated one's step is accepted but
     lowers the cost by less than a quarter of its prediction: the updates are wrong in the
     directions the step went (Broyden's updates correct the Jacobian only along the steps
-    taken; in weakly determined directions it can be 50-290 % off, docs/performance.md; a
+    taken; in weakly determined directions it can be 50-290 % off; a
     paper-force case's fit crawled along them at gains of 0.03-0.5 until its evaluations ran
     out, seed 99 g01: 42.8 nm val err90, 37.4 with this rule). Steps stay within a trust
     region (fit scales) that a failed step shrinks and a well-predicted one widens (a curved
