@@ -1,4 +1,4 @@
-"""The achievable floor's budget per source (issue 15), measured in the twin: a scenario at a
+"""The achievable floor's budget per source, measured in the twin: a scenario at a
 scale, its dataset, the true model refitted, then each source alone switched on with the others
 perfect (calibration/diagnosis/floor.py: measured_floor_budget). Prints the budget (nm, 90 %,
 per axis), the thermometers per sensor (first order), how the sources add up in quadrature

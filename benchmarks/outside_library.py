@@ -1,4 +1,4 @@
-"""When the missing effect is outside the library (issue 16): the scores on generated cases.
+"""When the missing effect is outside the library: the scores on generated cases.
 
 Seven cases whose missing term is injected into simulated data by an effect outside the library
 (tests/calibration/outside_effects.py): a periodic encoder error in q1, a slow laser wavelength

@@ -123,9 +123,9 @@ def model_file_step(path: str | os.PathLike, df: pd.DataFrame, meta: dict | None
     ``.json``: a saved calibration model (``calibration_step``).  ``.toml``: a fitted physics
     model (``deltatwin fit -o``), evaluated on the dataset's conditions (``meta['sensors']``
     places the temperature sensors) with each (session, axis) zero re-estimated on the
-    dataset's calibration rows, as ``deltatwin compare`` does (``calibration.compare.
-    evaluate``): its residual field is the one ``compare`` reports. The user effects a physics
-    model names run only with ``trust_effects`` (``load_fitted``)."""
+    dataset's calibration rows, as ``deltatwin compare`` does (``calibration.diagnosis.
+    compare.evaluate``): its residual field is the one ``compare`` reports. The user effects a
+    physics model names run only with ``trust_effects`` (``load_fitted``)."""
     from deltatwin.calibration.blackbox.model_file import load_model
     from deltatwin.calibration.diagnosis.compare import evaluate, load_model_file
     from deltatwin.calibration.errors import CalibrationInputError

@@ -1,4 +1,4 @@
-"""Fuzz tests that count outcomes (issue 17): mutated scenarios, datasets, model files and ports
+"""Fuzz tests that count outcomes: mutated scenarios, datasets, model files and ports
 files (tests/fuzz_inputs.py) through the public readers and the use a command makes of them.
 Every outcome must be a clean refusal naming the file (and the key or column) or an acceptance
 of a mutation that may leave the file valid: 0 tracebacks, 0 hangs, 0 silent acceptances of

@@ -1,7 +1,7 @@
 """Compare a model with measurements and see where it fails (``deltatwin compare``).
 
-The model is a physics model (``calibration.physics.PhysicsModel``, e.g. from a fitted-model
-TOML via ``load_fitted``) or a stepwise DGM (``calibration.models.DGM``, a ``model.json``).
+The model is a physics model (``calibration.physics.model.PhysicsModel``, e.g. from a fitted-model
+TOML via ``load_fitted``) or a stepwise DGM (``calibration.blackbox.dgm.DGM``, a ``model.json``).
 Readings are relative to each session's zero and a new campaign has new zeros, so every
 (session, axis) zero is re-estimated on the dataset's calibration rows (``physics.
 group_offsets``); a session without calibration readings takes its zero from its own

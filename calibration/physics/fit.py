@@ -360,7 +360,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     one may only have outrun the trust region), or when an updated one's step is accepted but
     lowers the cost by less than a quarter of its prediction: the updates are wrong in the
     directions the step went (Broyden's updates correct the Jacobian only along the steps
-    taken; in weakly determined directions it can be 50-290 % off, docs/performance.md; a
+    taken; in weakly determined directions it can be 50-290 % off; a
     paper-force case's fit crawled along them at gains of 0.03-0.5 until its evaluations ran
     out, seed 99 g01: 42.8 nm val err90, 37.4 with this rule). Steps stay within a trust
     region (fit scales) that a failed step shrinks and a well-predicted one widens (a curved
@@ -614,7 +614,7 @@ def fitted_again_where_it_ended(fit: PhysicsFit) -> PhysicsFit:
     ends, seed 6363 case001) other directions are identified where it ends, and the fit
     stops "converged" in its start's (137 nm validation against the achievable floor's 61.2;
     fitted again in the ladder, 66.6). Only the ladder's rungs that add an effect are
-    fitted again (``effect_ladder``): done in every fit (session 12), the shipped quiet
+    fitted again (``effect_ladder``): done in every fit, the shipped quiet
     loop-drift baseline moved to a lower calibration cost where loop drift's linearised
     candidate was no longer significant, and 12 cases cost a third more CPU. Once: up to
     three times left every case of two seeds' 24 as once did."""

@@ -1,4 +1,4 @@
-"""``deltatwin compare``: where a model fails on a dataset (calibration/compare.py).
+"""``deltatwin compare``: where a model fails on a dataset (calibration/diagnosis/compare.py).
 
     deltatwin compare DATA --model fitted.toml|model.json [--json] [--split val|cal|all]
                       [--windows N] [--bins N] [--worst N] [--params PARAMS.toml]

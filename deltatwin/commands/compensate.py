@@ -29,7 +29,7 @@ TARGET_STROKE_FRACTION = 0.8   # targets: nominal readings of q drawn in this sh
 # random part (servo settling, reading noise) 1/sqrt(10) of a point's, adding 5 % to the
 # achieved scatter in quadrature, for ~70 s at home, a fraction of the controller's 600 s fill
 ZERO_SETTLES = 10
-WITHIN = 1.2                   # issue 19: achieved within 1.2x the validation prediction
+WITHIN = 1.2                   # the target: achieved within 1.2x the validation prediction
 
 
 def register(sub) -> None:

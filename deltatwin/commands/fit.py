@@ -1,5 +1,6 @@
 """``deltatwin fit`` and ``deltatwin diagnose``: physics models from the effect library fitted to a
-dataset, and which effect they miss (calibration/physics.py, calibration/diagnosis.py)."""
+dataset, and which effect they miss (calibration/physics/fit.py,
+calibration/diagnosis/diagnose.py)."""
 from __future__ import annotations
 
 import sys

@@ -1,6 +1,6 @@
-"""Issue 15: a fit that always returns, effects the baseline absorbs reported as absorbed, a
-candidate that fails named in its row, the achievable floor, and extrapolation flagged (small
-simulated campaigns)."""
+"""The find-the-missing-effect loop: a fit that always returns, effects the baseline absorbs
+reported as absorbed, a candidate that fails named in its row, the achievable floor, and
+extrapolation flagged (small simulated campaigns)."""
 import functools
 import logging
 from types import SimpleNamespace

@@ -1,4 +1,4 @@
-"""When the missing effect is not in the library (issue 16): terms from outside the library,
+"""When the missing effect is not in the library: terms from outside the library,
 written as the researcher's own effects (tests/calibration/outside_effects.py), are injected into
 simulated data; the diagnosis claims no library effect, names the variable the term depends on
 first, proposes a form that explains most of the residual, and with the researcher's effect
