@@ -920,11 +920,25 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     return ladder, diagnoses, fits
 
 
+def _constants(fit: PhysicsFit) -> dict:
+    """{effect: {parameter: value}}: the laboratory's constants the fit was given: those of
+    effects outside its model (``known_``) and the parameters it does not fit whose values
+    are not the library's defaults (e.g. a frame arm)."""
+    out = {e: dict(v) for e, v in fit.known_.items()}
+    for effect in fit.model_.effects:
+        for p in type(effect).parameters:
+            value = np.asarray(effect.values[p.name], dtype=float)
+            if p.fit_scale is None and not np.array_equal(value, np.asarray(p.default, float)):
+                out.setdefault(effect.name, {})[p.name] = value.tolist()
+    return out
+
+
 def _next_step(fit: PhysicsFit, added: list, data: str) -> dict:
-    """A diagnosis' ``next_command`` and ``scenario_change`` for the ``added`` effects."""
+    """A diagnosis' ``next_command`` (complete: the laboratory's constants given with
+    ``--set``) and ``scenario_change`` for the ``added`` effects."""
     effects = ",".join(fit.model_.specs + added)
     known = "".join(f" --set {e}.{k}={','.join(str(x) for x in np.ravel(v))}"
-                    for e, values in fit.known_.items() for k, v in values.items())
+                    for e, values in _constants(fit).items() for k, v in values.items())
     names = " and ".join(f'"{e}"' for e in added)
     return {"next_command": f"deltatwin fit {data} --effects {effects}{known} -o fitted.toml",
             "scenario_change": (f"add {names} to the model's effects (a scenario's [hidden] "

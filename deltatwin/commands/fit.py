@@ -118,11 +118,12 @@ def run_fit(args) -> int:
     for a in ("x", "y", "z", "all"):
         if a in s["val"]:
             lo, hi = band.get(a, (float("nan"),) * 2)
-            above = "  above: misspecified" if s["val"][a] > hi else ""
+            above = "  above" if s["val"][a] > hi else ""
             print(f"  {a:>4} {s['cal'].get(a, float('nan')):13.1f} {s['val'][a]:13.1f} "
                   f"{lo:10.1f} - {hi:<9.1f}{above}")
     print("  (the validation error's 95 % band from the parameters' uncertainty and the "
-          "calibration residual's noise)")
+          "calibration residual's noise; above it, the model or its noise model misses "
+          "something the validation conditions show)")
     floor = (meta.get("truth") or {}).get("noise_floor_nm")
     if floor:
         print("  noise floor (twin's truth): " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items())
