@@ -622,7 +622,9 @@ def fitted_again_where_it_ended(fit: PhysicsFit) -> PhysicsFit:
         return fit
     meas = fit.measurements_
     Js = projected(meas, meas.cal, fit.jacobian_, scale=fit.model_.scales)
-    _, s, Vt = np.linalg.svd(Js, full_matrices=False)
+    noise_info = fit.thermometer_information_
+    s, Vt = _information_directions(Js, np.zeros((Js.shape[1],) * 2) if noise_info is None
+                                    else noise_info)
     V = Vt[_identified(s, fit.noise_nm, fit.identifiable_ratio)].T
     r = projected(meas, meas.cal, meas.y - fit.prediction_)
     if _remaining_step_sigma(-Js @ V, r, meas.residual_dof(r.size, V.shape[1])) <= STEP_SIGMA:
