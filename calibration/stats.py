@@ -45,12 +45,16 @@ def f_test_p(rss0: float, rss1: float, df1: int, df2: int, inflation: float = 1.
     """p-value of the nested F test: ``rss0`` (m^2) of the smaller model, ``rss1`` of the
     bigger one with ``df1`` more directions, ``df2`` residual degrees of freedom;
     ``inflation``: the variance of the explained part over that of independent rows
-    (``serial_inflation``, >= 1). 1 when the bigger model explains nothing."""
+    (``serial_inflation``, >= 1): the statistic is divided by it and the residual's degrees of
+    freedom are the effective number of independent rows, ``df2 / inflation``. 1 when the
+    bigger model explains nothing."""
     df1 = max(int(df1), 1)
     if not (rss1 > 0 and rss0 > rss1 and df2 > 0):
         return 1.0
-    F = ((rss0 - rss1) / df1) / (rss1 / df2) / max(inflation, 1.0)
-    return float(special.fdtrc(df1, df2, F))      # scipy.stats.f.sf, without scipy.stats
+    inflation = max(inflation, 1.0)
+    F = ((rss0 - rss1) / df1) / (rss1 / df2) / inflation
+    # scipy.stats.f.sf, without scipy.stats
+    return float(special.fdtrc(df1, max(df2 / inflation, 1.0), F))
 
 
 def bic_change(n, rss0, rss1, k):
