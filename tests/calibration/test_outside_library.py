@@ -399,7 +399,7 @@ def test_cli_effect_new_from_a_diagnosis_and_fit_with_it(tmp_path):
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["val"]["all"] <= 1.1 * max(meta["truth"]["noise_floor_nm"].values())
     # the fitted model names the user's file: compare and diagnose load it again
-    r = run("compare", "lab.parquet", "--model", "mine.toml", "--json")
+    r = run("compare", "lab.parquet", "--model", "mine.toml", "--json", "--trust-effects")
     assert r.returncode == 0, r.stderr
     # bad input: an existing file, a file that is not a diagnosis, a bad name
     assert run("effect", "new", "mirror_slip").returncode == 2
