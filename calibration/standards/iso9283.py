@@ -128,12 +128,3 @@ def evaluate(commands_m, attained_m, names=None, drift_block: int | None = None)
                                  **dict(zip(POSE_FIGURES, f)), **drift))
     return Iso9283Result(tuple(poses))
 
-
-def rp_gaussian(sigma_m: float, cycles: int) -> float:
-    """The expected l̄ + 3 E[S_l] of RP for attained positions scattered isotropically with
-    standard deviation ``sigma_m`` per axis: the distance to the barycentre of ``cycles``
-    points is sigma_m sqrt((n-1)/n) times a chi variable with 3 degrees of freedom
-    (mean 2 sqrt(2/pi), standard deviation sqrt(3 - 8/pi)), so RP -> (2 sqrt(2/pi) +
-    3 sqrt(3 - 8/pi)) sigma = 3.616 sigma for many cycles."""
-    scale = sigma_m * np.sqrt((cycles - 1) / cycles)
-    return float(scale * (2 * np.sqrt(2 / np.pi) + 3 * np.sqrt(3 - 8 / np.pi)))

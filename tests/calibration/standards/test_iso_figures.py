@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from deltatwin.calibration.standards import iso230_2, iso230_3, iso9283
+from deltatwin.calibration.standards.gaussian import c4, r_gaussian, rp_gaussian
 
 UM = 1e-6
 
@@ -172,9 +173,10 @@ def test_iso9283_refuses_a_missing_reading():
 
 def test_rp_gaussian_constant():
     # chi with 3 dof: mean 2 sqrt(2/pi), std sqrt(3 - 8/pi)
-    assert iso9283.rp_gaussian(1.0, 10**9) == pytest.approx(
-        2 * math.sqrt(2 / math.pi) + 3 * math.sqrt(3 - 8 / math.pi), rel=1e-9)
-    assert iso9283.rp_gaussian(1.0, 10**9) == pytest.approx(3.616, abs=5e-4)
+    assert rp_gaussian(1.0, 10**6) == pytest.approx(
+        2 * math.sqrt(2 / math.pi) + 3 * math.sqrt(3 - 8 / math.pi), rel=1e-5)
+    assert rp_gaussian(1.0, 10**6) == pytest.approx(3.616, abs=5e-4)
+    assert c4(5) == pytest.approx(0.939986, abs=1e-6)          # the tabulated c4(5)
 
 
 def test_gaussian_rp_and_r_up_match_their_predictions():
@@ -185,12 +187,11 @@ def test_gaussian_rp_and_r_up_match_their_predictions():
     att = rng.normal(0.0, sigma, (400, 30, 3))
     r = iso9283.evaluate(np.zeros((400, 3)), att)
     rp = np.mean([p.RP for p in r.poses])
-    assert rp == pytest.approx(iso9283.rp_gaussian(sigma, 30), rel=0.02)
+    assert rp == pytest.approx(rp_gaussian(sigma, 30), rel=0.02)
     n = 5
-    c4 = math.sqrt(2 / (n - 1)) * math.gamma(n / 2) / math.gamma((n - 1) / 2)
     up = rng.normal(0.0, sigma, (2000, n))
     r2 = iso230_2.evaluate(np.arange(2000), up, up[::-1])
-    assert np.mean(r2.R_up_i) == pytest.approx(4 * c4 * sigma, rel=0.02)
+    assert np.mean(r2.R_up_i) == pytest.approx(r_gaussian(sigma, n), rel=0.02)
 
 
 def test_iso230_3_worked_example_agrees_with_plain_loops():
