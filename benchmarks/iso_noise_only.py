@@ -24,8 +24,8 @@ import sys
 
 import numpy as np
 
-from deltatwin.calibration.standards.gaussian import c4, r_gaussian, rp_gaussian
 from deltatwin.calibration.standards.campaign import evaluate_test
+from deltatwin.calibration.standards.gaussian import c4, r_gaussian, rp_gaussian
 from deltatwin.twin.campaign import simulate_campaign
 from deltatwin.twin.scenario import Scenario
 from deltatwin.twin.world import random_streams

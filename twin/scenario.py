@@ -315,14 +315,17 @@ class Scenario:
                                 "thermometers: name at least one (sensor = \"part\")")
         return sc
 
-    def with_campaign(self, campaign: dict, path=None) -> Scenario:
+    def with_campaign(self, campaign: dict, path=None, instruments: dict | None = None) -> Scenario:
         """This scenario (robot, laboratory, seed) with another [campaign] table, e.g. a
-        standard's test (``{"kind": "iso9283", "cycles": 30}``): its TOML text rewritten and
-        validated again, as the file ``path`` (default: this one's)."""
+        standard's test (``{"kind": "iso9283", "cycles": 30}``), and ``instruments`` settings
+        changed: its TOML text rewritten and validated again, as the file ``path`` (default:
+        this one's)."""
         import tomli_w
 
         doc = tomllib.loads(self.text)
         doc["campaign"] = campaign
+        if instruments:
+            doc["instruments"] = {**doc.get("instruments", {}), **instruments}
         return Scenario.from_text(tomli_w.dumps(doc), path or self.path, self.seed)
 
     # -- the laboratory's error sources -------------------------------------------------------

@@ -207,11 +207,19 @@ def iso230_2_plan(params, rng, axes=("x", "y", "z"), targets: int = ISO230_2_TAR
                          "stroke_fraction": stroke_fraction})
 
 
+def point_time_at_rest(settings) -> float:
+    """The time (s) a point at rest takes in the laboratory ``settings``: the settle of a null
+    move, the wait, one reading window and the autocollimators, the overhead."""
+    s = settings
+    return s.move_base_s + s.wait_s + s.window_s + s.ac_read_s + s.overhead_s
+
+
 def iso230_3_plan(params, settings, duration_h: float = ISO230_3_HOURS, position_m=None,
                   stroke_fraction: float = STROKE_FRACTION) -> StandardTest:
     """ISO 230-3 ETVE: the robot at rest at ``position_m`` (a reading, default the workspace
-    centre) read in x, y, z as often as the laboratory's timing allows (a point: the settle of
-    a null move, ``wait_s``, a reading, the overhead) for ``duration_h`` hours."""
+    centre) read in x, y, z as often as the laboratory's timing allows
+    (``point_time_at_rest``; a longer interval: a longer ``overhead_s``) for ``duration_h``
+    hours."""
     if not 0 < duration_h <= 24 * 30:
         raise ValueError(f"ISO 230-3 duration_h = {duration_h}: must be in (0, 720] hours")
     ws = Workspace(params, stroke_fraction)
@@ -219,9 +227,7 @@ def iso230_3_plan(params, settings, duration_h: float = ISO230_3_HOURS, position
     if pos.shape != (3,) or not ws.reachable(pos):
         raise ValueError(f"ISO 230-3 position {np.asarray(position_m).tolist()} m: not a "
                          "reachable reading (x, y, z) within the stroke")
-    s = settings
-    per_point = s.move_base_s + s.wait_s + s.window_s + s.ac_read_s + s.overhead_s
-    n = max(3, int(np.ceil(duration_h * 3600.0 / per_point)))
+    n = max(3, int(np.ceil(duration_h * 3600.0 / point_time_at_rest(settings))))
     targets = np.repeat(pos[None], n, axis=0)
     item = np.zeros(n, int)
     return StandardTest("iso230-3", _plan([("iso230-3", ("x", "y", "z"))], np.zeros(n), item,

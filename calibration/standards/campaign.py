@@ -58,8 +58,10 @@ def evaluate_iso230_3(test: StandardTest, df: pd.DataFrame, reference: str | Non
                              {s: df[f"T_{s}_C"].to_numpy(dtype=np.float64) for s in sensors}, ref)
 
 
-def evaluate_test(test: StandardTest, df: pd.DataFrame):
-    """The standard's result of the campaign (ISO 9283 result, {axis: ISO 230-2 result}, or
-    the ETVE result)."""
-    return {"iso9283": evaluate_iso9283, "iso230-2": evaluate_iso230_2,
-            "iso230-3": evaluate_iso230_3}[test.test](test, df)
+def evaluate_test(test: StandardTest, df: pd.DataFrame, drift_block: int | None = None):
+    """The standard's result of the campaign (ISO 9283 result, with the drift between the
+    first and last ``drift_block`` cycles if given; {axis: ISO 230-2 result}; or the ETVE
+    result)."""
+    if test.test == "iso9283":
+        return evaluate_iso9283(test, df, drift_block)
+    return {"iso230-2": evaluate_iso230_2, "iso230-3": evaluate_iso230_3}[test.test](test, df)

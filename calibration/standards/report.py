@@ -24,6 +24,7 @@ from deltatwin.calibration.standards.uncertainty import SOURCES, conformance, ex
 from deltatwin.files import atomic_write, atomic_write_text
 
 NM = 1e9
+TITLES = {"iso9283": "ISO 9283", "iso230-2": "ISO 230-2", "iso230-3": "ISO 230-3 ETVE"}
 COLOURS = ("#c03030", "#3070c0", "#30a050", "#a060c0")
 # which uncertainty each ISO 230-2 axis figure takes (uncertainty.expanded)
 KIND_230_2 = {"B": "difference", "B_mean": "difference", "R_up": "repeatability",
@@ -58,6 +59,9 @@ def figure_rows(test, arm: str, result, specs: dict, tolerance_nm: dict | None =
                 rows.append(_row(arm, f"{k} {p.name}", getattr(p, k), U, tolerance_nm, b))
             Ur, br = expanded(spec, "repeatability", multiplier=rp_gaussian(1.0, p.n))
             rows.append(_row(arm, f"RP {p.name}", p.RP, Ur, tolerance_nm, br))
+            if p.dAP is not None:
+                rows.append(_row(arm, f"dAP {p.name}", p.dAP, U, tolerance_nm, b))
+                rows.append(_row(arm, f"dRP {p.name}", p.dRP, Ur, tolerance_nm, br))
     elif test.test == "iso230-2":
         for a, r in result.items():
             L = float(np.max(np.abs(r.targets_m - np.mean(r.targets_m)))) + float(

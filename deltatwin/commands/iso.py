@@ -40,6 +40,13 @@ def register(sub) -> None:
                    help="ISO 230-2 overrun beyond the end targets, fraction of the travel "
                         "(default 0.05)")
     p.add_argument("--hours", type=float, default=None, help="ISO 230-3 duration (default 24)")
+    p.add_argument("--interval", type=float, default=None, metavar="S",
+                   help="ISO 230-3 time between readings, s (default: as often as the "
+                        "laboratory's timing allows, ~8 s; a longer one lengthens its per-point "
+                        "overhead_s)")
+    p.add_argument("--drift-cycles", type=int, default=None, metavar="N",
+                   help="ISO 9283: also the drift dAP, dRP between the first and the last N "
+                        "cycles")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--reduced", action="store_true",
                    help="the scenario's reduced scale (fewer cycles, targets, hours)")
@@ -82,6 +89,20 @@ def campaign_table(args) -> dict:
     return camp
 
 
+def instrument_changes(args, sc) -> dict:
+    """[instruments] settings the test changes: ``--interval`` sets the per-point overhead."""
+    if args.interval is None:
+        return {}
+    if args.test != "230-3":
+        raise ValueError(f"--interval is not an option of --test {args.test}")
+    from deltatwin.twin.standard_tests import point_time_at_rest
+    least = point_time_at_rest(sc.settings)
+    if not args.interval >= least:
+        raise ValueError(f"--interval {args.interval:g} s: a reading at rest takes {least:g} s "
+                         "in this laboratory; give at least that")
+    return {"overhead_s": sc.settings.overhead_s + args.interval - least}
+
+
 def tolerances(items) -> dict:
     out = {}
     for item in items or []:
@@ -111,6 +132,8 @@ def check_args(args) -> None:
                          "--data nor --instruments serial")
     if args.data is not None and args.instruments == "serial":
         raise ValueError("--data evaluates a dataset; it takes no --instruments serial")
+    if args.drift_cycles is not None and args.test != "9283":
+        raise ValueError(f"--drift-cycles is not an option of --test {args.test}")
     if args.data is not None and not args.data.exists():
         raise FileNotFoundError(f"--data {args.data}: no such dataset")
     for m in args.compensate or []:
@@ -159,7 +182,8 @@ def compensated_arms(args, sc, sci, test) -> dict:
     arms = {}
     n = len(test.plan)
     for model in [None, *args.compensate]:
-        _, lab = compensation_world(sc, args.cal_scale, args.after_h, test.plan, sci.seed)
+        _, lab = compensation_world(sc, args.cal_scale, args.after_h, test.plan, sci.seed,
+                                    lab=sci)
         inst = lab.instrument_set()
         controller, name = None, "uncompensated"
         if model is not None:
@@ -217,11 +241,12 @@ def run(args) -> int:
     check_writable(args.output, folder=True)
     t0 = time.perf_counter()
     sc = Scenario.load(args.scenario)
-    sci = sc.with_campaign(campaign_table(args))
+    sci = sc.with_campaign(campaign_table(args), instruments=instrument_changes(args, sc))
     scale = sci.reduced_scale if args.reduced else args.scale
     test = sci.standard_test(random_streams(sci.seed)["campaign"], scale)
     arms = run_arms(args, sc, sci, test, scale)
-    results = {arm: evaluate_test(test, df) for arm, df in arms.items()}
+    results = {arm: evaluate_test(test, df, drift_block=args.drift_cycles)
+               for arm, df in arms.items()}
     specs = {a: spec_from_scenario(sci, a) for a in ("x", "y", "z")}
     rows = [r for arm, res in results.items()
             for r in report.figure_rows(test, arm, res, specs, tol)]
@@ -233,12 +258,12 @@ def run(args) -> int:
         meta = sci.metadata(None, scale) if args.data is None else {"source": "lab"}
         meta["standard_test"] = {"test": test.test, "arm": arm, **test.parameters}
         write_dataset(df, json.loads(strict_json(meta)), out / f"arm{k}.parquet")
-    intro = (f"{test.test.upper()} on {sc.name} (seed {sci.seed}), "
+    intro = (f"{report.TITLES[test.test]} on {sc.name} (seed {sci.seed}), "
              f"{'dataset ' + str(args.data) if args.data else args.instruments}; "
              f"{len(test.plan)} points; parameters {strict_json(test.parameters)}. "
              f"deltatwin {__import__('deltatwin').__version__}.")
-    report.write_markdown(out / "report.md", report.markdown(f"{test.test.upper()} report", rows,
-                                                             figures, intro))
+    report.write_markdown(out / "report.md", report.markdown(f"{report.TITLES[test.test]} "
+                                                             "report", rows, figures, intro))
     doc = {"test": test.test, "scenario": sc.name, "seed": sci.seed,
            "parameters": test.parameters, "arms": {arm: json.loads(res.to_json())
                                                    if hasattr(res, "to_json") else

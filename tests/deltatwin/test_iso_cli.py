@@ -14,6 +14,7 @@ from deltatwin.twin.instruments.simulated import SimulatedLab
 from deltatwin.twin.scenario import Scenario
 
 RESOLUTION_NM = 1.24
+CAL_SCALE = 0.05          # the calibration campaign of the compensated test
 
 
 def _iso(capsys, *args):
@@ -110,3 +111,40 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, words)
     assert code == 2 and out == ""
     assert len(err.strip().splitlines()) == 1 and words in err, err
     assert not (tmp_path / "r").exists()
+
+
+def test_iso9283_drift_and_iso230_3_interval(tmp_path, capsys):
+    doc = _iso(capsys, "paper-thermal", "--test", "9283", "--cycles", "4", "--drift-cycles",
+               "2", "-o", str(tmp_path / "a"))
+    p1 = doc["arms"]["uncompensated"]["poses"]["P1"]
+    assert p1["dAP_nm"] is not None and any(r["figure"] == "dRP P3" for r in doc["figures"])
+    doc = _iso(capsys, "paper-thermal", "--test", "230-3", "--hours", "0.5", "--interval", "60",
+               "-o", str(tmp_path / "b"))
+    t = pd.read_parquet(tmp_path / "b" / "arm0.parquet")["t_s"].to_numpy()
+    assert doc["arms"]["uncompensated"]["n"] == 30
+    assert np.median(np.diff(t)) == pytest.approx(60.0, abs=0.5)
+
+
+@pytest.mark.slow
+def test_iso9283_through_a_fitted_physics_model(tmp_path, capsys):
+    """Commanded through a physics model fitted on a small calibration campaign of the same
+    robot, its largest AP falls below a tenth of the uncompensated one; the arms side by side
+    in the report."""
+    from deltatwin.calibration.physics.fit import PhysicsFit
+    from deltatwin.calibration.physics.model import model_effects
+    from deltatwin.calibration.physics.model_file import fitted_toml
+
+    sc = Scenario.load("paper-thermal")
+    df, meta = sc.simulate(CAL_SCALE)
+    effects = [e.name for e in sc.effects if e.name in model_effects()]
+    known = {e.name: {p.name: e.values[p.name] for p in e.parameters if p.fit_scale is None}
+             for e in sc.effects if e.name in effects}
+    fit = PhysicsFit(effects, start=known).fit(df, meta)
+    (tmp_path / "phys.toml").write_text(fitted_toml(fit, str(tmp_path / "cal.parquet")))
+    out = _iso(capsys, "paper-thermal", "--test", "9283", "--cycles", "2", "--compensate",
+               str(tmp_path / "phys.toml"), "--cal-scale", str(CAL_SCALE), "-o",
+               str(tmp_path / "r"))
+    ap = {arm: r["AP_max_nm"] for arm, r in out["arms"].items()}
+    assert list(ap) == ["uncompensated", "physics (phys.toml)"]
+    assert ap["physics (phys.toml)"] < ap["uncompensated"] / 10, ap
+    assert "physics (phys.toml)" in (tmp_path / "r" / "report.md").read_text()
