@@ -10,7 +10,7 @@ target AP(physics) <= AP(uncompensated) / 10 (the largest AP over the five poses
 
     python benchmarks/iso_before_after.py                         # full scale, ISO 9283
     python benchmarks/iso_before_after.py --scale 0.25 --tests 9283 230-2
-    python benchmarks/iso_before_after.py --tests 230-3 --hours 24
+    python benchmarks/iso_before_after.py --tests 230-3 --hours 24 --interval 60
 
 Every figure printed is measured here.
 """
@@ -85,6 +85,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tests", nargs="+", default=["9283"], choices=("9283", "230-2", "230-3"))
     ap.add_argument("--after-h", type=float, default=2.0)
     ap.add_argument("--hours", type=float, default=None, help="ISO 230-3 duration")
+    ap.add_argument("--interval", type=float, default=None, help="ISO 230-3 sampling (s)")
     args = ap.parse_args(argv)
     sc = Scenario.load(SCENARIO)
     status = 0
@@ -93,7 +94,10 @@ def main(argv=None) -> int:
         models = fit_models(sc, args.scale, d)
         for test in args.tests:
             t0 = time.perf_counter()
-            extra = ["--hours", str(args.hours)] if test == "230-3" and args.hours else []
+            extra = []
+            if test == "230-3":
+                extra += ["--hours", str(args.hours)] if args.hours else []
+                extra += ["--interval", str(args.interval)] if args.interval else []
             doc = run_iso(test, models, args.scale, args.after_h, d, extra)
             print(f"\nISO {test}, {args.after_h:g} h after the calibration "
                   f"({time.perf_counter() - t0:.0f} s):")

@@ -9,7 +9,8 @@ The budget of one interferometer reading at a distance L from its zero (m):
 
 * resolution: q / sqrt(12) for the reading and again for the zero;
 * noise: the reading's standard deviation (the air turbulence of ``noise_floor_m``) over the
-  readings averaged, and once for the zero;
+  readings averaged, and the zero's (a laboratory's zero is a reading; the twin's simulated
+  interferometers zero on the true path, twin/instruments/simulated.py, so its zero has none);
 * air refraction: L |dn/dT| u(T_air), L |dn/dp| u(p), L |dn/de| u(e) (the index's sensitivities
   from the Edlén formula of ``twin.instruments.optics.air_index``, by central differences): the
   air's temperature, pressure and water vapour the correction does not know;
@@ -30,7 +31,7 @@ account for.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 from deltatwin.twin.instruments.optics import air_index
 
@@ -54,6 +55,7 @@ class MeasurementSpec:
     """The measuring chain of one axis (SI; standard uncertainties unless named a bound)."""
     resolution_m: float = 1.24e-9
     noise_m: float = 5e-9
+    zero_noise_m: float = 5e-9            # the zero is a reading too (the twin's: exact, 0)
     air_T_u_C: float = 0.01
     pressure_u_Pa: float = 10.0
     vapour_u_Pa: float = 50.0
@@ -74,7 +76,7 @@ class MeasurementSpec:
         u_index = math.sqrt((dT * self.air_T_u_C) ** 2 + (dp * self.pressure_u_Pa) ** 2
                             + (de * self.vapour_u_Pa) ** 2)
         return {"resolution": self.resolution_m / math.sqrt(12) * math.sqrt(2),
-                "noise": self.noise_m * math.sqrt(1 / readings + 1),
+                "noise": math.hypot(self.noise_m / math.sqrt(readings), self.zero_noise_m),
                 "air refraction": L * u_index,
                 "cosine/Abbe": math.hypot(L * self.misalignment_rad ** 2 / (2 * math.sqrt(3)),
                                           self.abbe_offset_m * self.tilt_u_rad),
@@ -126,11 +128,24 @@ def conformance(value: float, U: float, tolerance: float) -> str:
 def spec_from_scenario(sc, axis: str) -> MeasurementSpec:
     """The measuring chain of ``axis`` in a scenario's laboratory: its interferometers'
     resolution and noise, its thermometers' for the air and the material, its air's wander
-    (the barometer's and hygrometer's noise where it records them), the nominal dead path."""
+    (the barometer's and hygrometer's noise where it records them), the nominal dead path, the
+    autocollimators' noise for the tilt. A source the scenario's world lacks is left out: the
+    air where its index does not move (no air_refraction), the material where nothing expands
+    (no thermal_expansion), the beam's misalignment where the beams are aligned (no
+    beam_misalignment); the twin's interferometers zero on the true path (no zero noise)."""
     s = sc.settings
+    names = {e.name for e in sc.effects}
     wander = sc.air_wander()
     u_T = math.hypot(s.T_noise_C, s.T_resolution_C / math.sqrt(12))
-    return MeasurementSpec(resolution_m=s.resolution_m, noise_m=s.noise_floor_m,
-                           air_T_u_C=u_T, pressure_u_Pa=wander["pressure_Pa"][0],
+    air = "air_refraction" in names
+    spec = MeasurementSpec(resolution_m=s.resolution_m, noise_m=s.noise_floor_m,
+                           zero_noise_m=0.0, air_T_u_C=u_T if air else 0.0,
+                           pressure_u_Pa=wander["pressure_Pa"][0],
                            vapour_u_Pa=wander["vapour_Pa"][0], material_T_u_C=u_T,
-                           dead_path_m=sc.dead_path()[axis])
+                           dead_path_m=sc.dead_path()[axis], tilt_u_rad=s.ac_noise_rad)
+    changes = {}
+    if "thermal_expansion" not in names:
+        changes.update(material_T_u_C=0.0, material_dT_K=0.0)
+    if "beam_misalignment" not in names:
+        changes.update(misalignment_rad=0.0)
+    return replace(spec, **changes)
