@@ -187,9 +187,27 @@ def budget_table(row: dict) -> str:
     return "\n".join(lines)
 
 
-def markdown(title: str, rows: list[dict], figures: list[str], intro: str) -> str:
-    """The report's text: the table of every figure, the figures, the largest position
-    figure's budget."""
+def per_target_tables(results: dict) -> str:
+    """ISO 230-2's per-target table (nm) of every arm and axis, in Markdown."""
+    from deltatwin.calibration.standards.iso230_2 import TARGET_FIGURES
+
+    out = []
+    for arm, res in results.items():
+        for a, r in res.items():
+            out += [f"### {arm}, axis {a} (nm; targets in mm)", "",
+                    "| target | " + " | ".join(TARGET_FIGURES) + " |",
+                    "|" + "---:|" * (len(TARGET_FIGURES) + 1)]
+            out += [f"| {p * 1e3:.4f} | " + " | ".join(f"{getattr(r, k)[i] * NM:.1f}"
+                                                       for k in TARGET_FIGURES) + " |"
+                    for i, p in enumerate(r.targets_m)]
+            out.append("")
+    return "\n".join(out)
+
+
+def markdown(title: str, rows: list[dict], figures: list[str], intro: str,
+             extra: str = "") -> str:
+    """The report's text: the table of every figure, the figures, ``extra`` (Markdown), the
+    largest position figure's budget."""
     has_tol = any("decision" in r for r in rows)
     head = "| arm | figure | value (nm) | U (nm, k = 2) |" + (" tolerance | decision |"
                                                           if has_tol else "")
@@ -201,6 +219,8 @@ def markdown(title: str, rows: list[dict], figures: list[str], intro: str) -> st
                      + tail)
     lines.append("")
     lines += [f"![{f}]({f})" for f in figures]
+    if extra:
+        lines += ["", extra]
     budgets = [r for r in rows if "budget_nm" in r and "air refraction" in r["budget_nm"]]
     if budgets:
         lines += ["", "## Uncertainty budget", "",

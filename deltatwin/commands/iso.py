@@ -262,8 +262,11 @@ def run(args) -> int:
              f"{'dataset ' + str(args.data) if args.data else args.instruments}; "
              f"{len(test.plan)} points; parameters {strict_json(test.parameters)}. "
              f"deltatwin {__import__('deltatwin').__version__}.")
+    extra = ("## Per target\n\n" + report.per_target_tables(results)
+             if test.test == "iso230-2" else "")
     report.write_markdown(out / "report.md", report.markdown(f"{report.TITLES[test.test]} "
-                                                             "report", rows, figures, intro))
+                                                             "report", rows, figures, intro,
+                                                             extra))
     doc = {"test": test.test, "scenario": sc.name, "seed": sci.seed,
            "parameters": test.parameters, "arms": {arm: json.loads(res.to_json())
                                                    if hasattr(res, "to_json") else
