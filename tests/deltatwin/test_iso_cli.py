@@ -148,3 +148,11 @@ def test_iso9283_through_a_fitted_physics_model(tmp_path, capsys):
     assert list(ap) == ["uncompensated", "physics (phys.toml)"]
     assert ap["physics (phys.toml)"] < ap["uncompensated"] / 10, ap
     assert "physics (phys.toml)" in (tmp_path / "r" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("test", ["9283", "230-2", "230-3"])
+def test_paper_force_robot_reduced(tmp_path, capsys, test):
+    doc = _iso(capsys, "paper-force", "--test", test, "--reduced", "-o", str(tmp_path / "r"))
+    assert doc["scenario"] == "paper-force" and doc["figures"]
+    assert all(np.isfinite(r["value_nm"]) and r["U_nm"] > 0 for r in doc["figures"])
+    assert (tmp_path / "r" / "report.md").exists()
