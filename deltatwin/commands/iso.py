@@ -193,7 +193,8 @@ def compensated_arms(args, sc, sci, test) -> dict:
                                   scan_period_s=sci.settings.scan_period_s)
             loop.log.sensors = tuple(inst.thermometers.sensors)
             controller = StatusLog(loop)
-        print(f"deltatwin iso: running {name} ({n} points)", file=sys.stderr)
+        if not args.quiet:
+            print(f"deltatwin iso: running {name} ({n} points)", file=sys.stderr)
         df = run_campaign(test.plan, inst, sci.settings, sci.cosine, sci.dead_path(),
                           progress=not args.quiet, controller=controller,
                           zero_settles=ZERO_SETTLES)
