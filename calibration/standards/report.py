@@ -168,7 +168,7 @@ def plot_etve(series: dict, temperatures: dict, path: Path) -> None:
     palette = matplotlib.colormaps["tab20"]
     for k, (name, (t, T)) in enumerate(temperatures.items()):
         bottom.plot(t / 3600, T, lw=1, label=name, color=palette(k % 20))
-    bottom.set_xlabel("time since the twin's start (h)")
+    bottom.set_xlabel("time on the campaign's clock (h)")
     bottom.set_ylabel("temperature (°C)")
     bottom.legend(fontsize=7, ncol=4)
     bottom.grid(alpha=0.3)
