@@ -224,16 +224,11 @@ class StatusLog:
 
 
 def run(args) -> int:
-    import json
-
-    import numpy as np
-
     from deltatwin.calibration.standards import report
     from deltatwin.calibration.standards.campaign import evaluate_test
     from deltatwin.calibration.standards.uncertainty import spec_from_scenario
     from deltatwin.commands.output import strict_json
-    from deltatwin.files import atomic_write_text, check_writable
-    from deltatwin.twin.dataset import write_dataset
+    from deltatwin.files import check_writable
     from deltatwin.twin.scenario import Scenario
     from deltatwin.twin.world import random_streams
 
@@ -251,6 +246,42 @@ def run(args) -> int:
     specs = {a: spec_from_scenario(sci, a) for a in ("x", "y", "z")}
     rows = [r for arm, res in results.items()
             for r in report.figure_rows(test, arm, res, specs, tol)]
+    doc = {"test": test.test, "scenario": sc.name, "seed": sci.seed,
+           "parameters": test.parameters,
+           "arms": {arm: result_json(res) for arm, res in results.items()},
+           "figures": rows, "report": str(args.output / "report.md")}
+    write_outputs(args, sc, sci, scale, test, arms, results, rows)
+    doc["seconds"] = round(time.perf_counter() - t0, 2)
+    if args.json:
+        print(strict_json(doc))
+    else:
+        print(f"{'arm':>28} {'figure':>14} {'value nm':>10} {'U nm':>8}  decision")
+        for r in rows:
+            print(f"{r['arm']:>28} {r['figure']:>14} {r['value_nm']:10.1f} {r['U_nm']:8.1f}  "
+                  f"{r.get('decision', '')}")
+        print(f"report: {args.output / 'report.md'}")
+    return 0
+
+
+def result_json(result) -> dict:
+    """A standard's result (or {axis: result} of ISO 230-2) as JSON data."""
+    import json
+
+    if hasattr(result, "to_json"):
+        return json.loads(result.to_json())
+    return {a: json.loads(r.to_json()) for a, r in result.items()}
+
+
+def write_outputs(args, sc, sci, scale, test, arms, results, rows) -> None:
+    """The report folder: scenario.toml, the figures, one dataset per arm, report.md,
+    results.json (written last)."""
+    import json
+
+    from deltatwin.calibration.standards import report
+    from deltatwin.commands.output import strict_json
+    from deltatwin.files import atomic_write_text
+    from deltatwin.twin.dataset import write_dataset
+
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "scenario.toml", sci.text)
@@ -259,35 +290,19 @@ def run(args) -> int:
         meta = sci.metadata(None, scale) if args.data is None else {"source": "lab"}
         meta["standard_test"] = {"test": test.test, "arm": arm, **test.parameters}
         write_dataset(df, json.loads(strict_json(meta)), out / f"arm{k}.parquet")
-    intro = (f"{report.TITLES[test.test]} on {sc.name} (seed {sci.seed}), "
+    title = report.TITLES[test.test]
+    intro = (f"{title} on {sc.name} (seed {sci.seed}), "
              f"{'dataset ' + str(args.data) if args.data else args.instruments}; "
              f"{len(test.plan)} points; parameters {strict_json(test.parameters)}. "
              f"deltatwin {__import__('deltatwin').__version__}.")
     extra = ("## Per target\n\n" + report.per_target_tables(results)
              if test.test == "iso230-2" else "")
-    report.write_markdown(out / "report.md", report.markdown(f"{report.TITLES[test.test]} "
-                                                             "report", rows, figures, intro,
-                                                             extra))
+    report.write_markdown(out / "report.md", report.markdown(f"{title} report", rows, figures,
+                                                             intro, extra))
     doc = {"test": test.test, "scenario": sc.name, "seed": sci.seed,
-           "parameters": test.parameters, "arms": {arm: json.loads(res.to_json())
-                                                   if hasattr(res, "to_json") else
-                                                   {a: json.loads(r.to_json())
-                                                    for a, r in res.items()}
-                                                   for arm, res in results.items()},
-           "figures": rows, "report": str(out / "report.md"),
-           "seconds": round(time.perf_counter() - t0, 2)}
+           "parameters": test.parameters,
+           "arms": {arm: result_json(res) for arm, res in results.items()}, "figures": rows}
     atomic_write_text(out / "results.json", strict_json(doc))
-    if args.json:
-        print(strict_json(doc))
-    else:
-        print(f"{'arm':>28} {'figure':>14} {'value nm':>10} {'U nm':>8}  decision")
-        for r in rows:
-            if not np.isfinite(r["value_nm"]):
-                continue
-            print(f"{r['arm']:>28} {r['figure']:>14} {r['value_nm']:10.1f} {r['U_nm']:8.1f}  "
-                  f"{r.get('decision', '')}")
-        print(f"report: {out / 'report.md'}")
-    return 0
 
 
 def write_figures(test, arms, results, out: Path) -> list[str]:
