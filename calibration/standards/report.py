@@ -82,35 +82,38 @@ def figure_rows(test, arm: str, result, specs: dict, tolerance_nm: dict | None =
 
 def plot_iso230_2(results: dict, path: Path) -> None:
     """``results`` {arm: {axis: Iso230_2Result}}: x̄↑, x̄↓ with ±2s bands, one column per
-    axis; below, the same less the straight line through the bidirectional means x̄ of the
-    first arm (a scale error hides the bands at full scale)."""
+    axis; below, each arm less its own straight line through x̄ (a scale error hides the
+    bands at full scale); under them the standard's axis figures per arm."""
     axes = list(next(iter(results.values())))
-    fig = Figure(figsize=(4.2 * len(axes), 6.4))
-    grid = fig.subplots(2, len(axes), squeeze=False)
+    fig = Figure(figsize=(4.2 * len(axes), 7.4))
+    grid = fig.subplots(3, len(axes), squeeze=False,
+                        gridspec_kw={"height_ratios": [3, 3, 0.25 + 0.3 * len(results)]})
     for j, a in enumerate(axes):
-        first = next(iter(results.values()))[a]
-        line = np.polyfit(first.targets_m, first.xbar, 1)
-        for row, trend in enumerate((None, line)):
-            ax = grid[row, j]
-            for c, (arm, res) in zip(COLOURS, results.items()):
-                r = res[a]
-                P = r.targets_m * 1e3
-                base = 0.0 if trend is None else np.polyval(trend, r.targets_m)
+        for c, (arm, res) in zip(COLOURS, results.items()):
+            r = res[a]
+            P = r.targets_m * 1e3
+            line = np.polyfit(r.targets_m, r.xbar, 1)
+            for row, base in enumerate((0.0, np.polyval(line, r.targets_m))):
                 for x, s, ls, name in ((r.xbar_up, r.s_up, "-", "↑"),
                                        (r.xbar_down, r.s_down, "--", "↓")):
-                    ax.plot(P, (x - base) * NM, ls, color=c, marker="o", ms=3,
-                            label=f"{arm} x̄{name}")
-                    ax.fill_between(P, (x - base - 2 * s) * NM, (x - base + 2 * s) * NM,
-                                    color=c, alpha=0.15)
-            ax.set_xlabel(f"target {a} (mm)")
-            ax.grid(alpha=0.3)
-            if trend is None:
-                ax.set_ylabel("positional deviation (nm)")
-                ax.set_title(f"ISO 230-2 axis {a}: x̄ ± 2s")
-            else:
-                ax.set_ylabel("less the line (nm)")
-                ax.set_title(f"less the line {line[0] * 1e6:.1f} nm/mm x {line[1] * NM:+.0f} nm",
-                             fontsize=9)
+                    grid[row, j].plot(P, (x - base) * NM, ls, color=c, marker="o", ms=3,
+                                      label=f"{arm} x̄{name}")
+                    grid[row, j].fill_between(P, (x - base - 2 * s) * NM,
+                                              (x - base + 2 * s) * NM, color=c, alpha=0.15)
+            k = list(results).index(arm)
+            grid[2, j].text(0.0, 1.0 - 0.9 * (k + 0.5) / len(results),
+                            f"A {r.A * NM:.0f}  E {r.E * NM:.0f}  M {r.M * NM:.0f}  "
+                            f"R {r.R * NM:.0f}  B {r.B * NM:.0f} nm  (slope "
+                            f"{line[0] * 1e6:.0f} nm/mm)", color=c, fontsize=8,
+                            transform=grid[2, j].transAxes, va="center")
+        grid[2, j].axis("off")
+        grid[0, j].set_title(f"ISO 230-2 axis {a}: x̄ ± 2s")
+        grid[0, j].set_ylabel("positional deviation (nm)")
+        grid[1, j].set_title("less each arm's straight line through x̄", fontsize=9)
+        grid[1, j].set_ylabel("less the line (nm)")
+        for row in (0, 1):
+            grid[row, j].set_xlabel(f"target {a} (mm)")
+            grid[row, j].grid(alpha=0.3)
     grid[0, 0].legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
