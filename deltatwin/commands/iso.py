@@ -44,6 +44,9 @@ def register(sub) -> None:
                    help="ISO 230-3 time between readings, s (default: as often as the "
                         "laboratory's timing allows, ~8 s; a longer one lengthens its per-point "
                         "overhead_s)")
+    p.add_argument("--wait", type=float, default=None, metavar="S",
+                   help="waiting time after every move before the reading, s (default: the "
+                        "laboratory's wait_s, the papers' 5 s)")
     p.add_argument("--drift-cycles", type=int, default=None, metavar="N",
                    help="ISO 9283: also the drift dAP, dRP between the first and the last N "
                         "cycles")
@@ -90,17 +93,27 @@ def campaign_table(args) -> dict:
 
 
 def instrument_changes(args, sc) -> dict:
-    """[instruments] settings the test changes: ``--interval`` sets the per-point overhead."""
+    """[instruments] settings the test changes: ``--wait`` the waiting time after a move,
+    ``--interval`` the per-point overhead (the time at rest between ETVE readings)."""
+    changes = {}
+    if args.wait is not None:
+        if not 0 <= args.wait <= 3600:
+            raise ValueError(f"--wait must be in [0, 3600] s, got {args.wait}")
+        changes["wait_s"] = float(args.wait)
     if args.interval is None:
-        return {}
+        return changes
     if args.test != "230-3":
         raise ValueError(f"--interval is not an option of --test {args.test}")
+    import dataclasses
+
     from deltatwin.twin.standard_tests import point_time_at_rest
-    least = point_time_at_rest(sc.settings)
+
+    settings = dataclasses.replace(sc.settings, **changes)
+    least = point_time_at_rest(settings)
     if not args.interval >= least:
         raise ValueError(f"--interval {args.interval:g} s: a reading at rest takes {least:g} s "
                          "in this laboratory; give at least that")
-    return {"overhead_s": sc.settings.overhead_s + args.interval - least}
+    return {**changes, "overhead_s": settings.overhead_s + args.interval - least}
 
 
 def tolerances(items) -> dict:

@@ -104,6 +104,9 @@ def test_iso230_3_report(tmp_path, capsys):
     (["--test", "9283", "--scale", "2"], "--scale must be in (0, 1]"),
     (["--test", "9283", "--compensate", "nope.toml"], "--compensate nope.toml"),
     (["--test", "9283", "--instruments", "serial"], "--instruments serial needs --ports"),
+    (["--test", "230-3", "--interval", "3"], "--interval 3 s: a reading at rest takes 8 s"),
+    (["--test", "9283", "--interval", "60"], "--interval is not an option of --test 9283"),
+    (["--test", "9283", "--wait", "-1"], "--wait must be in [0, 3600] s"),
 ])
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, words):
     code = main(["iso", "paper-thermal", *args, "-o", str(tmp_path / "r")])
@@ -119,7 +122,7 @@ def test_iso9283_drift_and_iso230_3_interval(tmp_path, capsys):
     p1 = doc["arms"]["uncompensated"]["poses"]["P1"]
     assert p1["dAP_nm"] is not None and any(r["figure"] == "dRP P3" for r in doc["figures"])
     doc = _iso(capsys, "paper-thermal", "--test", "230-3", "--hours", "0.5", "--interval", "60",
-               "-o", str(tmp_path / "b"))
+               "--wait", "10", "-o", str(tmp_path / "b"))
     t = pd.read_parquet(tmp_path / "b" / "arm0.parquet")["t_s"].to_numpy()
     assert doc["arms"]["uncompensated"]["n"] == 30
     assert np.median(np.diff(t)) == pytest.approx(60.0, abs=0.5)
