@@ -6,7 +6,9 @@
   to the room's temperature;
 * ``uncertainty``: expanded uncertainties (k = 2) of the figures from the instruments'
   specifications (ISO/TR 230-9 spirit) and ISO 14253-1 conformance with a guard band;
-* ``report``: the Markdown report with its figures.
+* ``gaussian``: what the repeatability figures are for Gaussian reading noise alone;
+* ``campaign``: a standard test's campaign (``twin.standard_tests``) evaluated from its dataset;
+* ``report``: the figures' table, the Markdown report and its figures.
 
 The plans that measure them are ``twin.standard_tests``. Inside: SI (m, s, degC); nm and um
 only in the summaries and the JSON (names carry the unit).
