@@ -1,4 +1,5 @@
-"""Acceptance tests in the language of the trade, evaluated from readings (pure numpy):
+"""Acceptance tests in the language of the trade, evaluated from readings (the figures in
+pure numpy):
 
 * ``iso230_2``: ISO 230-2 positioning accuracy and repeatability of a linear axis;
 * ``iso9283``: ISO 9283 pose accuracy AP and pose repeatability RP (and their drift);

@@ -220,7 +220,10 @@ def markdown(title: str, rows: list[dict], figures: list[str], intro: str,
         tail = (f" {r.get('tolerance_nm', '')} | {r.get('decision', '')} |" if has_tol else "")
         lines.append(f"| {r['arm']} | {r['figure']} | {r['value_nm']:.1f} | {r['U_nm']:.1f} |"
                      + tail)
-    lines.append("")
+    lines += ["", "U: expanded uncertainty (k = 2) from the measuring chain's budget; for a "
+              "repeatability figure (RP, R, R_up, R_down) the instrument's share: its own "
+              "repeatability times the figure's multiplier, what the figure would be for a "
+              "perfect robot (docs/standards.md).", ""]
     lines += [f"![{f}]({f})" for f in figures]
     if extra:
         lines += ["", extra]
