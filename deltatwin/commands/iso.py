@@ -161,7 +161,9 @@ def run_arms(args, sc, sci, test, scale) -> dict:
     from deltatwin.twin.dataset import read_dataset
 
     if args.data is not None:
-        return {"measured": read_dataset(args.data)[0]}
+        df, meta = read_dataset(args.data)
+        check_dataset(args.data, meta, sci, scale)
+        return {"measured": df}
     if args.instruments == "serial":
         from deltatwin.commands.campaign import check_world
         from deltatwin.hw.lab import open_lab
@@ -179,6 +181,20 @@ def run_arms(args, sc, sci, test, scale) -> dict:
         return {"uncompensated": simulate_campaign(plan, twin, sci.settings, sci.cosine,
                                                    sci.dead_path())}
     return compensated_arms(args, sc, sci, test)
+
+
+def check_dataset(path, meta: dict, sci, scale) -> None:
+    """A dataset that says which campaign it is (deltatwin's metadata) must be this test's: the
+    same scenario text (robot, laboratory, the test's campaign) and scale."""
+    text = meta.get("scenario_toml")
+    if text is not None and text != sci.text:
+        raise ValueError(f"--data {path}: its campaign is not this test's (another scenario, "
+                         "test or test option); run `deltatwin campaign` on the scenario.toml "
+                         "this test writes")
+    given = 1.0 if scale is None else float(scale)
+    if "scale" in meta and meta["scale"] is not None and float(meta["scale"]) != given:
+        raise ValueError(f"--data {path}: a campaign at scale {meta['scale']:g}, this test's is "
+                         f"{given:g} (--scale / --reduced)")
 
 
 def compensated_arms(args, sc, sci, test) -> dict:

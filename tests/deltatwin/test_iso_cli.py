@@ -61,6 +61,13 @@ def test_iso_figures_equal_the_campaign_commands_run(iso9283, capsys):
                "-o", str(iso9283 / "d"))
     fast = json.loads((iso9283 / "r" / "results.json").read_text())["arms"]["uncompensated"]
     assert doc["arms"]["measured"]["poses"] == fast["poses"]
+    # the dataset of another test's campaign is refused, in one line
+    for other, words in ((["--cycles", "5"], "not this test's"), (["--cycles", "4", "--scale",
+                                                                  "0.5"], "at scale 1")):
+        code = main(["iso", "paper-thermal", "--test", "9283", *other, "--data", str(data),
+                     "-o", str(iso9283 / "e")])
+        err = capsys.readouterr().err
+        assert code == 2 and words in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_iso230_2_serial_path_equals_the_simulated_one(tmp_path, capsys):
