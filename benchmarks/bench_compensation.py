@@ -1,4 +1,4 @@
-"""Benchmark: compensation in the loop (issue 19) on paper-thermal and paper-force.
+"""Benchmark: compensation in the loop on paper-thermal and paper-force.
 
 For each scenario (full scale by default): simulate the calibration campaign, fit the seed's
 black-box model (thermal: the stepwise DGM, inverted by Newton; force: the direct IGM) and the

@@ -1,5 +1,5 @@
-"""Benchmark: the latency of one inverse evaluation of the physics model a controller loads
-(issue 19 item 4), the portable C evaluator (calibration/physics/controller_evaluator.c, built
+"""Benchmark: the latency of one inverse evaluation of the physics model a controller loads:
+the portable C evaluator (calibration/physics/controller_evaluator.c, built
 here with the system C compiler, -O2) against the numpy reference evaluator, one point at a
 time as a controller's loop asks, against a loop budget of 100 us.
 

@@ -1,4 +1,4 @@
-"""Benchmark: planning a campaign (issue 20). Prints each figure beside the target it is held to.
+"""Benchmark: planning a campaign. Prints each figure beside the target it is held to.
 
 1. A sweep of 4 magnitudes x 50 seeds = 200 cases (quiet/beam-misalignment, the Abbe offsets
    scaled; fit: the known geometry; diagnose) on a local pool of 1 worker, on a pool of 2

@@ -1,7 +1,7 @@
 """Benchmark: ``deltatwin campaign`` through the serial drivers and the twin-backed emulators
 (pseudo-terminals, pyserial; the emulators as ``deltatwin emulate`` serves them, in this process)
 against ``deltatwin campaign --instruments sim``, both journaled (fsync per point) as the command
-runs them. Target (issue 7): the paper-force campaign through the emulators "in minutes at most".
+runs them. Target: the paper-force campaign through the emulators "in minutes at most".
 
 Prints the points, both wall times, the serial overhead per point, the serial exchanges per
 point, the cost of journaling one point (append + fsync, on the temporary folder's disk), and

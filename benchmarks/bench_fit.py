@@ -1,4 +1,4 @@
-"""Benchmark: the physics fit (calibration/physics.py) against the issue's speed target,
+"""Benchmark: the physics fit (calibration/physics/fit.py) against its speed target,
 "~40 parameters on 10,000 points in <= 30 s on this machine".
 
 Simulates a hidden-effect scenario at a scale giving >= 10,000 rows (each row reads x, y and

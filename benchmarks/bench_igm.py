@@ -86,7 +86,7 @@ def main(argv=None) -> int:
 
 
 def _unreachable_targets(dgm, igm, aux, rng, n: int = 2000) -> bool:
-    """Issue 14 item 4: targets of angles up to 6x the stroke, and targets 1 mm, 1 cm, 10 cm
+    """Targets the IGM cannot reach in the stroke: angles up to 6x the stroke, and targets 1 mm, 1 cm, 10 cm
     (random direction) from reachable ones. Prints the statuses; every converged answer must
     lie in the stroke and reach its target to 0.001 nm."""
     lo, hi = igm.stroke_rad

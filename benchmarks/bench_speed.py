@@ -1,4 +1,4 @@
-"""Speed of the loop a researcher feels (issue 21), in one run, each figure beside its target:
+"""Speed of the loop a researcher feels, in one run, each figure beside its target:
 
 0. the loop at full scale: ``fit`` of paper-thermal (28,492 rows) with the seven model effects
    below and the laboratory's known frame arm (docs/twin.md), against 5 s, and ``diagnose`` of

@@ -1,4 +1,4 @@
-"""Benchmark: calibration.stepwisefit vs a plain loop of statsmodels OLS refits.
+"""Benchmark: stepwisefit (calibration/blackbox/stepwise.py) vs a plain loop of statsmodels OLS refits.
 
 Paper-scale problem (first paper, one axis): 217 candidate terms x 9701 rows — the calibration
 rows of the X/Y session of the twin's paper-thermal campaign at full scale (the paper's 9701):
@@ -8,7 +8,7 @@ products with the geometric terms, causal first and second derivatives; the resp
 twin's X reading (5 nm noise std).  Seeded (the scenario's seed unless --seed).
 
 Runs both on the same data, checks the selections are identical step by step, and prints
-both times and the speed-up.  Targets (issue 4): stepwisefit <= 1 s and >= 100x faster.
+both times and the speed-up.  Targets: stepwisefit <= 1 s and >= 100x faster.
 
     python benchmarks/bench_stepwise.py            # paper scale, both methods
     python benchmarks/bench_stepwise.py --rows 2000 --repeat 5

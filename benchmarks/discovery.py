@@ -1,4 +1,4 @@
-"""Benchmark: the find-the-missing-effect loop on generated cases (issue 15's scores).
+"""Benchmark: the find-the-missing-effect loop on generated cases, and its scores.
 
 Generates cases in the papers' laboratory conditions (deltatwin.twin.cases: a thermal or force
 campaign hiding zero to three effects at random magnitudes; the frame arm a known constant),
@@ -31,7 +31,7 @@ additions). Prints per case and then the issue's scores against its targets:
     python benchmarks/discovery.py                      # 8 cases, seed 15, and the full-scale time
     python benchmarks/discovery.py --cases 12 --seed 1234 --skip-full --only case010   # one case
     python benchmarks/discovery.py --cases 12 --seeds 10501-10548 --jobs 2 --skip-full
-        # 576 cases pooled (docs/calibration.md, session 15): each score with its 95 % interval
+        # 576 cases pooled: each score with its 95 % interval (docs/calibration.md)
 """
 from __future__ import annotations
 

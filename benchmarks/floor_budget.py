@@ -1,4 +1,4 @@
-"""The achievable floor's budget per source (issue 15), measured in the twin: a scenario at a
+"""The achievable floor's budget per source, measured in the twin: a scenario at a
 scale, its dataset, the true model refitted, then each source alone switched on with the others
 perfect (calibration/diagnosis/floor.py: measured_floor_budget). Prints the budget (nm, 90 %,
 per axis), the thermometers per sensor (first order), how the sources add up in quadrature
@@ -51,7 +51,7 @@ def main() -> None:
     df, meta = sc.simulate(None if scale == 1 else scale)
     record_achievable_floor(df, meta, sc, None if scale == 1 else scale)
     budget = meta["truth"]["floor_budget_nm"]
-    print(f"{sc.name} at scale {scale:g}: {len(df)} rows; noise floor (interferometers) "
+    print(f"{sc.name} at scale {scale:g}: {len(df)} rows; noise floor (interferometers and servo settling) "
           + ", ".join(f"{a} {v:.1f}" for a, v in meta["truth"]["noise_floor_nm"].items()) + " nm")
     print("\n".join(budget_lines(budget)))
     for c, d in budget["thermometers_by_sensor_nm"].items():

@@ -1,6 +1,6 @@
 """Every fuzz case of tests/fuzz_inputs.py (scenarios, datasets, model files, ports files): the
 count of each outcome per target, and every case that is not a clean refusal or an acceptance.
-Target (issue 17): 0 tracebacks, 0 hangs, 0 silent acceptances of invalid input, 0 vague.
+Target: 0 tracebacks, 0 hangs, 0 silent acceptances of invalid input, 0 vague.
 
     python benchmarks/fuzz_inputs.py [--seed 17] [--per-target N]
 """

@@ -1,4 +1,4 @@
-"""When the missing effect is outside the library (issue 16): the scores on generated cases.
+"""When the missing effect is outside the library: the scores on generated cases.
 
 Seven cases whose missing term is injected into simulated data by an effect outside the library
 (tests/calibration/outside_effects.py): a periodic encoder error in q1, a slow laser wavelength
@@ -71,7 +71,7 @@ from tests.calibration.outside_effects import (  # noqa: E402
     run_case,
 )
 
-PORTAL_SCALE = 0.03     # paper-thermal: 855 rows, 2.7 h (its X/Y session 0-3900 s)
+PORTAL_SCALE = 0.03     # paper-thermal: 855 rows, 2.7 h (0-3900 s: its X/Y session)
 TARGETS = {"unclaimed": 1.0, "named_first": 0.8, "form": 0.8, "floor_ratio": 1.1}
 
 

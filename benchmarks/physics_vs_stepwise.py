@@ -1,5 +1,5 @@
-"""Physics fit vs the seed's stepwise model on the same paper-thermal data (issue 5, "Beyond the
-seeds": the physics fit with the right effects should reach a validation error at least 2x lower
+"""Physics fit vs the seed's stepwise model on the same paper-thermal data (the target:
+the physics fit with the right effects should reach a validation error at least 2x lower
 than the stepwise model, with at most half as many parameters).
 
 Simulates scenarios/paper-thermal.toml (full scale by default: X/Y 9701 + 4074, Z 10390 + 4327

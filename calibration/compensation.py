@@ -368,14 +368,15 @@ class DirectIGMCompensator(Compensator):
                 for a in AXES if a in ev}
 
 
-def load_compensator(path) -> Compensator:
+def load_compensator(path, trust_effects=False) -> Compensator:
     """The compensator of a model file: a fitted physics model (TOML, ``deltatwin fit -o``)
-    or a black-box model (JSON, ``deltatwin calibrate -o``: a DGM or a direct IGM)."""
+    or a black-box model (JSON, ``deltatwin calibrate -o``: a DGM or a direct IGM). The user
+    effects a physics model names run only with ``trust_effects`` (``load_fitted``)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such model file")
     if path.suffix.lower() == ".toml":
-        model, doc = load_fitted(path)
+        model, doc = load_fitted(path, trust_effects)
         comp = PhysicsCompensator(model, doc["model"].get("sensors") or {})
         comp.calibration_data = doc["model"].get("data")
     else:

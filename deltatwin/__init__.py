@@ -5,8 +5,8 @@ dataset -> calibration -> report)::
 
     import deltatwin as dt
 
-    sc = dt.Scenario.load("quiet/magnetic-force", scale=0.3)   # a shipped scenario, or a path
-    df, meta = sc.simulate()                                      # the twin's campaign
+    sc = dt.Scenario.load("quiet/magnetic-force")              # a shipped scenario, or a path
+    df, meta = sc.simulate(0.3)                                   # the twin's campaign at 30 %
     dt.write_dataset(df, meta, "data.parquet")                    # and back: dt.read_dataset
     fit = dt.PhysicsFit(["geometric_errors"]).fit(df, meta)       # a physics model
     fit.parameter_table()                                         # DataFrame with uncertainties

@@ -95,7 +95,9 @@ def _configure_logging(args) -> None:
     """The library logs (``logging``); the command line shows INFO and above on stderr."""
     level = (logging.WARNING if getattr(args, "quiet", False) else
              logging.DEBUG if getattr(args, "verbose", False) else logging.INFO)
-    handler = logging.StreamHandler(sys.stderr)
+    from deltatwin.progress import ProgressHandler
+
+    handler = ProgressHandler(sys.stderr)      # progress: one updating line, or plain lines
     handler.setFormatter(logging.Formatter("%(message)s"))
     log = logging.getLogger("deltatwin")
     log.handlers[:] = [handler]

@@ -6,8 +6,10 @@ every layer may import this module, and it imports nothing of the project."""
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -29,6 +31,41 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
             os.unlink(tmp)
         raise
     return path
+
+
+@contextmanager
+def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary folder beside ``path`` to fill; once the block ends without error it takes
+    ``path``'s place (a folder there before is replaced whole). On any error or interruption
+    (KeyboardInterrupt too) the temporary folder is removed and ``path`` is untouched: a
+    half-filled folder is never left under the name asked for."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.exists() and not path.is_dir():
+        raise NotADirectoryError(f"{path}: is a file, not a folder")
+    work = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        yield work
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(work, 0o777 & ~umask)         # mkdtemp makes it private; mkdir would not
+        if not path.exists():
+            os.replace(work, path)
+            return
+        # a folder is not renamed over a full one: the old one steps aside first, and comes
+        # back if the new one cannot take its place
+        old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+        os.replace(path, old / path.name)
+        try:
+            os.replace(work, path)
+        except BaseException:
+            os.replace(old / path.name, path)
+            shutil.rmtree(old)
+            raise
+        shutil.rmtree(old)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
 
 
 def check_writable(path: str | os.PathLike, folder: bool = False) -> Path:

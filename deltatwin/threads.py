@@ -5,7 +5,7 @@ batched kinematics and statics (models/batched.py ``map_chunks``).  Neither help
 package much: its matrices are 3x3 to 6x6 per point (BLAS threads only spin up and wait on
 them) or a few hundred columns wide, and the chunked stages are a fraction of a command.  But
 both oversubscribe the cores when commands run side by side: two processes each starting one
-BLAS thread per core slowed each other by 75-240 % (issue 21).  So a command uses one thread
+BLAS thread per core slowed each other by 75-240 %.  So a command uses one thread
 of each unless told otherwise by ``DELTATWIN_THREADS`` (a number, or ``auto``: every core this
 process may use) or an explicit ``set_threads(n)``.
 
@@ -20,7 +20,7 @@ The same start-up sets how numpy's large arrays take their memory: in pages of 4
 transparent huge pages (numpy asks for those on Linux, ``NUMPY_MADVISE_HUGEPAGE``).  A command
 here makes its (N, 3, p) arrays once or a few times, so what costs is the first touch of new
 memory, and on a machine whose kernel gathers huge pages on demand (``transparent_hugepage``
-``defrag`` at ``madvise``, as on the 2-core machine of issue 21) a new huge page cost 1.3-2.0
+``defrag`` at ``madvise``, as on a 2-core development machine) a new huge page cost 1.3-2.0
 ms per MB against 0.4 for small pages: `diagnose` of full paper-thermal spent ~0.2 s less
 in the system, `fit` 0.15-0.3 s (docs/performance.md).  A ``NUMPY_MADVISE_HUGEPAGE`` already
 set is the user's choice and kept.

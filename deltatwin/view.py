@@ -115,15 +115,17 @@ def calibration_step(name: str, model, df: pd.DataFrame) -> LadderStep:
     return LadderStep(name, reading, tuple(f.name for f in model.features_.families))
 
 
-def model_file_step(path: str | os.PathLike, df: pd.DataFrame, meta: dict | None) -> LadderStep:
+def model_file_step(path: str | os.PathLike, df: pd.DataFrame, meta: dict | None,
+                    trust_effects=False) -> LadderStep:
     """A ladder step from a model file, named after the model's effects (a physics model) or
     feature families (a calibration model), not after the file.
 
     ``.json``: a saved calibration model (``calibration_step``).  ``.toml``: a fitted physics
     model (``deltatwin fit -o``), evaluated on the dataset's conditions (``meta['sensors']``
     places the temperature sensors) with each (session, axis) zero re-estimated on the
-    dataset's calibration rows, as ``deltatwin compare`` does (``calibration.compare.
-    evaluate``): its residual field is the one ``compare`` reports."""
+    dataset's calibration rows, as ``deltatwin compare`` does (``calibration.diagnosis.
+    compare.evaluate``): its residual field is the one ``compare`` reports. The user effects a
+    physics model names run only with ``trust_effects`` (``load_fitted``)."""
     from deltatwin.calibration.blackbox.model_file import load_model
     from deltatwin.calibration.diagnosis.compare import evaluate, load_model_file
     from deltatwin.calibration.errors import CalibrationInputError
@@ -132,7 +134,7 @@ def model_file_step(path: str | os.PathLike, df: pd.DataFrame, meta: dict | None
     if suffix not in (".json", ".toml"):
         raise ValueError(f"{path}: unknown model file type {path.suffix!r}; expected a "
                          "calibration model (.json) or a fitted physics model (.toml)")
-    model = load_model(path) if suffix == ".json" else load_model_file(path)
+    model = load_model(path) if suffix == ".json" else load_model_file(path, trust_effects)
     try:
         if suffix == ".json":
             step = calibration_step(path.stem, model, df)
@@ -287,17 +289,17 @@ def _palette(n: int) -> list[tuple[int, int, int]]:
 def _pose_robot(geom, model, q: np.ndarray, names: list[str], progress: bool):
     """Pose the MuJoCo model at motor coordinates ``q`` (F, 3); geom poses and cube centres."""
     import mujoco
-    from tqdm import tqdm
 
     from deltatwin.models.kinematics import forward
     from deltatwin.models.mjcf import pose_model
+    from deltatwin.progress import progress_bar
     data = mujoco.MjData(model)
     pose = forward(geom, q)
     gid = np.array([model.geom(n).id for n in names])
     cube = model.site("mirror_cube_centre").id
     F = len(q)
     gpos, gmat, cpos = np.empty((F, gid.size, 3)), np.empty((F, gid.size, 3, 3)), np.empty((F, 3))
-    for f in tqdm(range(F), desc="view: posing the robot", disable=not progress, leave=False):
+    for f in progress_bar(range(F), desc="view: posing the robot", disable=not progress, leave=False):
         pose_model(model, data, q[f], pose.p[f], pose.R[f])
         gpos[f] = data.geom_xpos[gid]
         gmat[f] = data.geom_xmat[gid].reshape(-1, 3, 3)

@@ -22,6 +22,7 @@ The reusable parts: ``targets(folder)`` (the valid base files), ``cases(target, 
 from __future__ import annotations
 
 import copy
+import io
 import json
 import math
 import re
@@ -31,7 +32,7 @@ import signal
 import tomllib
 from collections import Counter
 from collections.abc import Callable
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stderr, redirect_stdout
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -439,6 +440,105 @@ def cases(t: Target, rng: np.random.Generator) -> list[Case]:
     for c in whole:
         c.whole_file = True
     return whole + keyed
+
+
+# --------------------------------------------------------------------------- model files
+
+def _first_number(value, new):
+    """``value`` (a number or nested lists of numbers) with its first number replaced."""
+    if isinstance(value, list):
+        return [_first_number(value[0], new)] + value[1:] if value else value
+    return new
+
+
+def model_file_cases(t: Target) -> list[Case]:
+    """Named mutations of a fitted physics model as they happen to one (a hand edit, another
+    version, a colleague's file): a misspelled or unknown effect, a user effect's code, other
+    format versions, values in another unit (a key's unit suffix, a unit in the value), NaN,
+    infinite and huge values, wrong shapes and types, missing sections, misspelled keys. Each
+    certainly makes the file invalid and names the key its error must name."""
+    doc = tomllib.loads(t.base.read_text())
+    effect = doc["model"]["effects"][0]
+    param = next(iter(doc["effects"][effect]))
+    value = doc["effects"][effect][param]
+    unit = param.rsplit("_", 1)[0]
+    out = []
+
+    def case(name, new_doc, *names):
+        out.append(Case(t, name, True, _write_doc(t, new_doc), names))
+
+    rename = lambda table, old, new: {new if k == old else k: v for k, v in table.items()}
+    case("effect misspelled", _set(doc, ("model", "effects"), [effect + "z"]), effect + "z")
+    case("effect not in the library", _set(doc, ("model", "effects"), ["warp_drive"]),
+         "warp_drive")
+    case("a user effect's code", _set(doc, ("model", "effects"), ["./evil.py:Evil"]), "evil.py")
+    case("effects as one string", _set(doc, ("model", "effects"), effect), "effects")
+    case("an effect's table misspelled", _set(doc, ("effects",), rename(
+        doc["effects"], effect, effect[:-1])), effect)
+    for v in (3, -1, "2", 2.5, True):
+        case(f"format_version {v!r}", _set(doc, ("format_version",), v), "format_version")
+    case("another format", _set(doc, ("format",), "deltatwin-stepwise-model"), "format")
+    for suffix in ("_mm", "_um", "_nm"):
+        case(f"{param} in {suffix[1:]}", _set(doc, ("effects", effect), rename(
+            doc["effects"][effect], param, unit + suffix)), unit + suffix)
+    case(f"{param} with its unit in the value", _set(doc, ("effects", effect, param), "5 nm"),
+         param)
+    for label, x in (("NaN", math.nan), ("inf", math.inf), ("-inf", -math.inf),
+                     ("1e300", 1e300), ("text", "0.0")):
+        case(f"{param} {label}", _set(doc, ("effects", effect, param), _first_number(value, x)),
+             param)
+    case(f"{param} one element short", _set(doc, ("effects", effect, param),
+                                             value[:-1] if isinstance(value, list) else [value]),
+         param)
+    case(f"{param} misspelled", _set(doc, ("effects", effect),
+                                     rename(doc["effects"][effect], param, param + "s")),
+         param + "s")
+    for key, bad in (("noise_nm", math.nan), ("noise_nm", -5.0), ("noise_nm", "5"),
+                     ("identifiable_ratio", math.inf), ("data_sha256", "abc"),
+                     ("code_sha256", 5), ("data", 1.0)):
+        case(f"[model] {key} = {bad!r}", _set(doc, ("model", key), bad), key)
+    case("[model] noise in um", _set(doc, ("model",), rename(doc["model"], "noise_nm",
+                                                             "noise_um")), "noise_um")
+    case("[model.sensors] a part as a number",
+         _set(doc, ("model", "sensors"), {"base": 3}), "sensors")
+    case("no [model]", _drop(doc, ("model",)), "model")
+    case("no [effects]", _drop(doc, ("effects",)), effect)
+    case(f"no [effects.{effect}]", _drop(doc, ("effects", effect)), effect)
+    case("a misspelled table [knwon]", _set(doc, ("knwon",), {}), "knwon")
+    if "identification" in doc:
+        ident = doc["identification"]
+        case("[identification] parameters reversed", _set(
+            doc, ("identification", "parameters"), ident["parameters"][::-1]), "identification")
+        case("[identification] a direction with NaN", _set(
+            doc, ("identification", "directions"),
+            [_first_number(ident["directions"][0], math.nan)] + ident["directions"][1:]),
+             "identification")
+    case("[fit] n_parameters -1", _set(doc, ("fit", "n_parameters"), -1), "n_parameters")
+    case("[fit] val_err90_nm as text", _set(doc, ("fit", "val_err90_nm"), "small"),
+         "val_err90_nm")
+    return out
+
+
+def cli_reader(argv: list[str]) -> Callable[[Path], None]:
+    """A ``read`` for ``run``: the command line ``argv`` ('{model}' replaced by the file) through
+    ``deltatwin.cli.main`` in this process, as a user runs it. Exit 2 with exactly one error
+    line: that line raised as a bad-input error (``run`` checks it names the file and key);
+    exit 0: accepted; anything else (another exit code, several error lines, a traceback, an
+    exception out of main) is a fault."""
+    def read(path: Path) -> None:
+        from deltatwin.cli import UserError, main
+
+        err = io.StringIO()
+        with redirect_stderr(err), redirect_stdout(io.StringIO()):
+            code = main([a.replace("{model}", str(path)) for a in argv])
+        text = err.getvalue()
+        errors = [x for x in text.splitlines() if ": error: " in x]
+        if code == 0:
+            return
+        if code == 2 and len(errors) == 1 and "Traceback" not in text:
+            raise UserError(errors[0])
+        raise RuntimeError(f"exit {code}, {len(errors)} error lines: {text[-300:]!r}")
+    return read
 
 
 # --------------------------------------------------------------------------- the targets

@@ -21,7 +21,7 @@ ALLOWED = {
     "deltatwin.calibration": {"deltatwin.models", "deltatwin.twin"},
 }
 # the package root (its version, lazy API) and the file writers: every layer may use them
-GROUND_FLOOR = {"deltatwin", "deltatwin.files"}
+GROUND_FLOOR = {"deltatwin", "deltatwin.files", "deltatwin.progress"}
 
 
 def _project_imports(path: Path) -> set[str]:

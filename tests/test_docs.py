@@ -1,5 +1,7 @@
-"""The README's examples run as written: every bash block (but the two set-up commands, which
-CI runs itself) and the Python block, in an empty folder, with the installed package."""
+"""The docs' examples run as written: the README's bash blocks (but the two set-up commands, which
+CI runs itself), every Python block of README.md and docs/*.md (small scale, in an empty folder, with
+the installed package), every ``deltatwin`` command they show is accepted by the parser, and every
+file and module path they name exists."""
 import re
 import subprocess
 import sys
@@ -77,8 +79,9 @@ def test_every_documented_command_is_accepted_by_the_parser():
     for doc, cmd in commands:
         try:
             parser.parse_args(shlex.split(cmd)[1:])
-        except SystemExit:
-            refused.append(f"{doc}: {cmd}")
+        except SystemExit as exc:            # --version and --help exit 0: accepted
+            if exc.code != 0:
+                refused.append(f"{doc}: {cmd}")
     assert not refused, "\n".join(refused)
 
 
@@ -89,3 +92,157 @@ def test_the_walkthrough_figures_are_current():
     r = subprocess.run([sys.executable, str(script), "--check"], capture_output=True, text=True,
                        timeout=1500)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+
+
+# -- every module path and file path the docs name exists ----------------------------------------
+
+ROOT = README.parent
+# a file path in the repository: a top-level folder, then path characters
+FILE_PATH = re.compile(r"(?<![\w./~-])((?:calibration|twin|models|hw|deltatwin|benchmarks|tests|scenarios"
+                       r"|docs|\.ci)/[\w./-]*[\w/])")
+# a dotted module path (``deltatwin.x.y``, or the source folders' ``calibration.x.y`` that install
+# under deltatwin), possibly ending in an attribute (``deltatwin.threads.set_threads``)
+MODULE_PATH = re.compile(r"(?<![\w./-])((?:deltatwin|calibration|twin|models|hw)(?:\.[A-Za-z_]\w*)+)")
+SUFFIXES = {"md", "py", "toml", "json", "parquet", "csv", "txt", "rrd", "png", "c", "h", "xml", "rbl"}
+NOT_MODULES = {"deltatwin.effects"}     # the entry-point group of user effects, not a module
+
+
+def _named_paths() -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+    """(doc, file path) and (doc, dotted module path) named in README.md and docs/*.md."""
+    files, modules = [], []
+    for path in DOCS:
+        text = path.read_text()
+        files += [(path.name, m.group(1).rstrip(".")) for m in FILE_PATH.finditer(text)
+                  if "..." not in m.group(1)]
+        modules += [(path.name, m.group(1).rstrip(".")) for m in MODULE_PATH.finditer(text)
+                    if m.group(1).rsplit(".", 1)[-1] not in SUFFIXES and m.group(1) not in NOT_MODULES]
+    return sorted(set(files)), sorted(set(modules))
+
+
+def _resolve(dotted: str) -> str | None:
+    """None if ``dotted`` names an importable module of the installed package, or an attribute
+    of one; else what is missing."""
+    import importlib
+    import importlib.util
+
+    parts = dotted.split(".")
+    parts = parts if parts[0] == "deltatwin" else ["deltatwin"] + parts
+    for k in range(len(parts), 1, -1):
+        module = ".".join(parts[:k])
+        try:
+            found = importlib.util.find_spec(module) is not None
+        except ModuleNotFoundError:
+            found = False
+        if found:
+            obj = importlib.import_module(module)
+            for name in parts[k:]:
+                if not hasattr(obj, name):
+                    return f"{module} has no attribute {name!r}"
+                obj = getattr(obj, name)
+            return None
+    return "no such module in the installed package"
+
+
+def test_every_file_path_named_in_the_docs_exists():
+    files, _ = _named_paths()
+    assert len(files) > 50
+    # a scenario may be named without its .toml (scenarios/quiet/magnetic-force)
+    missing = [f"{doc}: {p}" for doc, p in files
+               if not (ROOT / p).exists() and not (ROOT / f"{p}.toml").is_file()]
+    assert not missing, "\n".join(missing)
+
+
+def test_every_module_path_named_in_the_docs_imports():
+    _, modules = _named_paths()
+    assert len(modules) > 10
+    missing = [f"{doc}: {m} ({why})" for doc, m in modules if (why := _resolve(m))]
+    assert not missing, "\n".join(missing)
+
+
+def test_the_path_checks_catch_stale_names():
+    """The two checks above fail on what the docs used to say (a test that cannot fail is none)."""
+    assert not (ROOT / "calibration/physics.py").exists() and (ROOT / "calibration/physics").is_dir()
+    assert _resolve("calibration.compare.evaluate") is not None
+    assert _resolve("deltatwin.calibration.stepwise") is not None
+    assert _resolve("calibration.diagnosis.compare.evaluate") is None
+    assert _resolve("deltatwin.threads.set_threads") is None
+    text = "`calibration/physics.py`, twin/dataset.py, (deltatwin.calibration.design) docs/twin.md."
+    assert [m.group(1) for m in FILE_PATH.finditer(text)] == [
+        "calibration/physics.py", "twin/dataset.py", "docs/twin.md"]
+    assert [m.group(1) for m in MODULE_PATH.finditer(text)] == ["deltatwin.calibration.design"]
+
+
+# -- every Python block of README.md and docs/*.md runs ------------------------------------------
+# Blocks of one page run in order in one fresh folder (a page's later block may read what an earlier
+# one wrote). HTML comments right before a block (or before its "`name.py`:" label, which makes the
+# block a file the page's commands run) say how:
+#   <!-- no-run: REASON -->     not run (hardware, a server); counted and printed with the reason
+#   <!-- setup: COMMAND -->     a shell command run first, for a file the page makes with a command
+PY_BLOCK = re.compile(r"```python\n(.*?)```", re.S)
+MARKER = re.compile(r"<!--\s*(no-run|setup):\s*(.*?)\s*-->")
+FILE_LABEL = re.compile(r"`([\w.-]+\.py)`:\s*$")
+SLOW_PAGES = {"view.md", "walkthrough.md"}     # 7-16 s each on 2 shared cores
+
+
+def _python_blocks(path: Path) -> list[dict]:
+    text = path.read_text()
+    blocks = []
+    for m in PY_BLOCK.finditer(text):
+        before = text[:m.start()].rstrip().splitlines()
+        label = FILE_LABEL.search(before[-1]) if before else None
+        if label:
+            before = before[:-1]
+        markers = []
+        while before and MARKER.fullmatch(before[-1].strip()):
+            markers.insert(0, MARKER.fullmatch(before[-1].strip()).groups())
+            before = before[:-1]
+        skip = [why for kind, why in markers if kind == "no-run"]
+        blocks.append({"line": text[:m.start()].count("\n") + 1, "code": m.group(1),
+                       "file": label.group(1) if label else None,
+                       "setup": [cmd for kind, cmd in markers if kind == "setup"],
+                       "skip": skip[0] if skip else None})
+    return blocks
+
+
+PY_PAGES = [p for p in DOCS if _python_blocks(p)]
+
+
+def test_python_blocks_are_counted_and_every_skip_says_why():
+    rows = [(p.name, b) for p in DOCS for b in _python_blocks(p)]
+    skipped = [(doc, b) for doc, b in rows if b["skip"] is not None]
+    print(f"\n{len(rows)} Python blocks in README.md and docs/*.md: {len(rows) - len(skipped)} run, "
+          f"{len(skipped)} skipped")
+    for doc, b in skipped:
+        print(f"  skipped {doc}:{b['line']}: {b['skip']}")
+    assert len(rows) >= 8
+    assert all(b["skip"].strip() for _, b in skipped)
+    assert len(skipped) <= 2, "skips are for hardware or a server, not for examples that fail"
+
+
+def _run_page(path: Path, tmp_path: Path) -> None:
+    bin_dir = Path(sys.executable).parent
+    env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "HOME": str(tmp_path), "OPENBLAS_NUM_THREADS": "1",
+           "DELTATWIN_THREADS": "1", "TQDM_DISABLE": "1", "MPLBACKEND": "Agg"}
+    ran = 0
+    for k, b in enumerate(_python_blocks(path)):
+        if b["skip"] is not None:
+            print(f"skipped {path.name}:{b['line']}: {b['skip']}")
+            continue
+        for cmd in b["setup"]:
+            r = subprocess.run(["bash", "-euo", "pipefail", "-c", cmd], cwd=tmp_path, env=env,
+                               capture_output=True, text=True, timeout=280)
+            assert r.returncode == 0, f"{path.name}:{b['line']} setup {cmd!r}:\n{r.stderr[-3000:]}"
+        script = tmp_path / (b["file"] or f"block_{k}.py")
+        script.write_text(b["code"])
+        r = subprocess.run([sys.executable, script.name], cwd=tmp_path, env=env,
+                           capture_output=True, text=True, timeout=280)
+        assert r.returncode == 0, f"{path.name}:{b['line']} failed:\n{b['code']}\n{r.stderr[-3000:]}"
+        ran += 1
+    if not ran:
+        pytest.skip(f"{path.name}: every Python block is marked no-run")
+
+
+@pytest.mark.parametrize("path", [pytest.param(p, id=p.name, marks=[pytest.mark.slow] if p.name in SLOW_PAGES
+                                               else []) for p in PY_PAGES])
+def test_python_blocks_of_the_page_run(path, tmp_path):
+    _run_page(path, tmp_path)

@@ -1,4 +1,4 @@
-"""A library module imports a heavy dependency only where it is used (issue 21): fitting a
+"""A library module imports a heavy dependency only where it is used: fitting a
 physics model loads neither scipy.signal nor scipy.stats, statsmodels, trimesh or MuJoCo; the
 stepwise regression loads no scipy.stats; simulating a campaign (the thermal network's and the
 room's first-order filters) loads neither scipy.signal nor scipy.stats."""

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
+from deltatwin.progress import progress_bar
 from deltatwin.twin.instruments.interface import InstrumentError, InstrumentSet
 from deltatwin.twin.instruments.optics import (
     AC_CHANNELS,
@@ -277,7 +277,7 @@ def run_campaign(plan: Plan, inst: InstrumentSet, settings: InstrumentSettings, 
                  ", replaying the journaled points first" if replay else "")
     currents = np.zeros(3)
     zero = None
-    bar = tqdm(total=n, initial=len(done), desc="campaign", unit="pt", disable=not progress)
+    bar = progress_bar(total=n, initial=len(done), desc="campaign", unit="pt", disable=not progress)
     for k in range(n):
         if k in done and not replay:
             if controller is not None:

@@ -172,9 +172,24 @@ def validate(df: pd.DataFrame, where: str = "dataset") -> None:
                            "the validation positions must be disjoint from calibration")
 
 
-def write_dataset(df: pd.DataFrame, meta: dict, path: str | os.PathLike) -> Path:
-    """Write ``df`` with ``meta`` to Parquet (or CSV + sidecar by suffix), atomically."""
+DATASET_SUFFIXES = (".parquet", ".csv")
+
+
+def check_dataset_path(path: str | os.PathLike, where: str = "dataset") -> Path:
+    """``path`` if its suffix says how to write a dataset (``DATASET_SUFFIXES``), else a
+    DatasetError naming ``where`` (a command line passes its option): ``out.txt`` is not
+    written as Parquet under a name that says text."""
     path = Path(path)
+    if path.suffix not in DATASET_SUFFIXES:
+        raise DatasetError(f"{where} {path}: unknown dataset file type {path.suffix or '(none)'!r}"
+                           f"; write {' or '.join(DATASET_SUFFIXES)}")
+    return path
+
+
+def write_dataset(df: pd.DataFrame, meta: dict, path: str | os.PathLike) -> Path:
+    """Write ``df`` with ``meta`` to Parquet (or CSV + sidecar) by suffix, atomically; another
+    suffix raises DatasetError."""
+    path = check_dataset_path(path)
     validate(df, str(path))
     meta = {"format_version": FORMAT_VERSION, "units": units_from_columns(df.columns), **meta}
     if path.suffix == ".csv":

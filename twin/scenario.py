@@ -95,6 +95,21 @@ class ScenarioError(ValueError):
     """A scenario file that cannot be used; the message names file, key and reason."""
 
 
+SCALE_HELP = "fraction of the campaign's points, 0 < SCALE <= 1 (1: the full campaign)"
+
+
+def check_scale(scale, where: str = "scale") -> float | None:
+    """A campaign's scale: None (the full campaign) or a fraction of its points in (0, 1];
+    anything else (0, negative, above 1, NaN, infinite, not a number) raises ScenarioError
+    naming ``where`` (a command line passes its option, ``--scale``)."""
+    if scale is None:
+        return None
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
+            or not 0 < scale <= 1:
+        raise ScenarioError(f"{where} = {scale!r}: expected a {SCALE_HELP}")
+    return float(scale)
+
+
 def _check_keys(where, table: dict, allowed) -> None:
     for key in table:
         if key not in allowed:
@@ -158,8 +173,12 @@ class Scenario:
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
-    def load(cls, path, seed: int | None = None, scale: float | None = None) -> Scenario:
-        """Read and validate a scenario (a path, or a name in scenarios/)."""
+    def load(cls, path, seed: int | None = None, scale: float | None = None,
+             trust_effects=False) -> Scenario:
+        """Read and validate a scenario (a path, or a name in scenarios/). A user effect its
+        [effects] on names (``file.py:Class``) is code: it runs only with ``trust_effects``
+        True (or a list of the specs whose code may run), else ScenarioError naming the file and
+        the code (twin/effects: ``trust``)."""
         path = Path(path)
         if not path.exists() and (SCENARIO_DIR / f"{path}.toml").exists():
             path = SCENARIO_DIR / f"{path}.toml"
@@ -172,13 +191,13 @@ class Scenario:
             text = path.read_text(encoding="utf-8")
         except UnicodeDecodeError as exc:
             raise ScenarioError(f"{path}: not a UTF-8 text file ({exc})") from exc
-        return cls.from_text(text, path, seed, scale)
+        return cls.from_text(text, path, seed, scale, trust_effects)
 
     @classmethod
-    def from_text(cls, text: str, path, seed: int | None = None,
-                  scale: float | None = None) -> Scenario:
+    def from_text(cls, text: str, path, seed: int | None = None, scale: float | None = None,
+                  trust_effects=False) -> Scenario:
         """Validate a scenario's TOML ``text`` as the file ``path`` (relative paths in it are
-        from that file's folder)."""
+        from that file's folder; ``trust_effects``: ``load``'s)."""
         path = Path(path)
         try:
             doc = tomllib.loads(text)
@@ -219,7 +238,8 @@ class Scenario:
         # an entry of ``on`` is a library name or the researcher's own 'file.py:Class' (a
         # relative path from this file's folder); parameter tables go by the effect's name
         try:
-            classes = [effect_class(n, path.parent, f"{f} [effects] on") for n in on]
+            classes = [effect_class(n, path.parent, f"{f} [effects] on", trust_effects)
+                       for n in on]
         except EffectError as exc:
             raise ScenarioError(str(exc)) from exc
         names = [c.name for c in classes]
@@ -303,7 +323,8 @@ class Scenario:
                                     "{parameter = value} (the laboratory's known constants)")
             for x, values in known.items():
                 try:
-                    make_effect(x, values, where=f"{f} [hidden] known", base_dir=path.parent)
+                    make_effect(x, values, where=f"{f} [hidden] known", base_dir=path.parent,
+                                trust=trust_effects)
                 except EffectError as exc:
                     raise ScenarioError(str(exc)) from exc
         sc = cls(path=path, text=text, name=name, seed=seed, params=params, effects=effects,
@@ -315,18 +336,29 @@ class Scenario:
                                 "thermometers: name at least one (sensor = \"part\")")
         return sc
 
-    def with_campaign(self, campaign: dict, path=None, instruments: dict | None = None) -> Scenario:
+    def file_name(self) -> str:
+        """The file this scenario was read from, as a user names it: a shipped scenario's
+        name (``quiet/magnetic-force``, which ``load`` accepts), else its path. Its [scenario]
+        name may differ (quiet/magnetic-force.toml is named hidden-magnetic-force)."""
+        path = Path(self.path).resolve()
+        if path.is_relative_to(SCENARIO_DIR.resolve()):
+            return path.relative_to(SCENARIO_DIR.resolve()).with_suffix("").as_posix()
+        return str(self.path)
+
+    def with_campaign(self, campaign: dict, path=None, instruments: dict | None = None,
+                      trust_effects=False) -> Scenario:
         """This scenario (robot, laboratory, seed) with another [campaign] table, e.g. a
         standard's test (``{"kind": "iso9283", "cycles": 30}``), and ``instruments`` settings
         changed: its TOML text rewritten and validated again, as the file ``path`` (default:
-        this one's)."""
+        this one's; ``trust_effects``: ``load``'s)."""
         import tomli_w
 
         doc = tomllib.loads(self.text)
         doc["campaign"] = campaign
         if instruments:
             doc["instruments"] = {**doc.get("instruments", {}), **instruments}
-        return Scenario.from_text(tomli_w.dumps(doc), path or self.path, self.seed)
+        return Scenario.from_text(tomli_w.dumps(doc), path or self.path, self.seed,
+                                  trust_effects=trust_effects)
 
     # -- the laboratory's error sources -------------------------------------------------------
     def sources(self) -> list[str]:
@@ -388,7 +420,7 @@ class Scenario:
         c, f = self.campaign, f"{self.path} [campaign]"
         if c["kind"] in STANDARD_TESTS:
             return self.standard_test(rng, scale).plan
-        scale = 1.0 if scale is None else scale
+        scale = 1.0 if scale is None else check_scale(scale)
         stroke = self.params.stroke_rad
         if c["kind"] == "thermal":
             sessions = []
@@ -439,7 +471,7 @@ class Scenario:
         from deltatwin.twin import standard_tests as st
 
         c, f = self.campaign, f"{self.path} [campaign]"
-        scale = 1.0 if scale is None else scale
+        scale = 1.0 if scale is None else check_scale(scale)
         num = lambda k, d, lo, integer=False, hi=None: _number(f"{f} {k}", c.get(k, d), lo,
                                                                 integer, hi)
         shrink = lambda n, low: max(low, int(round(n * scale)))
@@ -515,6 +547,11 @@ class Scenario:
         return {"source": "twin", "scenario": self.name, "scenario_toml": self.text,
                 "seed": self.seed, "scale": 1.0 if scale is None else scale,
                 "deltatwin_version": __version__, "sensors": dict(self.sensors),
+                # the laboratory's instrument specifications, which a fit's noise model uses
+                "instruments": {"T_noise_C": self.settings.T_noise_C,
+                                "T_resolution_C": self.settings.T_resolution_C,
+                                "interferometer_noise_m": self.settings.noise_floor_m,
+                                "interferometer_resolution_m": self.settings.resolution_m},
                 "truth": {"effects": [e.describe() for e in self.effects],
                           "hidden": self.hidden,
                           "reading_noise_std_nm": self.settings.noise_floor_m * 1e9,

@@ -1,7 +1,7 @@
 """Stepwise regression with the semantics of MATLAB's ``stepwisefit`` (Statistics Toolbox).
 
 The seeds' calibration kept the terms chosen by MATLAB's ``stepwisefit``.  This module
-reproduces its rules exactly (see docs/calibration.md and shared/reference.md):
+reproduces its rules exactly (see docs/calibration.md):
 
 * one change per iteration, adding before removing;
 * among the terms out of the model (and not kept) the one with the smallest p-value enters

@@ -49,7 +49,7 @@ from scipy import optimize, stats
 
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.measurements import measurements
-from deltatwin.calibration.physics.model import PhysicsModel, _projected
+from deltatwin.calibration.physics.model import PhysicsModel, projected
 from deltatwin.twin.instruments.optics import AXES
 from deltatwin.twin.noise import quantised_u
 
@@ -82,7 +82,7 @@ def parameter_covariance(fit: PhysicsFit, prior: bool = True) -> np.ndarray:
     held = np.eye(S.size) - V @ V.T                        # unidentified subspace (scaled)
     C = S[:, None] * held * S[None, :] if prior else np.zeros((S.size, S.size))
     if V.shape[1]:
-        Jz = _projected(meas, meas.cal, fit.jacobian_, scale=S) @ V
+        Jz = projected(meas, meas.cal, fit.jacobian_, scale=S) @ V
         sigma = fit.identifiability_["residual_sigma_nm"] * 1e-9
         SV = S[:, None] * V
         C = C + SV @ np.linalg.pinv(Jz.T @ Jz) @ SV.T * sigma ** 2
@@ -177,7 +177,7 @@ def refit_map(fit: PhysicsFit) -> tuple[np.ndarray, np.ndarray] | None:
     if not JV.shape[2]:
         return None
     # the step z = -pinv(A) (the change's calibration part, each group's mean removed)
-    solve_T = np.linalg.pinv(_projected(meas, meas.cal, JV)).T
+    solve_T = np.linalg.pinv(projected(meas, meas.cal, JV)).T
     W, start = np.zeros_like(JV), 0
     for g in range(len(meas.groups)):
         m = (meas.group == g) & meas.cal[:, None]

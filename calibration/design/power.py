@@ -33,9 +33,10 @@ from scipy import stats
 
 from deltatwin.calibration.design.budget import zero_centred
 from deltatwin.calibration.design.sweep import case_scenario
-from deltatwin.calibration.diagnosis.diagnose import ALPHA, MIN_EXPLAINED
+from deltatwin.calibration.diagnosis.diagnose import MIN_EXPLAINED
 from deltatwin.calibration.physics.fit import PhysicsFit
-from deltatwin.calibration.physics.model import PhysicsModel, _projected
+from deltatwin.calibration.physics.model import PhysicsModel, projected
+from deltatwin.calibration.stats import ALPHA, DecisionRule, bic_change, f_at_zero_bic
 
 
 def linearised_power(fit: PhysicsFit, effect: str, true_values: dict | None, sigma_m: float,
@@ -63,11 +64,11 @@ def linearised_power(fit: PhysicsFit, effect: str, true_values: dict | None, sig
     A0, J = cand.jacobian(meas, cand.theta(), columns=new)
     delta0 = A0 - fit.prediction_
     Jc_full = J[:, :, new] * cand.scales[new]
-    Jc = _projected(meas, cal, Jc_full)
+    Jc = projected(meas, cal, Jc_full)
     k_m = fit.identifiability_["n_identified_directions"]
     full_m = (fit.jacobian_ * fit.model_.scales @ fit.identified_directions_ if k_m
               else np.zeros(delta.shape + (0,)))
-    Jm = _projected(meas, cal, full_m)
+    Jm = projected(meas, cal, full_m)
     Qm = np.linalg.qr(Jm)[0]
     beyond = Jc - Qm @ (Qm.T @ Jc)
     k = 0
@@ -76,17 +77,17 @@ def linearised_power(fit: PhysicsFit, effect: str, true_values: dict | None, sig
         keep = s > sigma_threshold(fit)
         k = int(keep.sum())
     full_x = np.concatenate([full_m, Jc_full @ Vt[keep].T], axis=2) if k else full_m
-    X = _projected(meas, cal, full_x)
+    X = projected(meas, cal, full_x)
     Qx = np.linalg.qr(X)[0]
-    d = _projected(meas, cal, delta)
-    d1 = d - _projected(meas, cal, delta0)
+    d = projected(meas, cal, delta)
+    d1 = d - projected(meas, cal, delta0)
     rss0 = float(np.sum((d - Qm @ (Qm.T @ d)) ** 2))
     rss1 = float(np.sum((d1 - Qx @ (Qx.T @ d1)) ** 2))
     n = d.size
     lam = max(rss0 - rss1, 0.0) / sigma_m ** 2
     df1, df2 = max(k, 1), meas.residual_dof(n, k_m + k)
-    f_alpha = float(stats.f.isf(alpha, df1, df2))
-    f_bic = (n ** (df1 / n) - 1.0) * df2 / df1
+    f_alpha = DecisionRule(alpha).f_critical(df1, df2)
+    f_bic = f_at_zero_bic(n, df1, df2)
     f_star = max(f_alpha, f_bic)
     # scipy's non-central F is wrong at lambda = 0 (negative tails): the central F there
     tail = stats.ncf.sf(f_star, df1, df2, lam) if lam > 0 else stats.f.sf(f_star, df1, df2)
@@ -108,11 +109,11 @@ def _linear_draws(meas, delta, delta0, Jm, X, full_m, full_x, sigma_m, n_draws, 
     explained fraction of the validation residual's power, one per draw (``n_draws``)."""
     cal = meas.cal
     y = delta[:, :, None] + sigma_m * rng.standard_normal(delta.shape + (n_draws,))
-    coef_m = np.linalg.lstsq(Jm, _projected(meas, cal, y), rcond=None)[0]
+    coef_m = np.linalg.lstsq(Jm, projected(meas, cal, y), rcond=None)[0]
     u = y - np.einsum("naj,jd->nad", full_m, coef_m)           # the baseline's residual
     before = zero_centred(meas, u)
-    r0 = _projected(meas, cal, u)
-    r = _projected(meas, cal, u - delta0[:, :, None])
+    r0 = projected(meas, cal, u)
+    r = projected(meas, cal, u - delta0[:, :, None])
     coef = np.linalg.lstsq(X, r, rcond=None)[0]
     after = zero_centred(meas, u - delta0[:, :, None] - np.einsum("naj,jd->nad", full_x, coef))
     rss0 = np.sum(r0 ** 2, axis=0)
@@ -120,7 +121,7 @@ def _linear_draws(meas, delta, delta0, Jm, X, full_m, full_x, sigma_m, n_draws, 
     n, k_m, k = r.shape[0], Jm.shape[1], X.shape[1] - Jm.shape[1]
     df1, df2 = max(k, 1), meas.residual_dof(n, k_m + k)
     F = np.where(rss0 > rss1, (rss0 - rss1) / df1 / (rss1 / df2), 0.0)
-    dbic = n * np.log(rss1 / rss0) + k * math.log(n)
+    dbic = bic_change(n, rss0, rss1, k)
     val = meas.val[:, None] & (meas.group >= 0)
     explained = 1.0 - np.sum(after[val] ** 2, axis=0) / np.sum(before[val] ** 2, axis=0)
     return {"F": F, "dBIC": dbic, "explained": explained}

@@ -1,7 +1,7 @@
 """Compare a model with measurements and see where it fails (``deltatwin compare``).
 
-The model is a physics model (``calibration.physics.PhysicsModel``, e.g. from a fitted-model
-TOML via ``load_fitted``) or a stepwise DGM (``calibration.models.DGM``, a ``model.json``).
+The model is a physics model (``calibration.physics.model.PhysicsModel``, e.g. from a fitted-model
+TOML via ``load_fitted``) or a stepwise DGM (``calibration.blackbox.dgm.DGM``, a ``model.json``).
 Readings are relative to each session's zero and a new campaign has new zeros, so every
 (session, axis) zero is re-estimated on the dataset's calibration rows (``physics.
 group_offsets``); a session without calibration readings takes its zero from its own
@@ -87,9 +87,10 @@ def _at_floor(axes: dict, floor: dict | None, kind: str) -> dict | None:
 # ---------------------------------------------------------------------------------------------
 # models
 
-def load_model_file(path):
+def load_model_file(path, trust_effects=False):
     """A model from a file: a fitted physics model (``.toml``, ``deltatwin fit -o``) or a DGM
-    (``.json``, ``deltatwin calibrate -o``). Raises ValueError naming the file otherwise."""
+    (``.json``, ``deltatwin calibrate -o``). Raises ValueError naming the file otherwise. The
+    user effects a physics model names run only with ``trust_effects`` (``load_fitted``)."""
     from deltatwin.calibration.blackbox.dgm import DGM
     from deltatwin.calibration.blackbox.model_file import load_model
     path = Path(path)
@@ -100,7 +101,7 @@ def load_model_file(path):
     if not path.is_file():
         raise CalibrationInputError(f"{path}: no such model file")
     if suffix == ".toml":
-        return load_fitted(path)[0]
+        return load_fitted(path, trust_effects)[0]
     model = load_model(path)
     if not isinstance(model, DGM):
         raise CalibrationInputError(f"{path}: holds a {model.kind}, which predicts motor "

@@ -1,7 +1,7 @@
 """Whether validation rows lie inside the conditions the calibration rows covered: a model
 checked outside its calibration range extrapolates, and a candidate effect judged there is
-judged on extrapolation (issue 15: with the air conditioning off, the force plan's validation
-grid comes after its calibration grid, warmer)."""
+judged on extrapolation (with the air conditioning off, the force plan's validation grid
+comes after its calibration grid, warmer)."""
 from __future__ import annotations
 
 import numpy as np

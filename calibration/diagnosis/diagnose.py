@@ -42,7 +42,6 @@ import math
 
 import numpy as np
 import pandas as pd
-from scipy import special
 
 from deltatwin.calibration.blackbox.features import (
     JOINT_INPUTS,
@@ -78,19 +77,19 @@ from deltatwin.calibration.physics.fit import (
 )
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
-    _projected,
     as_slice,
     figures_nm,
     group_offsets,
     model_effects,
+    projected,
     residuals,
 )
+from deltatwin.calibration.stats import ALPHA, DecisionRule, f_test_p, serial_inflation
 from deltatwin.models.batched import in_background
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.effects import LIBRARY, EffectError
 from deltatwin.twin.instruments.optics import AXES
 
-ALPHA = 1e-3
 # what a candidate the model cannot take on raises (a pose out of reach, an impossible value):
 # its row of the ranking says so, the others are still ranked
 CANDIDATE_ERRORS = (CalibrationInputError, EffectError, KinematicsError, np.linalg.LinAlgError)
@@ -171,9 +170,9 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
     A, Jc = response
     delta0 = A - fit.prediction_
     cal = meas.cal
-    r = _projected(meas, cal, meas.y - A)              # residual with the candidate on
-    Pc_all = _projected(meas, cal, Jc)
-    absorbed = _absorbed(Qm, Pc_all, _projected(meas, cal, delta0), effect_spans)
+    r = projected(meas, cal, meas.y - A)              # residual with the candidate on
+    Pc_all = projected(meas, cal, Jc)
+    absorbed = _absorbed(Qm, Pc_all, projected(meas, cal, delta0), effect_spans)
     # the candidate's directions beyond the model's own, that the data determine
     Pc = Pc_all - Qm @ (Qm.T @ Pc_all) if Jm.shape[1] else Pc_all
     k_c = k_sized = 0
@@ -192,10 +191,10 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
     # matters (``_held_at``), switched off along it: the verdict of the two that is
     # significant (the lower BIC if both or neither) is the candidate's; two tries of one
     # candidate are two chances at significance, so each is tested at ALPHA / 2 (Bonferroni)
-    held = _held_at(fit, X, _projected(meas, cal, delta0))
+    held = _held_at(fit, X, projected(meas, cal, delta0))
     tried = [(held, r, delta0)]
     if held:
-        tried.append(("off", r + _projected(meas, cal, delta0), 0.0 * delta0))
+        tried.append(("off", r + projected(meas, cal, delta0), 0.0 * delta0))
     verdicts = [_refit_verdict(fit, X, full, h, r_h, d_h, e0, n, k_m, k_c, before,
                                floor_all_nm, Jm, generic, ALPHA / len(tried))
                 for h, r_h, d_h in tried]
@@ -239,8 +238,8 @@ def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
     e1 = r - X @ coef
     change = delta0 + (np.concatenate(full, axis=2) @ coef if full else 0.0)
     after = _val_after(meas, fit, change)
-    verdict = _verdict(float(e0 @ e0), float(e1 @ e1), k_c, n,
-                       meas.residual_dof(n, k_m + k_c), before, after, meas.val,
+    verdict = _verdict(meas, float(e0 @ e0), float(e1 @ e1), k_c, n,
+                       meas.residual_dof(n, k_m + k_c), before, after,
                        floor_all_nm, alpha, _serial_inflation(meas, e0 - e1, e1))
     if generic is not None:
         verdict.update(_beyond_generic(meas, r, X[:, k_m:], Jm, generic, k_c, n,
@@ -367,9 +366,7 @@ def _beyond_generic(meas, r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic
     # follows the temperatures as slowly as the residual's leftover looks significant on
     # independent rows)
     inflation = _serial_inflation(meas, e_g - e_gc, e_gc)
-    out["p_beyond_generic"] = (float(special.fdtrc(df1, df2, ((rss_g - rss_gc) / df1)
-                                                   / (rss_gc / df2) / inflation))
-                               if 0 < rss_gc < rss_g else 1.0)
+    out["p_beyond_generic"] = f_test_p(rss_g, rss_gc, df1, df2, inflation)
     out["matched_by_generic"] = bool(out["p_beyond_generic"] >= ALPHA
                                      and explained < GENERIC_SHARE
                                      * min(generic_explained, above_floor))
@@ -426,8 +423,8 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
     except (CalibrationInputError, EffectError, KinematicsError, np.linalg.LinAlgError) as exc:
         row["refit_failed"] = str(exc)
         return
-    r0 = _projected(meas, meas.cal, base.residual_)
-    r1 = _projected(meas, meas.cal, refit.residual_)
+    r0 = projected(meas, meas.cal, base.residual_)
+    r1 = projected(meas, meas.cal, refit.residual_)
     k_refit = refit.identifiability_["n_identified_directions"]
     k = k_refit - base.identifiability_["n_identified_directions"]
     rss0, rss1 = float(r0 @ r0), float(r1 @ r1)
@@ -436,9 +433,9 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
                                  "and leaves the calibration rows "
                                  + ("better" if rss1 < rss0 else "no better"))
         return
-    v = _verdict(rss0, rss1, k, r0.size,
+    v = _verdict(meas, rss0, rss1, k, r0.size,
                  meas.residual_dof(r0.size, k_refit), base.residual_, refit.residual_,
-                 meas.val, floor_all_nm, ALPHA, _serial_inflation(meas, r0 - r1, r1))
+                 floor_all_nm, ALPHA, _serial_inflation(meas, r0 - r1, r1))
     row.update({"refit_explained_fraction": v["explained_fraction"],
                 "refit_gap_closed": v["gap_closed"], "refit_p_value": v["p_value"],
                 "refit_p_combined": v["p_combined"], "refit_delta_bic": v["delta_bic"]})
@@ -472,7 +469,7 @@ def _effect_spans(fit: PhysicsFit) -> dict:
             continue
         # the effect's own columns scaled (not a scaled copy of the whole Jacobian)
         cols = as_slice(cols)
-        Pe = _projected(meas, meas.cal, fit.jacobian_[:, :, cols], scale=scales[cols])
+        Pe = projected(meas, meas.cal, fit.jacobian_[:, :, cols], scale=scales[cols])
         u, sv, _ = np.linalg.svd(Pe, full_matrices=False)
         out[e] = u[:, sv > sv.max(initial=0) * 1e-9]
     return out
@@ -548,125 +545,46 @@ def _in_words(c: dict, effects: list) -> str:
     return f"{c['effect']}: not significant"
 
 
-def _verdict(rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndarray,
-             after: np.ndarray, val: np.ndarray, floor_all_nm: float | None = None,
-             alpha: float = ALPHA, inflation: float = 1.0) -> dict:
-    """Whether ``k`` added directions explain the residual: the nested F test and the BIC
-    change on the calibration residual sums of squares (``n`` readings, ``df2`` residual
-    degrees of freedom), the explained fraction of the validation residual's power (``before``
-    / ``after`` (N,3) residuals, ``val`` (N,) rows), the fraction of the gap between the
-    validation error 90 % and the floor (``floor_all_nm``) that the candidate closes, and the
-    decision: p < ``alpha``, the BIC falls, and the candidate either explains MIN_EXPLAINED of the
-    validation residual or closes GAP_CLOSED of the gap to the floor, and the model is not
-    already within AT_FLOOR of the floor (no gap to close: the floor's own error is not
-    fitted); or it closes GAP_CLOSED of the gap and the calibration and validation tests
-    combined (``p_combined``, Fisher's method on ``p_value`` and ``p_validation``,
-    ``_validation_p``) give p < ``alpha``."""
-    rows = val[:, None] & np.isfinite(before)
+def _verdict(meas, rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndarray,
+             after: np.ndarray, floor_all_nm: float | None = None, alpha: float = ALPHA,
+             inflation: float = 1.0) -> dict:
+    """Whether ``k`` added directions explain the residual, by the rule (calibration/stats.py,
+    ``DecisionRule`` at ``alpha``): the nested F test and the BIC change on the calibration
+    residual sums of squares (``n`` readings, ``df2`` residual degrees of freedom, the serial
+    ``inflation``), the offset-immune block test on the validation residual before / after
+    (``before``, ``after`` (N,3) on ``meas``' validation rows) and Fisher's combination of the
+    two. Beside it, the explained fraction of the validation residual's power and the fraction
+    of the gap between the validation error 90 % and the floor (``floor_all_nm``) that the
+    candidate closes. A calibration-only claim must also be useful (explain MIN_EXPLAINED of
+    the validation residual or close GAP_CLOSED of the gap, the model not already within
+    AT_FLOOR of the floor); a claim through the combined test must close GAP_CLOSED of the gap."""
+    rows = meas.val[:, None] & np.isfinite(before)
     p_before, p_after = float(np.sum(before[rows] ** 2)), float(np.sum(after[rows] ** 2))
-    df1 = max(k, 1)        # k = 0: a candidate's fixed change at its starting values
-    if rss1 > 0 and rss0 > rss1:
-        # the F distribution's survival function (scipy.stats.f.sf without scipy.stats)
-        # ``inflation``: the variance of the explained part over that of independent rows
-        # (``_serial_inflation``); the F statistic assumes independent rows
-        p_value = float(special.fdtrc(df1, df2, ((rss0 - rss1) / df1) / (rss1 / df2)
-                                      / inflation))
-    else:
-        p_value = 1.0
-    d_bic = n * math.log(max(rss1, 1e-300) / max(rss0, 1e-300)) + k * math.log(max(n, 1)) \
-        if n else 0.0
     explained = 1.0 - p_after / p_before if p_before > 0 else 0.0
     gap_closed, at_floor = 0.0, False
     if floor_all_nm and rows.any():
-        e_before = figures_nm(before, val)["all"]["err_p90"]
-        e_after = figures_nm(after, val)["all"]["err_p90"]
+        e_before = figures_nm(before, meas.val)["all"]["err_p90"]
+        e_after = figures_nm(after, meas.val)["all"]["err_p90"]
         at_floor = e_before <= AT_FLOOR * floor_all_nm
         if not at_floor:
             gap_closed = (e_before - e_after) / (e_before - floor_all_nm)
+    v = DecisionRule(alpha).decide(rss0, rss1, k, n, df2, before, after, meas.group, meas.val,
+                                   inflation, meas.df["session"].to_numpy(),
+                                   meas.df["t_s"].to_numpy())
     # a model within AT_FLOOR of the floor has nothing left a library effect could add: what a
-    # candidate explains there is the floor's own error (thermometers, unrecorded pressure: a
-    # candidate whose strength was left free explained 14 % of a null case's at its floor)
+    # candidate explains there is the floor's own error
     useful = (explained >= MIN_EXPLAINED or gap_closed >= GAP_CLOSED) and not at_floor
-    p_val = _validation_p(before, after, val)
-    # the validation rows are a second, independent test of the same change (fitted on the
-    # calibration rows only): Fisher's combination of the two p-values. It counts only for a
-    # candidate that closes GAP_CLOSED of the gap to the floor: a model at the floor has no
-    # gap (nulls stay unclaimed), and one that merely correlates with part of the residual
-    # does not close it. The BIC's charge per direction stands in for the predictive check
-    # the calibration rows alone cannot make; with the validation rows' own test it is not
-    # needed (a force campaign's calibration grid barely moves the temperatures that drive
-    # loop drift: p = 0.0024, BIC +1.2, yet it closes 99 % of the gap on validation)
-    p_combined = (float(special.chdtrc(4, -2.0 * (math.log(max(p_value, 1e-300))
-                                                  + math.log(max(p_val, 1e-300)))))
-                  if gap_closed >= GAP_CLOSED else 1.0)
-    significant = ((p_value < alpha and d_bic < 0 and useful)
-                   or (gap_closed >= GAP_CLOSED and p_combined < alpha))
-    return {"p_value": p_value, "delta_bic": d_bic, "explained_fraction": explained,
-            "gap_closed": gap_closed, "p_validation": p_val, "p_combined": p_combined,
-            "significant": bool(significant)}
+    by_calibration = v.p_value < alpha and v.delta_bic < 0 and useful
+    by_both = gap_closed >= GAP_CLOSED and v.p_combined < alpha
+    return {"p_value": v.p_value, "delta_bic": v.delta_bic, "explained_fraction": explained,
+            "gap_closed": gap_closed, "p_validation": v.p_validation,
+            "p_combined": v.p_combined, "significant": bool(by_calibration or by_both)}
 
 
 def _serial_inflation(meas, explained: np.ndarray, left: np.ndarray) -> float:
-    """How much the rows' serial correlation inflates the variance of what a candidate explains
-    on the calibration readings (``explained``: the model's residual minus the candidate's;
-    ``left``: the candidate's residual; readings as ``_projected`` orders them, each (session,
-    axis) group in time order) against the independent rows the F test assumes: Bartlett's
-    factor 1 + 2 sum_l rho_e(l) rho_x(l) over lags l >= 1, the two series' autocorrelations
-    pooled over the groups, summed up to the first lag whose product is not positive (beyond,
-    the estimates are noise; a simpler cut than Geyer's initial positive sequence, which looks
-    at sums of adjacent lag pairs). A thermometer's error through a lever and a
-    misfit's slow structure stay correlated over tens of rows (a null case's residual: 0.69 at
-    lag 1, 0.60 at 5, 0.27 at 20), and a candidate whose change follows the temperatures as
-    slowly looks significant on independent rows (air refraction at its start: p = 8e-15; the
-    factor is 12.8 there, where a lag-1 AR(1) model says 3.2). A change that varies pose to
-    pose (rho_x near 0) is barely penalised. Groups without calibration readings are skipped;
-    1 when no group has two."""
-    sizes = [int(np.sum((meas.group == g) & meas.cal[:, None])) for g in range(len(meas.groups))]
-    lags = max(sizes, default=0) // 2
-    acov = np.zeros((2, lags + 1))
-    for part_e, part_x in zip(np.split(left, np.cumsum(sizes)[:-1]),
-                              np.split(explained, np.cumsum(sizes)[:-1])):
-        # a group without calibration readings adds nothing; a short one, its lags only
-        m = min(lags, part_e.size - 1)
-        for k, x in enumerate((part_e, part_x)):
-            if m >= 0:
-                f = np.fft.rfft(x, 2 * x.size)
-                acov[k, :m + 1] += np.fft.irfft(f * np.conj(f), 2 * x.size)[:m + 1]
-    if acov[0, 0] <= 0 or acov[1, 0] <= 0:
-        return 1.0
-    product = (acov[0, 1:] / acov[0, 0]) * (acov[1, 1:] / acov[1, 0])
-    stop = np.flatnonzero(product <= 0)
-    return 1.0 + 2.0 * float(np.sum(product[:stop[0] if stop.size else product.size]))
-
-
-def _validation_p(before: np.ndarray, after: np.ndarray, val: np.ndarray) -> float:
-    """One-sided p-value that a change explains the validation residual: the residual before
-    (``before``, (N,3) m) regressed on the change (``before - after``, the change with each
-    session's zero re-estimated on the calibration rows) over the ``val`` rows, H0 slope 0.
-    The residual's neighbouring rows are correlated (a thermometer's error, unmodelled drift):
-    the t statistic counts the effective number of rows of an AR(1) process, n (1 - rho) /
-    (1 + rho), rho the lag-1 autocorrelation of what the change leaves (per axis, rows in time
-    order). A change that leaves a slow trend (rho near 1) proves little; one that leaves
-    white noise, much."""
-    b_axes, c_axes = [], []
-    for k in range(before.shape[1]):
-        rows = val & np.isfinite(before[:, k]) & np.isfinite(after[:, k])
-        b_axes.append(before[rows, k])
-        c_axes.append(before[rows, k] - after[rows, k])
-    b, c = np.concatenate(b_axes), np.concatenate(c_axes)
-    cc = float(c @ c)
-    if b.size < 3 or cc <= 0:
-        return 1.0
-    slope = float(b @ c) / cc
-    e_axes = [bk - slope * ck for bk, ck in zip(b_axes, c_axes)]
-    ee = float(sum(e @ e for e in e_axes))
-    if slope <= 0 or ee <= 0:
-        return 1.0 if slope <= 0 else 0.0
-    rho = sum(float(e[1:] @ e[:-1]) for e in e_axes) / ee
-    rho = min(max(rho, 0.0), 0.999)
-    n_eff = max(b.size * (1.0 - rho) / (1.0 + rho), 3.0)
-    t = slope / math.sqrt(ee / (b.size - 1) / cc * b.size / n_eff)
-    return float(special.stdtr(n_eff - 1.0, -t))
+    """``stats.serial_inflation`` over ``meas``' calibration readings (as ``projected`` orders
+    them: each (session, axis) group in time order)."""
+    return serial_inflation(meas.reading_counts(meas.cal), explained, left)
 
 
 def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val: np.ndarray,
@@ -721,10 +639,10 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     JS = (J.reshape(J.shape[0] * J.shape[1], J.shape[2])
           @ (fit.model_.scales[:, None] * fit.identified_directions_)
           ).reshape(J.shape[:2] + (fit.identified_directions_.shape[1],))
-    Jm = (_projected(meas, cal, JS) if k_m else
+    Jm = (projected(meas, cal, JS) if k_m else
           np.zeros((int(np.sum((meas.group >= 0) & cal[:, None])), 0)))
     span = ModelSpan(Jm)            # one factorisation of Jm for what follows (model_form.py)
-    r0 = _projected(meas, cal, fit.residual_)
+    r0 = projected(meas, cal, fit.residual_)
     # the reference is the model itself one linear step further (nothing if it converged): a
     # candidate must explain what the model's own directions cannot, even when the fit stopped
     # short of its minimum (a misspecified model's slow valley)
@@ -756,7 +674,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
                                 frame=frame, extra_terms=load_terms(loads))
     form, G, generic_explained = joint_form(fit, Jm, JS, r0, variables=variables, frame=frame,
                                             loads=loads)
-    generic = _generic(Jm, _projected(meas, cal, G), generic_explained, r0,
+    generic = _generic(Jm, projected(meas, cal, G), generic_explained, r0,
                        _above_floor_share(fit.val_["all"]["err_p90"], floor_all))
     ranking = []
     responses, effect_spans = responses_made()
@@ -839,7 +757,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
             out["unexplained"]["message"] += (
                 f"; the model is at the {floor_kind} floor ({floor_all:.1f} nm: what the twin's "
                 "complete model reaches on these data)" if floor_kind == "achievable" else
-                f"; the model is at the instrument floor ({floor_all:.1f} nm)")
+                f"; the model is at the noise floor ({floor_all:.1f} nm)")
     return out
 
 
@@ -1002,11 +920,25 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     return ladder, diagnoses, fits
 
 
+def _constants(fit: PhysicsFit) -> dict:
+    """{effect: {parameter: value}}: the laboratory's constants the fit was given: those of
+    effects outside its model (``known_``) and the parameters it does not fit whose values
+    are not the library's defaults (e.g. a frame arm)."""
+    out = {e: dict(v) for e, v in fit.known_.items()}
+    for effect in fit.model_.effects:
+        for p in type(effect).parameters:
+            value = np.asarray(effect.values[p.name], dtype=float)
+            if p.fit_scale is None and not np.array_equal(value, np.asarray(p.default, float)):
+                out.setdefault(effect.name, {})[p.name] = value.tolist()
+    return out
+
+
 def _next_step(fit: PhysicsFit, added: list, data: str) -> dict:
-    """A diagnosis' ``next_command`` and ``scenario_change`` for the ``added`` effects."""
+    """A diagnosis' ``next_command`` (complete: the laboratory's constants given with
+    ``--set``) and ``scenario_change`` for the ``added`` effects."""
     effects = ",".join(fit.model_.specs + added)
     known = "".join(f" --set {e}.{k}={','.join(str(x) for x in np.ravel(v))}"
-                    for e, values in fit.known_.items() for k, v in values.items())
+                    for e, values in _constants(fit).items() for k, v in values.items())
     names = " and ".join(f'"{e}"' for e in added)
     return {"next_command": f"deltatwin fit {data} --effects {effects}{known} -o fitted.toml",
             "scenario_change": (f"add {names} to the model's effects (a scenario's [hidden] "
@@ -1102,13 +1034,13 @@ def nested_verdict(fit: PhysicsFit, other: PhysicsFit, alpha: float = ALPHA,
     (``other`` leaves the calibration rows' sum of squares lower). Used by ``_joint_verdict``
     and by benchmarks/discovery.py to ask whether a round's data show the complete model."""
     meas = fit.measurements_
-    r0 = _projected(meas, meas.cal, fit.residual_)
-    r1 = _projected(meas, meas.cal, other.residual_)
+    r0 = projected(meas, meas.cal, fit.residual_)
+    r1 = projected(meas, meas.cal, other.residual_)
     rss0, rss1 = float(r0 @ r0), float(r1 @ r1)
     k1 = other.identifiability_["n_identified_directions"]
     k = k1 - fit.identifiability_["n_identified_directions"]
-    return {**_verdict(rss0, rss1, k, r0.size, meas.residual_dof(r0.size, k1), fit.residual_,
-                       other.residual_, meas.val, floor_all_nm, alpha,
+    return {**_verdict(meas, rss0, rss1, k, r0.size, meas.residual_dof(r0.size, k1),
+                       fit.residual_, other.residual_, floor_all_nm, alpha,
                        _serial_inflation(meas, r0 - r1, r1)),
             "new_directions": k, "calibration_better": rss1 < rss0}
 
@@ -1231,8 +1163,8 @@ def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "D
                 rank += int(rk)
                 n += int(cal.sum()) - 1
                 after[rows, k] = res[rows, k] - ((X[rows] - Xbar) / scale) @ coef
-        verdict = _verdict(rss0, rss1, rank, n, max(n - rank - n_model_terms, 1), res, after,
-                           meas.val)
+        verdict = _verdict(meas, rss0, rss1, rank, n, max(n - rank - n_model_terms, 1), res,
+                           after)
         fig = figures_nm(after, meas.val)
         ranking.append({"family": fam.name, "n_terms": len(fam), "in_model": fam.name in in_model,
                         "val_err90_after_nm": fig["all"]["err_p90"], **verdict})

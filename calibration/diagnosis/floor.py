@@ -1,16 +1,18 @@
 """The honest floor: what the complete, true model reaches when refitted on the same data.
 
-The instrument floor (``truth.noise_floor_nm``) counts the interferometers' noise only. A model
-reads its conditions through instruments too: thermometers (mK noise and resolution, smoothed
-causally) through long levers (the frame's lift on Z, a frame arm on X), barometric pressure and
-humidity when the lab records them (else the air index wanders unrecorded), the servos'
-settling. No effect added to a model removes those errors, so a model is *at the floor* when it
-reaches what the twin's own effects reach when fitted to the same data, the **achievable
-floor**. ``achievable_floor`` fits that true model (the data's model effects at the twin's
-values, their free parameters refitted as any model's are, from the twin's values and from the
-library's starting values, keeping the lower calibration cost) and gives its validation error and a
-budget: the interferometers' share (the instrument floor) and what the other instruments add
-above it (the quadrature difference).
+The **noise floor** (``truth.noise_floor_nm``) is the readings' own noise: the twin's readings
+against what a perfect instrument would have read on the same timeline, the interferometers'
+noise and the servos' settling (most of it: a servo settles within microradians, which the
+lever of a Delta robot turns into tens of nm). A model reads its conditions through
+instruments too: thermometers (mK noise and resolution, smoothed causally) through long levers
+(the frame's lift on Z, a frame arm on X), barometric pressure and humidity when the lab
+records them (else the air index wanders unrecorded). No effect added to a model removes those
+errors, so a model is *at the floor* when it reaches what the twin's own effects reach when
+fitted to the same data, the **achievable floor**. ``achievable_floor`` fits that true model
+(the data's model effects, their free parameters fitted from the library's starting values as
+any model's are: what a researcher could reach, never the twin's values) and gives its
+validation error and a budget: the noise floor and what the other instruments add above it
+(the quadrature difference).
 
 ``measured_floor_budget`` splits the floor per source, in nm per axis, for twin data: each
 source alone is switched on in the twin with every other made perfect (same seed: the same
@@ -34,7 +36,7 @@ import numpy as np
 
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.calibration.physics.measurements import measurements
-from deltatwin.calibration.physics.model import _projected, model_effects
+from deltatwin.calibration.physics.model import model_effects, projected
 from deltatwin.twin.effects import LIBRARY
 from deltatwin.twin.instruments.optics import AXES
 from deltatwin.twin.noise import quantised_u
@@ -74,24 +76,17 @@ def true_model(meta: dict) -> tuple[list[str], dict]:
             {e["name"]: {p: v["value"] for p, v in e["parameters"].items()} for e in effects})
 
 
-def true_fit(df, meta: dict, noise_nm: float = 5.0, start: str | None = None) -> PhysicsFit:
-    """The true model (``true_model``) fitted to the data's calibration rows, from the twin's
-    values and from the library's starting values, the lower calibration cost kept (only from
-    ``start``, one of those labels, when given: a budget's runs compare one basin)."""
+def true_fit(df, meta: dict, noise_nm: float = 5.0) -> PhysicsFit:
+    """The true model (``true_model``: the data's model effects) fitted to the data's
+    calibration rows as a researcher would fit it: from the library's starting values, with
+    the twin's fixed constants (those the fit does not estimate, e.g. a frame arm: the
+    laboratory's known setup), never from the twin's values of the fitted parameters."""
     effects, values = true_model(meta)
-    # The true model has more than one basin (fit_from_starts): from the twin's values (what
-    # the data cannot determine stays there: the truth is the prior) and from the library's
-    # starting values as any model's fit (the twin's fixed constants, e.g. a frame arm, kept);
-    # the lower calibration cost is the floor. From the twin's values alone a generated
-    # thermal case stopped at 13.0 nm calibration rms and 26 nm validation, above the 14 nm a
-    # model lacking two of the effects reached.
     fixed = {e: {p: v for p, v in vals.items()
                  if p not in {q.name for q in LIBRARY[e].free_parameters()}}
              for e, vals in values.items()}
-    starts = {"twin's values": {"start": values, "prior": values},
-              "library's starting values": {"start": fixed}}
-    return fit_from_starts(effects, {k: v for k, v in starts.items() if start in (None, k)},
-                           df, meta, noise_nm=noise_nm, max_evaluations=LADDER_EVALUATIONS)
+    return fit_from_starts(effects, {"library's starting values": {"start": fixed}}, df, meta,
+                           noise_nm=noise_nm, max_evaluations=LADDER_EVALUATIONS)
 
 
 def _val_p90(fit: PhysicsFit) -> dict:
@@ -100,18 +95,17 @@ def _val_p90(fit: PhysicsFit) -> dict:
 
 def achievable_floor(df, meta: dict, noise_nm: float = 5.0, fit: PhysicsFit | None = None) -> dict:
     """Fit the true model (``true_fit``, or take ``fit``, that fit) to the data's calibration
-    rows: its validation error 90 % per axis and pooled (nm), the fit's status, and the
-    interferometers' share of it and the rest's (nm)."""
+    rows: its validation error 90 % per axis and pooled (nm), the fit's status, and the noise
+    floor's share of it and the rest's (nm)."""
     fit = fit or true_fit(df, meta, noise_nm)
     effects = fit.effects
     floor = _val_p90(fit)
-    instrument = ((meta or {}).get("truth") or {}).get("noise_floor_nm") or {}
+    noise = ((meta or {}).get("truth") or {}).get("noise_floor_nm") or {}
     budget = {}
     for a in AXES:
-        if a in floor and a in instrument:
-            rest = float(np.sqrt(max(floor[a] ** 2 - instrument[a] ** 2, 0.0)))
-            budget[a] = {"interferometer_noise_nm": instrument[a],
-                         "other_instruments_nm": rest}
+        if a in floor and a in noise:
+            rest = float(np.sqrt(max(floor[a] ** 2 - noise[a] ** 2, 0.0)))
+            budget[a] = {"noise_floor_nm": noise[a], "above_noise_floor_nm": rest}
     return {"achievable_floor_nm": floor, "effects": effects, "converged": fit.converged_,
             "status": fit.status_, "budget_nm": budget,
             "start": getattr(fit, "start_label_", None),
@@ -125,7 +119,7 @@ def _refit_change(fit: PhysicsFit, delta: np.ndarray) -> np.ndarray:
     JV = (fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_        # (N,3,k)
     d = np.where(meas.group >= 0, delta, 0.0)
     if JV.shape[2]:
-        z = np.linalg.lstsq(_projected(meas, meas.cal, JV), -_projected(meas, meas.cal, d),
+        z = np.linalg.lstsq(projected(meas, meas.cal, JV), -projected(meas, meas.cal, d),
                             rcond=None)[0]
         d = d + JV @ z
     for g in range(len(meas.groups)):
@@ -169,7 +163,7 @@ def measured_floor_budget(scenario, scale, df, meta: dict, full: PhysicsFit | No
         if not np.array_equal(d["t_s"].to_numpy(), df["t_s"].to_numpy()):
             raise RuntimeError(f"floor budget: the {name} run's timeline differs from the "
                                "dataset's (a source that is not a pure draw?)")
-        floors[name] = _val_p90(true_fit(d, m, start=getattr(full, "start_label_", None)))
+        floors[name] = _val_p90(true_fit(d, m))
         if name == REMAINDER:
             quiet_df = d
     floor = _val_p90(full)
@@ -239,7 +233,7 @@ def air_line_check(scenario: str, scale: float | None, seeds) -> dict:
         runs = [sc.with_perfect([s for s in sc.sources() if s != "air"]),
                 sc.with_perfect(sc.sources())]
         (air_df, air_meta), (still_df, still_meta) = (r.simulate(scale) for r in runs)
-        air_fit, still_fit = (true_fit(d, m, start="twin's values")
+        air_fit, still_fit = (true_fit(d, m)
                               for d, m in ((air_df, air_meta), (still_df, still_meta)))
         meas = air_fit.measurements_
         val = (meas.group >= 0) & meas.val[:, None]
@@ -310,10 +304,10 @@ def budget_lines(budget: dict | None) -> list[str]:
 
 def floor_of(meta: dict | None) -> tuple[dict | None, str]:
     """The floor a model is judged against, and its kind: the achievable floor when the data
-    carry it, else the instrument (interferometer noise) floor, else none."""
+    carry it, else the noise floor (the readings' own noise), else none."""
     truth = (meta or {}).get("truth") or {}
     if truth.get("achievable_floor_nm"):
         return truth["achievable_floor_nm"], "achievable"
     if truth.get("noise_floor_nm"):
-        return truth["noise_floor_nm"], "instrument"
+        return truth["noise_floor_nm"], "noise"
     return None, "none"

@@ -41,7 +41,6 @@ import weakref
 from typing import NamedTuple
 
 import numpy as np
-from scipy import special
 
 from deltatwin.calibration.diagnosis.attribution import (
     Residual,
@@ -65,6 +64,7 @@ from deltatwin.calibration.physics.model import (
     group_offsets,
     residuals,
 )
+from deltatwin.calibration.stats import f_test_p
 from deltatwin.twin.effects import Effect, Parameter
 from deltatwin.twin.instruments.optics import AXES
 
@@ -272,7 +272,7 @@ class _Joint:
         self.before = residuals(meas, pred, group_offsets(meas, pred, meas.cal))
         # each group's readings (one reading axis), found once for the hundreds of columns
         # projected here: (axis, its calibration rows, their place among the calibration
-        # readings (_projected's order), its validation rows, their place among those)
+        # readings (projected's order), its validation rows, their place among those)
         self.groups, n_cal, n_val = [], 0, 0
         for g in range(len(meas.groups)):
             in_group = meas.group == g
@@ -750,7 +750,7 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
             trial = chosen + [i]
             vp = float(joint.fit([blocks[j][0] for j in trial],
                                  [blocks[j][1] for j in trial])[1].sum())
-            if (special.fdtrc(kk, df2, (gain / kk) / ((rss - gain) / df2)) < limit
+            if (f_test_p(rss, rss - gain, kk, df2) < limit
                     and val_power - vp >= min_share * p0):
                 best = (i, gain, Pn, kk, df2)
                 break
@@ -787,7 +787,7 @@ def _better(a: tuple, b: tuple, rss: float, limit: float) -> bool:
     variance after ``a``, beyond the Bonferroni ``limit``."""
     _, gain, _, kk, df2 = a
     extra = max(kk - b[3], 1)
-    return bool(special.fdtrc(extra, df2, (gain - b[1]) / extra / ((rss - gain) / df2)) < limit)
+    return bool(f_test_p(rss - b[1], rss - gain, extra, df2) < limit)
 
 
 def _backward(joint: _Joint, blocks: list, chosen: list[int], limit: float,
@@ -807,8 +807,7 @@ def _backward(joint: _Joint, blocks: list, chosen: list[int], limit: float,
             _, val_o, rss_o, rank_o = fit([j for j in chosen if j != i])
             kk = rank - rank_o + blocks[i][2]
             gain = float(val_o.sum() - val.sum())
-            significant = (kk > 0 and df2 > 0 and rss > 0 and special.fdtrc(
-                kk, df2, ((rss_o - rss) / kk) / (rss / df2)) < limit)
+            significant = kk > 0 and f_test_p(rss_o, rss, kk, df2) < limit
             if not significant or gain < min_power:
                 failing.append((gain, i))
         if not failing:

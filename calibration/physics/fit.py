@@ -16,17 +16,21 @@ from deltatwin.calibration.physics.measurements import (
     check_sensors,
     data_sha256,
     measurements,
+    thermometer_draw,
 )
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
-    _projected,
     figures_nm,
     group_offsets,
+    projected,
+    projected_rows,
     residuals,
 )
+from deltatwin.calibration.stats import sandwich_covariance
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.models.params import RobotParams
 from deltatwin.twin.instruments.optics import AXES
+from deltatwin.twin.noise import quantised_u
 
 NM = 1e9   # the solver works on residuals in nm
 RADIUS_MIN = 1e-9   # fit scales: a trust region this small has only round-off left
@@ -37,6 +41,8 @@ LENGTH_ROUND_OFF = 1e-9
 # the fit: its column changes the fitted directions' Jacobian by < 1e-8 of a fitted column
 UNSEEN_FRACTION = 1e-16
 STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of their uncertainty
+# draws of the thermometers' noise that estimate the information it alone gives the fit
+THERMOMETER_DRAWS = 4
 log = logging.getLogger(__name__)
 
 
@@ -51,7 +57,9 @@ class PhysicsFit:
     ``identifiable_ratio`` (a direction is fitted if the data determine it to better than this
     fraction of its parameters' typical size), ``max_evaluations`` (the points the solver
     evaluates, the start included; a Jacobian, many evaluations' work, is not one),
-    ``progress`` (a callable given a message after each evaluation, or None).
+    ``progress`` (a callable given a message after each evaluation, or None), ``seed`` (of the
+    draws of the thermometers' noise that tell which directions the data determine,
+    ``thermometer_information``).
 
     Attributes after ``fit``: ``model_`` (PhysicsModel at the fitted values), ``offsets_`` (m per
     (session, axis)), ``residual_`` ((N,3) m), ``cal_``/``val_`` (error figures, nm),
@@ -60,12 +68,16 @@ class PhysicsFit:
     logged warning), ``n_evaluations_`` (model evaluations, a Jacobian counting one per column
     it computes and one), ``n_jacobians_`` (exact Jacobians computed, the start's included),
     ``parameters_`` (list of {label, value, start, unit, uncertainty, identified_fraction}),
+    ``covariance_z_`` ((k, k): the covariance of the fit along its ``identified_directions_``,
+    in fit scales: the sandwich of calibration/stats.py), ``thermometer_information_`` ((p, p):
+    what the thermometers' noise alone puts into the calibration Jacobian's information),
     ``fitted_again_`` (whether ``fitted_again_where_it_ended`` replaced it by its refit).
     """
 
     def __init__(self, effects, params: RobotParams | None = None, start: dict | None = None,
                  noise_nm: float = 5.0, identifiable_ratio: float = 0.3,
-                 max_evaluations: int = 20, progress: bool = False, prior: dict | None = None):
+                 max_evaluations: int = 20, progress: bool = False, prior: dict | None = None,
+                 seed: int = 0):
         if noise_nm <= 0 or not math.isfinite(noise_nm):
             raise FitError(f"noise_nm = {noise_nm}: must be a positive number of nanometres")
         if not 0 < identifiable_ratio:
@@ -87,6 +99,7 @@ class PhysicsFit:
             raise FitError(f"max_evaluations = {max_evaluations}: must be at least 1")
         self.max_evaluations = int(max_evaluations)
         self.progress = progress
+        self.seed = int(seed)
         PhysicsModel(self.effects, params, self.start)   # validate names and values once
 
     def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
@@ -127,19 +140,20 @@ class PhysicsFit:
         theta0 = model.theta()
         S = model.scales
         A0, J0 = model.jacobian(meas, theta0)
-        Js = _projected(meas, cal, J0, scale=S)
+        Js = projected(meas, cal, J0, scale=S)
         # on the data it was fitted on, the start is kept in the directions it was fitted in
         # (below): no SVD chooses directions here, V's report is made from Js alone
         same_data = (fitted_on is not None and fitted_on == self.data_sha256_
                      and start_directions is not None)
+        self.thermometer_information_ = None      # not estimated for a start kept as fitted
         if same_data:
             V = _checked_directions(start_directions, p)
             s, Vt, keep = _directions_report(Js, V)
         else:
-            if p:
-                _, s, Vt = np.linalg.svd(Js, full_matrices=False)
-            else:
-                s, Vt = np.zeros(0), np.zeros((0, 0))
+            noise_info = thermometer_information(model, meas, meta, theta0, J0,
+                                                 np.random.default_rng(self.seed))
+            self.thermometer_information_ = noise_info
+            s, Vt = _information_directions(Js, noise_info)
             keep = _identified(s, self.noise_nm, self.identifiable_ratio)
             V = Vt[keep].T                                               # (p, k)
         self.n_evaluations_, self.n_jacobians_ = p + 1, 1
@@ -157,7 +171,7 @@ class PhysicsFit:
             """The projected calibration residual (nm) at z and the prediction (N,3) there."""
             A = model.predict_path(meas, theta_of(z))
             self.n_evaluations_ += 1
-            return _projected(meas, cal, meas.y - A) * NM, A
+            return projected(meas, cal, meas.y - A) * NM, A
 
         # the parameters the identified directions hold (the others' columns, e.g. a coil's
         # in a campaign without current, are orthogonal to them: weights < 1e-8): the solver's
@@ -170,14 +184,14 @@ class PhysicsFit:
             J = model.jacobian(meas, theta_of(z), seen)[1]
             self.n_evaluations_ += int(seen.sum()) + 1
             self.n_jacobians_ += 1
-            return -_projected(meas, cal, J, scale=S) @ V * NM, J
+            return -projected(meas, cal, J, scale=S) @ V * NM, J
 
         k = V.shape[1]
         n_res = int(np.sum((meas.group >= 0) & cal[:, None]))
         dof = meas.residual_dof(n_res, k)
         self.solver_message_ = "nothing to fit: no identified direction"
         Jz0 = -Js @ V * NM
-        r0 = _projected(meas, cal, meas.y - A0) * NM
+        r0 = projected(meas, cal, meas.y - A0) * NM
         # convergence of the start is judged in the directions it was fitted in, when given
         V_test = (V if start_directions is None or same_data
                   else _checked_directions(start_directions, p))
@@ -201,14 +215,15 @@ class PhysicsFit:
                 (r0, A0, J0) if np.array_equal(theta_of(z_start), theta0) else None,
                 progress=(lambda r: log.info(
                     "fit %s: calibration rms %.3f nm", "+".join(self.effects),
-                    np.sqrt(np.mean(r ** 2)))) if self.progress else None)
+                    np.sqrt(np.mean(r ** 2)), extra={"progress": "fit"}))
+                if self.progress else None)
             theta = theta_of(z)
             if J is not J0 and not seen.all():
                 J[:, :, ~seen] = model.jacobian(meas, theta, ~seen)[1][:, :, ~seen]
                 self.n_evaluations_ += int((~seen).sum()) + 1
         model.set_theta(theta)          # the solver's last evaluation may have been a trial
-        r = _projected(meas, cal, meas.y - A)
-        Jz = -(Js if J is J0 else _projected(meas, cal, J, scale=S)) @ V
+        r = projected(meas, cal, meas.y - A)
+        Jz = -(Js if J is J0 else projected(meas, cal, J, scale=S)) @ V
         dof = meas.residual_dof(n_res, V.shape[1])
         self.remaining_step_sigma_ = _remaining_step_sigma(Jz, r, dof)
         change = self.remaining_step_sigma_ * float(np.linalg.norm(r)) / np.sqrt(dof)
@@ -224,9 +239,8 @@ class PhysicsFit:
                         "%.3g nm)", self.effects, self.status_,
                         float(np.sqrt(np.mean(r ** 2))) * 1e9 if r.size else 0.0)
         elif not self.converged_:
-            log.warning("the fit of %s did not converge after %d model evaluations: %s; the best "
-                        "fit found is returned (calibration rms %.3g nm)", self.effects,
-                        self.n_evaluations_, self.status_,
+            log.warning("the fit of %s did not converge: %s; the best fit found is returned "
+                        "(calibration rms %.3g nm)", self.effects, self.status_,
                         float(np.sqrt(np.mean(r ** 2))) * 1e9 if r.size else 0.0)
         self.model_ = model
         self.meta_ = meta or {}
@@ -250,9 +264,15 @@ class PhysicsFit:
         labels = model.labels
         dof = meas.residual_dof(r.size, k)
         sigma_r = float(np.sqrt(np.sum(r ** 2) / dof))
-        cov_z = np.linalg.pinv(Jz.T @ Jz) * sigma_r ** 2 if k else np.zeros((0, 0))
+        # the identified directions' covariance from the residual as it is (serially
+        # correlated: the sandwich), the held directions' from the prior (one typical size)
+        cov_z = sandwich_covariance(Jz, r, projected_rows(meas, meas.cal),
+                                    meas.df["t_s"].to_numpy())
+        self.covariance_z_ = cov_z
         S = model.scales
+        held = np.eye(p) - V @ V.T if k else np.eye(p)
         cov = (S[:, None] * V) @ cov_z @ (S[:, None] * V).T if k else np.zeros((p, p))
+        cov += (S[:, None] * held) @ (S[:, None] * held).T
         frac = np.sum(V ** 2, axis=1) if k else np.zeros(p)
         units = [f.unit for f in model.free for _ in range(f.sl.stop - f.sl.start)]
         self.parameters_ = [
@@ -296,10 +316,19 @@ class PhysicsFit:
                 "values": self.model_.values()}
 
     # -- tables (pandas) ----------------------------------------------------------------------
+    def validation_band(self, rng: np.random.Generator | None = None) -> dict:
+        """{axis or "all": (low, high) nm}: the 95 % band of the validation error 90 % if the
+        model is right (calibration/physics/band.py), drawn with ``rng`` (default seeded 0)."""
+        from deltatwin.calibration.physics.band import validation_band
+        return validation_band(self, rng if rng is not None else np.random.default_rng(0))
+
     def parameter_table(self) -> pd.DataFrame:
         """One row per free parameter (index ``effect.parameter[i]``): fitted ``value``,
-        ``start``, ``unit``, 1-sigma ``uncertainty`` (same unit) and ``identified_fraction``
-        (the share of the parameter the data determine)."""
+        ``start``, ``unit``, 1-sigma ``uncertainty`` (same unit: along the directions the data
+        determine, the sandwich covariance of the calibration residual as it is, serially
+        correlated (calibration/stats.py ``sandwich_covariance``); along those held at the
+        start, one typical size, the library's prior) and ``identified_fraction`` (the share
+        of the parameter the data determine)."""
         return pd.DataFrame(self.parameters_).set_index("label")
 
     def residual_table(self) -> pd.DataFrame:
@@ -331,7 +360,7 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
     one may only have outrun the trust region), or when an updated one's step is accepted but
     lowers the cost by less than a quarter of its prediction: the updates are wrong in the
     directions the step went (Broyden's updates correct the Jacobian only along the steps
-    taken; in weakly determined directions it can be 50-290 % off, docs/performance.md; a
+    taken; in weakly determined directions it can be 50-290 % off; a
     paper-force case's fit crawled along them at gains of 0.03-0.5 until its evaluations ran
     out, seed 99 g01: 42.8 nm val err90, 37.4 with this rule). Steps stay within a trust
     region (fit scales) that a failed step shrinks and a well-predicted one widens (a curved
@@ -370,7 +399,8 @@ def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None
             message = "no step lowers the cost any further (round-off)"
             break
         if evaluations >= max_evaluations:
-            message = f"stopped at the limit of {max_evaluations} model evaluations"
+            message = (f"stopped at the limit of {max_evaluations} trial points (max_evaluations; "
+                       "a Jacobian is not counted)")
             break
         step = _trust_region_step(basis.B, basis.c, radius)
         length = float(np.linalg.norm(step))
@@ -455,6 +485,66 @@ class _ResidualBasis:
         return a
 
 
+def thermometer_u_K(meta: dict | None) -> float:
+    """The thermometers' standard uncertainty per scan (K): noise and resolution from the
+    data's instrument specifications (``meta["instruments"]``: ``T_noise_C``,
+    ``T_resolution_C``), else the papers' PT100 scanner's (the twin's defaults)."""
+    from deltatwin.twin.instruments.simulated import InstrumentSettings
+
+    spec = (meta or {}).get("instruments") or {}
+    default = InstrumentSettings()
+    noise = spec.get("T_noise_C", default.T_noise_C)
+    step = spec.get("T_resolution_C", default.T_resolution_C)
+    for name, v in (("T_noise_C", noise), ("T_resolution_C", step)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1:
+            raise FitError(f"metadata 'instruments' {name!r} = {v!r}: expected kelvin, 0 to 1")
+    return quantised_u(float(noise), float(step))
+
+
+def thermometer_information(model: PhysicsModel, meas: Measurements, meta: dict | None,
+                            theta: np.ndarray, J: np.ndarray,
+                            rng: np.random.Generator) -> np.ndarray:
+    """(p, p) m^2 per fit scale^2: the information the thermometers' noise alone puts into
+    the scaled calibration Jacobian, E[N^T N], N the change of ``projected`` Jacobian columns
+    when every thermometer reading gets a fresh draw of its noise (``thermometer_u_K``),
+    averaged over THERMOMETER_DRAWS draws of ``rng``; zero for a model that reads no
+    temperature. A parameter that multiplies a temperature (an expansion coefficient) has a
+    Jacobian column made of the readings: noise there is a column the data seem to determine
+    though it holds nothing of the robot (errors in the variables; a 0.6 m frame arm's
+    expansion column gains 47 nm beyond the others from 3 mK thermometers, 1.7 nm without
+    them, where the fit's threshold is 17 nm). The fit counts a direction as determined on
+    the information beyond this (``_information_directions``)."""
+    columns = np.zeros(model.n_free, bool)
+    for f in model.free:
+        columns[f.sl] = next(e for e in model.effects if e.name == f.effect).reads_temperatures
+    u = thermometer_u_K(meta)
+    if not columns.any() or u <= 0 or not meas.sensors:
+        return np.zeros((model.n_free, model.n_free))
+    base = np.where(columns, J, 0.0)
+    info = np.zeros((model.n_free, model.n_free))
+    for _ in range(THERMOMETER_DRAWS):
+        noisy = thermometer_draw(meas, meta, model.params, rng, u)
+        N = projected(meas, meas.cal, model.jacobian(noisy, theta, columns)[1] - base,
+                      scale=model.scales)
+        info += N.T @ N / THERMOMETER_DRAWS
+    return info
+
+
+def _information_directions(Js: np.ndarray, noise_info: np.ndarray):
+    """(s, Vt): the singular values (m per fit scale) and directions of the calibration
+    Jacobian ``Js`` (n, p) with the thermometers' share of its information (``noise_info``)
+    taken out: the eigen-decomposition of Js^T Js - noise_info (a share above the column's own
+    information leaves it at zero), largest first; the SVD of ``Js`` when there is none."""
+    p = Js.shape[1]
+    if not p:
+        return np.zeros(0), np.zeros((0, 0))
+    if not np.any(noise_info):
+        return np.linalg.svd(Js, full_matrices=False)[1:]
+    w, U = np.linalg.eigh(Js.T @ Js - noise_info)
+    order = np.argsort(-w, kind="stable")
+    return np.sqrt(np.clip(w[order], 0.0, None)), U[:, order].T
+
+
 def _checked_directions(directions, p: int) -> np.ndarray:
     """``directions`` (p, k) as a float array, refused unless it has one row per parameter and
     orthonormal columns (a fitted model's saved directions: the SVD's, exact to round-off)."""
@@ -524,17 +614,19 @@ def fitted_again_where_it_ended(fit: PhysicsFit) -> PhysicsFit:
     ends, seed 6363 case001) other directions are identified where it ends, and the fit
     stops "converged" in its start's (137 nm validation against the achievable floor's 61.2;
     fitted again in the ladder, 66.6). Only the ladder's rungs that add an effect are
-    fitted again (``effect_ladder``): done in every fit (session 12), the shipped quiet
+    fitted again (``effect_ladder``): done in every fit, the shipped quiet
     loop-drift baseline moved to a lower calibration cost where loop drift's linearised
     candidate was no longer significant, and 12 cases cost a third more CPU. Once: up to
     three times left every case of two seeds' 24 as once did."""
     if not fit.converged_ or not fit.model_.n_free:
         return fit
     meas = fit.measurements_
-    Js = _projected(meas, meas.cal, fit.jacobian_, scale=fit.model_.scales)
-    _, s, Vt = np.linalg.svd(Js, full_matrices=False)
+    Js = projected(meas, meas.cal, fit.jacobian_, scale=fit.model_.scales)
+    noise_info = fit.thermometer_information_
+    s, Vt = _information_directions(Js, np.zeros((Js.shape[1],) * 2) if noise_info is None
+                                    else noise_info)
     V = Vt[_identified(s, fit.noise_nm, fit.identifiable_ratio)].T
-    r = _projected(meas, meas.cal, meas.y - fit.prediction_)
+    r = projected(meas, meas.cal, meas.y - fit.prediction_)
     if _remaining_step_sigma(-Js @ V, r, meas.residual_dof(r.size, V.shape[1])) <= STEP_SIGMA:
         return fit
     again = PhysicsFit(fit.effects, fit.params, start={**fit.model_.values(), **fit.known_},

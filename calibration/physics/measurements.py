@@ -64,6 +64,12 @@ class Measurements:
         at least 1."""
         return max(n_residuals - n_directions - len(self.groups), 1)
 
+    def reading_counts(self, rows: np.ndarray) -> list[int]:
+        """The number of readings of each (session, axis) group on ``rows`` (N,), in group
+        order (as ``projected`` lays them out)."""
+        return [int(np.count_nonzero((self.group == g) & rows[:, None]))
+                for g in range(len(self.groups))]
+
     def part_temperatures(self, effects) -> dict:
         """Part temperatures (N + S rows) under the model's ``effects``: those that say how a
         sensor reads its part (``sensed_parts``) correct the readings, else each part is at its
@@ -303,6 +309,19 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
                         group=group,
                         groups=groups, cal=split == "cal", val=split == "val", points=pts,
                         zero_row=zero_row, T_ref_C=T_ref, sensor_node_T=node_T)
+
+
+def thermometer_draw(meas: Measurements, meta: dict | None, params: RobotParams,
+                     rng: np.random.Generator, u_K: float) -> Measurements:
+    """``meas`` with a fresh draw of every thermometer's noise (standard deviation ``u_K``, K)
+    added to its readings, the rest of the data as it is (the preload statics, which depend on
+    the motor coordinates only, shared)."""
+    df = meas.df.copy()
+    columns = [f"T_{s}_C" for s in meas.sensors]
+    df[columns] = df[columns].to_numpy() + u_K * rng.standard_normal((len(df), len(columns)))
+    out = measurements(df, meta, params)
+    out._statics = meas._statics
+    return out
 
 
 # ---------------------------------------------------------------------------------------------

@@ -999,7 +999,7 @@ def residuals(meas: Measurements, pred: np.ndarray, offsets: np.ndarray) -> np.n
     return meas.y - pred - off
 
 
-def _projected(meas: Measurements, rows: np.ndarray, v: np.ndarray,
+def projected(meas: Measurements, rows: np.ndarray, v: np.ndarray,
                scale: np.ndarray | None = None) -> np.ndarray:
     """Values v (N,3,...) on the readings of ``rows`` with each group's mean removed:
     (n_readings, ...). ``scale``: v times it (broadcast on each reading's values), the same
@@ -1016,6 +1016,13 @@ def _projected(meas: Measurements, rows: np.ndarray, v: np.ndarray,
         np.subtract(x, x.mean(axis=0), out=out[start:start + x.shape[0]])
         start += x.shape[0]
     return out
+
+
+def projected_rows(meas: Measurements, rows: np.ndarray) -> np.ndarray:
+    """The data row of each reading ``projected`` lays out on ``rows`` (n_readings,), in its
+    order."""
+    masks = [(meas.group == g) & rows[:, None] for g in range(len(meas.groups))]
+    return np.concatenate([np.nonzero(m)[0] for m in masks if m.any()] or [np.zeros(0, int)])
 
 
 def figures_nm(res: np.ndarray, rows: np.ndarray) -> dict:

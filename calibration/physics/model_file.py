@@ -55,15 +55,18 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
                           "`deltatwin compare DATA --model THIS`")
 
 
-def load_fitted(path) -> tuple[PhysicsModel, dict]:
-    """(model, file contents) from a fitted-model TOML file."""
+def load_fitted(path, trust_effects=False) -> tuple[PhysicsModel, dict]:
+    """(model, file contents) from a fitted-model TOML file. A user effect it names
+    (``file.py:Class``) is code: it runs only with ``trust_effects`` True (or a list of the
+    specs whose code may run), else FitError naming the file and the code (twin/effects:
+    ``trust``)."""
     path = Path(path)
     if path.is_dir():
         raise FitError(f"{path}: is a folder, not a fitted-model TOML file")
+    if not path.exists():
+        raise FitError(f"{path}: no such model file")
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise FitError(f"{path}: not a fitted-model TOML file ({exc})") from exc
     model = doc.get("model")
@@ -77,15 +80,14 @@ def load_fitted(path) -> tuple[PhysicsModel, dict]:
                        f"deltatwin reads {FORMAT!r} up to version {FORMAT_VERSION}")
     damage = content_damage(doc)
     if damage:
-        raise FitError(f"{path}: {damage}; refit or restore it (or remove the "
-                       f"{CONTENT_SHA256} line to use an edited file)")
+        raise FitError(f"{path}: {damage}; refit or restore it")
     _check_layout(path, doc)
     # a fitted file cut short must not fall back on default values: every effect with free
     # parameters needs its table (a hand-written model without [fit] starts at the defaults)
     tables = doc.get("effects", {})
     try:
         # library names, or where the researcher's own effects came from (file.py:Class)
-        classes = [effect_class(e, where=f"{path} [model] effects")
+        classes = [effect_class(e, where=f"{path} [model] effects", trust=trust_effects)
                    for e in doc["model"]["effects"]]
     except EffectError as exc:
         raise FitError(str(exc)) from exc
@@ -146,10 +148,31 @@ def _check_identification(path: Path, doc: dict, model: PhysicsModel) -> None:
                        "wrote them)") from None
 
 
+# what a fitted file may hold: a key outside these is a typo, refused rather than ignored
+TOP_KEYS = ("format", "format_version", CONTENT_SHA256, "model", "fit", "effects",
+            "identification", "known")
+MODEL_KEYS = ("effects", "data", "data_sha256", "code_sha256", "noise_nm", "identifiable_ratio",
+              "sensors")
+
+
+def _check_keys(path: Path, where: str, table: dict, allowed) -> None:
+    import difflib
+
+    for key in table:
+        if key not in allowed:
+            close = difflib.get_close_matches(key, allowed, n=1)
+            raise FitError(f"{path}: {where}unknown key {key!r}"
+                           + (f" (did you mean {close[0]!r}?)" if close else "")
+                           + f"; allowed: {list(allowed)}")
+
+
 def _check_layout(path: Path, doc: dict) -> None:
     """The types of what a fitted file holds (a hand-written or edited one has no checksum)."""
     def fail(key, what):
         raise FitError(f"{path}: {key} must be {what}")
+
+    _check_keys(path, "", doc, TOP_KEYS)
+    _check_keys(path, "[model] ", doc["model"], MODEL_KEYS)
 
     effects = doc["model"]["effects"]
     if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):

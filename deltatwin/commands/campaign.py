@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 # exit code of a campaign stopped by an instrument fault (2 = bad input, see deltatwin.cli)
 EXIT_INSTRUMENT_FAULT = 3
@@ -40,9 +41,10 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale")
-    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points "
-                   "(with serial: the same as `deltatwin emulate` was given)")
+    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points, "
+                   "0 < SCALE <= 1 (with serial: the same as `deltatwin emulate` was given)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -96,23 +98,24 @@ def zeros_taken(plan, points: dict) -> list[dict]:
 
 def run(args) -> int:
     from deltatwin.twin.campaign import run_campaign
-    from deltatwin.twin.dataset import write_dataset
+    from deltatwin.twin.dataset import check_dataset_path, write_dataset
     from deltatwin.twin.instruments.interface import InstrumentError
     from deltatwin.twin.instruments.simulated import SimulatedLab
     from deltatwin.twin.journal import Journal
-    from deltatwin.twin.scenario import Scenario
+    from deltatwin.twin.scenario import Scenario, check_scale
 
     if args.instruments == "serial" and args.ports is None:
         raise ValueError("--instruments serial needs --ports FILE (a laboratory's ports file, or "
                         "the one `deltatwin emulate --ports-out FILE` writes)")
     if args.instruments == "sim" and args.ports is not None:
         raise ValueError("--ports is only for --instruments serial")
-    if args.scale is not None and not 0 < args.scale <= 1:
-        raise ValueError(f"--scale must be in (0, 1], got {args.scale}")
+    check_scale(args.scale, "--scale")
+    if args.output is not None:
+        check_dataset_path(args.output, "-o")
     from deltatwin.twin.journal import journal_path as journal_file
 
     t0 = time.perf_counter()
-    sc = Scenario.load(args.scenario, seed=args.seed)
+    sc = Scenario.load(args.scenario, seed=args.seed, trust_effects=trust_of(args))
     scale = sc.reduced_scale if args.reduced else args.scale
     output = args.output or Path(f"{sc.name}.parquet")
     journal_path = journal_file(output, args.journal, args.resume)

@@ -1,4 +1,4 @@
-"""``deltatwin compare``: where a model fails on a dataset (calibration/compare.py).
+"""``deltatwin compare``: where a model fails on a dataset (calibration/diagnosis/compare.py).
 
     deltatwin compare DATA --model fitted.toml|model.json [--json] [--split val|cal|all]
                       [--windows N] [--bins N] [--worst N] [--params PARAMS.toml]
@@ -12,6 +12,7 @@ from __future__ import annotations
 import sys
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 
 def register(sub) -> None:
@@ -37,6 +38,7 @@ def register(sub) -> None:
                    help="length of the worst regions / windows / variables lists (3)")
     p.add_argument("--params", metavar="PARAMS.toml",
                    help="robot parameters placing a DGM's positions (default: nominal)")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -104,7 +106,7 @@ def run(args) -> int:
     from deltatwin.twin.dataset import read_dataset
 
     df, meta = read_dataset(args.data)
-    model = load_model_file(args.model)
+    model = load_model_file(args.model, trust_of(args))
     try:
         rep = compare(df, meta, model, split=args.split, n_time_windows=args.windows,
                       n_bins=args.bins, n_worst=args.worst, params=args.params)

@@ -15,6 +15,7 @@ import threading
 from pathlib import Path
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 
 def register(sub) -> None:
@@ -25,8 +26,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale")
-    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points "
-                   "(use the same as the campaign: the twin's time horizon depends on it)")
+    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points, "
+                   "0 < SCALE <= 1 (use the same as the campaign: the twin's time horizon depends on it)")
     p.add_argument("--ports-out", type=Path, default=None, help="write the ports file (TOML)")
     p.add_argument("--dir", type=Path, default=None,
                    help="folder for the device symlinks (default: a temporary folder)")
@@ -38,6 +39,7 @@ def register(sub) -> None:
     p.add_argument("--timeout-s", type=float, default=None,
                    help="per-reply timeout written to the ports file (default: per instrument)")
     p.add_argument("--json", action="store_true", help="print the devices as one JSON line")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -45,12 +47,15 @@ def register(sub) -> None:
 # paper-force; steps between points <= 19 arcsec): a step above 200 arcsec is a damaged reply
 TWIN_AC_MAX_STEP_ARCSEC = 200.0
 
-def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None):
-    """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it."""
+def simulated_instruments(scenario: str, seed: int | None, reduced: bool, scale: float | None,
+                          trust_effects=False):
+    """The twin's simulated ``InstrumentSet`` for a scenario, built as ``simulate`` builds it
+    (``trust_effects``: ``Scenario.load``'s)."""
     from deltatwin.twin.instruments.simulated import SimulatedLab
-    from deltatwin.twin.scenario import Scenario
+    from deltatwin.twin.scenario import Scenario, check_scale
 
-    sc = Scenario.load(scenario, seed=seed)
+    check_scale(scale, "--scale")
+    sc = Scenario.load(scenario, seed=seed, trust_effects=trust_effects)
     scale = sc.reduced_scale if reduced else scale
     twin, _ = sc.build(scale)
     return sc, scale, SimulatedLab(twin, sc.settings).instrument_set()
@@ -91,7 +96,7 @@ def run(args) -> int:
     if args.timeout_s is not None and not args.timeout_s > 0:
         raise ValueError(f"--timeout-s must be > 0, got {args.timeout_s}")
     sc, scale, instruments = simulated_instruments(args.scenario, args.seed, args.reduced,
-                                                   args.scale)
+                                                   args.scale, trust_of(args))
     stop = threading.Event()
     # SIGINT is handled explicitly too: a process started in the background by a shell (`&`)
     # inherits SIGINT ignored, and Ctrl-C / kill -INT would then never stop the emulator

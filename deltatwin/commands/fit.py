@@ -1,10 +1,12 @@
 """``deltatwin fit`` and ``deltatwin diagnose``: physics models from the effect library fitted to a
-dataset, and which effect they miss (calibration/physics.py, calibration/diagnosis.py)."""
+dataset, and which effect they miss (calibration/physics/fit.py,
+calibration/diagnosis/diagnose.py)."""
 from __future__ import annotations
 
 import sys
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 from deltatwin.files import atomic_write_text
 
 
@@ -21,6 +23,9 @@ def register(sub) -> None:
                    help="a known constant of the laboratory, SI units, comma-separated for a "
                         "vector, e.g. loop_drift.frame_arm_m=-0.6,0 (repeatable; a free "
                         "parameter set this way is the fit's start)")
+    p.add_argument("--max-evaluations", type=int, default=80, metavar="N",
+                   help="the trial points the solver may evaluate, the start included (a "
+                        "Jacobian is not counted; default 80, as the diagnosis's own fits)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("-o", "--output", help="write the fitted model (TOML) here")
     p.set_defaults(func=run_fit)
@@ -31,6 +36,7 @@ def register(sub) -> None:
                    help="fitted physics model (TOML from `deltatwin fit -o`) or stepwise DGM "
                         "(JSON from `deltatwin calibrate -o`)")
     d.add_argument("--json", action="store_true", help="print one JSON object")
+    add_trust_option(d)
     d.set_defaults(func=run_diagnose)
 
 
@@ -40,7 +46,9 @@ def _effects(text: str) -> list[str]:
 
 
 def _known_values(settings: list[str]) -> dict:
-    """{effect: {parameter: value}} from ``--set EFFECT.PARAM=VALUE`` options."""
+    """{effect: {parameter: value}} from ``--set EFFECT.PARAM=VALUE`` options; an unknown
+    effect or parameter, or a value of the wrong shape, is a FitError quoting the option as
+    the user wrote it, with the valid names."""
     from deltatwin.calibration.errors import FitError
 
     out: dict = {}
@@ -55,8 +63,33 @@ def _known_values(settings: list[str]) -> dict:
         except ValueError:
             raise FitError(f"--set {item!r}: {text!r} is not a number or a comma-separated "
                            "list of numbers (SI units)") from None
-        out.setdefault(effect, {})[param] = numbers[0] if len(numbers) == 1 else numbers
+        value = numbers[0] if len(numbers) == 1 else numbers
+        _check_setting(item, effect.strip(), param.strip(), value)
+        out.setdefault(effect.strip(), {})[param.strip()] = value
     return out
+
+
+def _check_setting(item: str, effect: str, param: str, value) -> None:
+    """``--set item`` names a known effect and one of its parameters, with a valid value."""
+    import difflib
+
+    from deltatwin.calibration.errors import FitError
+    from deltatwin.twin.effects import EffectError, effect_class, make_effect
+
+    try:
+        cls = effect_class(effect, where=f"--set {item}")
+    except EffectError as exc:
+        raise FitError(str(exc)) from None
+    names = [p.name for p in cls.parameters]
+    if param not in names:
+        close = difflib.get_close_matches(param, names, n=1)
+        raise FitError(f"--set {item}: effect {effect!r} has no parameter {param!r}"
+                       + (f" (did you mean {close[0]!r}?)" if close else "")
+                       + f"; its parameters: {names}")
+    try:
+        make_effect(cls, {param: value}, where=effect, check_minimum=False)
+    except EffectError as exc:
+        raise FitError(f"--set {item}: {str(exc).split(': ', 1)[-1]}") from None
 
 
 def run_fit(args) -> int:
@@ -67,10 +100,13 @@ def run_fit(args) -> int:
     known = _known_values(args.set)
     df, meta = read_dataset(args.data)
     fit = PhysicsFit(_effects(args.effects), start=known or None, noise_nm=args.noise_nm,
+                     max_evaluations=args.max_evaluations,
                      progress=not args.json).fit(df, meta, where=str(args.data))
     if args.output:
         atomic_write_text(args.output, fitted_toml(fit, str(args.data)))
     s = fit.summary()
+    band = fit.validation_band()
+    s["val_band_95_nm"] = {a: list(v) for a, v in band.items()}
     if args.json:
         print(strict_json(s))
         return 0
@@ -78,10 +114,16 @@ def run_fit(args) -> int:
     print(f"fitted {', '.join(fit.effects) or 'the nominal robot'} to {args.data}: "
           f"{ident['n_parameters']} parameters, {ident['n_identified_directions']} directions "
           f"identified (condition {ident['condition_number_identified'] or 0:.3g})")
-    print(f"  {'axis':>4} {'cal err90 nm':>13} {'val err90 nm':>13}")
+    print(f"  {'axis':>4} {'cal err90 nm':>13} {'val err90 nm':>13} {'if the model is right':>22}")
     for a in ("x", "y", "z", "all"):
         if a in s["val"]:
-            print(f"  {a:>4} {s['cal'].get(a, float('nan')):13.1f} {s['val'][a]:13.1f}")
+            lo, hi = band.get(a, (float("nan"),) * 2)
+            above = "  above" if s["val"][a] > hi else ""
+            print(f"  {a:>4} {s['cal'].get(a, float('nan')):13.1f} {s['val'][a]:13.1f} "
+                  f"{lo:10.1f} - {hi:<9.1f}{above}")
+    print("  (the validation error's 95 % band from the parameters' uncertainty and the "
+          "calibration residual's noise; above it, the model or its noise model misses "
+          "something the validation conditions show)")
     floor = (meta.get("truth") or {}).get("noise_floor_nm")
     if floor:
         print("  noise floor (twin's truth): " + ", ".join(f"{k} {v:.1f}" for k, v in floor.items())
@@ -112,7 +154,7 @@ def run_diagnose(args) -> int:
     df, meta = read_dataset(args.data)
     if str(args.model).lower().endswith(".json"):
         return _diagnose_stepwise(args, df, meta)
-    model, doc = load_fitted(args.model)
+    model, doc = load_fitted(args.model, trust_of(args))
     # the laboratory variables the diagnosis scans depend on the data alone: made beside the
     # model's Jacobian on a second core where the command has one (docs/performance.md)
     variables = in_background(laboratory_variables, df)

@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from deltatwin.commands.trust import add_trust_option, trust_of
+
 TESTS = {"9283": "iso9283", "230-2": "iso230-2", "230-3": "iso230-3"}
 
 
@@ -71,6 +73,7 @@ def register(sub) -> None:
                    help="a tolerance for the ISO 14253-1 decision, e.g. AP=500 or R=40; "
                         "repeatable")
     p.add_argument("--json", action="store_true", help="print the results as one JSON line")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -216,7 +219,7 @@ def compensated_arms(args, sc, sci, test) -> dict:
         inst = lab.instrument_set()
         controller, name = None, "uncompensated"
         if model is not None:
-            comp = load_compensator(model)
+            comp = load_compensator(model, trust_of(args))
             name = f"{comp.kind} ({model.name})"
             loop = LoopController({"model": comp}, ["model"] * n, test.targets_m, (),
                                   scan_period_s=sci.settings.scan_period_s)
@@ -265,8 +268,9 @@ def run(args) -> int:
     tol = tolerances(args.tolerance)
     check_writable(args.output, folder=True)
     t0 = time.perf_counter()
-    sc = Scenario.load(args.scenario)
-    sci = sc.with_campaign(campaign_table(args), instruments=instrument_changes(args, sc))
+    sc = Scenario.load(args.scenario, trust_effects=trust_of(args))
+    sci = sc.with_campaign(campaign_table(args), instruments=instrument_changes(args, sc),
+                           trust_effects=trust_of(args))
     scale = sci.reduced_scale if args.reduced else args.scale
     test = sci.standard_test(random_streams(sci.seed)["campaign"], scale)
     arms = run_arms(args, sc, sci, test, scale)

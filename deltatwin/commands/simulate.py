@@ -4,21 +4,22 @@ from __future__ import annotations
 import time
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 
 def run_simulate(args) -> int:
     import numpy as np
-    from tqdm import tqdm
 
-    from deltatwin.twin.dataset import write_dataset
-    from deltatwin.twin.scenario import Scenario
+    from deltatwin.progress import progress_bar
+    from deltatwin.twin.dataset import check_dataset_path, write_dataset
+    from deltatwin.twin.scenario import Scenario, check_scale
 
-
-
+    check_scale(args.scale, "--scale")
+    check_dataset_path(args.output, "-o")
     t0 = time.perf_counter()
-    with tqdm(total=4, desc="simulate", unit="stage", disable=args.quiet) as bar:
+    with progress_bar(total=4, desc="simulate", unit="stage", disable=args.quiet) as bar:
         bar.set_postfix_str("scenario")
-        sc = Scenario.load(args.scenario, seed=args.seed)
+        sc = Scenario.load(args.scenario, seed=args.seed, trust_effects=trust_of(args))
         scale = sc.reduced_scale if args.reduced else args.scale
         bar.update()
         bar.set_postfix_str("campaign")
@@ -77,11 +78,14 @@ def register(sub) -> None:
     p.add_argument("scenario", help="a scenario TOML path, or a shipped name (paper-thermal, "
                    "paper-force, hidden/...)")
     p.add_argument("-o", "--output", required=True,
-                   help="dataset to write (.parquet; .csv writes a .meta.json beside it)")
+                   help="dataset to write: .parquet, or .csv (with a .meta.json beside it); "
+                        "another suffix is refused")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale (tests)")
-    g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points")
+    g.add_argument("--scale", type=float, default=None,
+                   help="fraction of the campaign's points, 0 < SCALE <= 1 (default 1: the full "
+                        "campaign)")
     p.add_argument("--through-interface", action="store_true",
                    help="run point by point through the instrument interface (same data, slower)")
     p.add_argument("--no-floor", action="store_true",
@@ -89,6 +93,7 @@ def register(sub) -> None:
                         "(the floor a model is judged against) and its budget per source (one "
                         "simulation and fit per source)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_trust_option(p)
     p.set_defaults(func=run_simulate)
     e = sub.add_parser("effects", help="list the physical effects and their parameters")
     e.add_argument("--json", action="store_true", help="print one JSON object")

@@ -3,8 +3,6 @@ Parquet record per case, on a local process pool or a dask.distributed cluster
 (calibration/design/sweep.py)."""
 from __future__ import annotations
 
-import sys
-
 from deltatwin.commands.output import strict_json
 
 
@@ -27,16 +25,15 @@ def register(sub) -> None:
 
 
 def run_sweep(args) -> int:
-    from tqdm import tqdm
-
     from deltatwin.calibration.design.sweep import SweepError, SweepSpec
     from deltatwin.calibration.design.sweep import run_sweep as run
+    from deltatwin.progress import progress_bar
 
     if args.workers < 1:
         raise SweepError(f"--workers {args.workers}: expected at least 1")
     spec = SweepSpec.load(args.spec)
-    with tqdm(total=len(spec.cases), desc=f"sweep {spec.name}", unit="case", file=sys.stderr,
-              disable=args.quiet or args.json) as bar:
+    with progress_bar(total=len(spec.cases), desc=f"sweep {spec.name}", unit="case",
+                      disable=args.quiet or args.json) as bar:
         def progress(i, n):
             bar.total = n
             bar.update()

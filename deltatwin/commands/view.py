@@ -14,6 +14,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from deltatwin.commands.trust import add_trust_option, trust_of
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -39,6 +41,7 @@ def register(sub) -> None:
                         "of the workspace)")
     p.add_argument("--params", metavar="PARAMS.toml",
                    help="robot parameter file (default: the nominal set)")
+    add_trust_option(p)
     p.set_defaults(func=run)
 
 
@@ -48,7 +51,7 @@ def run(args) -> int:
     from deltatwin.view import model_file_step, write_recording
 
     df, meta = read_dataset(args.data)
-    ladder = [model_file_step(m, df, meta) for m in args.model]
+    ladder = [model_file_step(m, df, meta, trust_of(args)) for m in args.model]
     out = Path(args.output) if args.output else Path(args.data).with_suffix(".rrd")
     params = load_params(args.params) if args.params else None
     s = write_recording(df, meta, ladder, out, params=params, max_poses=args.max_poses,

@@ -4,11 +4,11 @@ the set-up state per channel, the error queue (10 entries, like the instrument),
 scans answered from the backing ``ThermometerScanner``.
 
 Declared commands (``COMMANDS``): the common commands ``*IDN? *RST *CLS *OPC? *OPC *STB? *ESR?
-*OPT? *WAI``; ``SYSTem:ERRor[:NEXT]?``, ``SYSTem:RNUMber:RESet``, ``STATus:QUEue:CLEar``,
+*OPT? *WAI``; ``SYSTem:ERRor[:NEXT]?``, ``SYSTem:PRESet``, ``SYSTem:RNUMber:RESet``, ``STATus:QUEue:CLEar``,
 ``STATus:PRESet``; ``ROUTe:OPEN:ALL``, ``ROUTe:MULTiple:CLOSe[?]``, ``ROUTe:MULTiple:OPEN``,
 ``ROUTe:SCAN[:INTernal][?]``, ``ROUTe:SCAN:LSELect``, ``ROUTe:SCAN:TSOurce``;
 ``[SENSe:]FUNCtion 'TEMPerature'[, (@list)]``, ``[SENSe:]TEMPerature:TRANsducer``,
-``[SENSe:]TEMPerature:FRTD:TYPE``; ``INITiate:CONTinuous``, ``TRIGger:SOURce``,
+``[SENSe:]TEMPerature:FRTD:TYPE``; ``INITiate:CONTinuous[?]``, ``TRIGger:SOURce``,
 ``TRIGger:COUNt``, ``SAMPle:COUNt``; ``FORMat:ELEMents[?]``; ``READ?``, ``FETCh?``.
 
 A channel with no sensor behind it, or one listed in ``open_channels`` (an open PT100 lead),
@@ -18,6 +18,12 @@ and the other parser errors of hw/scpi.py; a channel that is not on the cards
 ``-221,"Settings conflict"`` and no reply; a line longer than 255 characters
 ``-363,"Input buffer overrun"``; a backing failure or an injected ``error_code`` (default -230,
 "Data corrupt or stale") -> queued, and a query gets no reply.
+
+Power-on, ``*RST`` and ``SYSTem:PRESet`` as the Model 2700 User's Manual says (section 8,
+"Idle"; the Model 2701 manual's "Remote programming - scanning" likewise): the instrument powers
+on to the factory default setup, which ``SYSTem:PRESet`` restores, with continuous initiation
+ON; ``*RST`` restores the *RST defaults, the one-shot mode: continuous initiation OFF. Both lose
+the set-up (channels, scan list); neither clears the error queue or the reading counter.
 
 The reading number counts every reading since power-on (``SYSTem:RNUMber:RESet`` restarts it at
 0); it is written with at least 5 digits and grows past 99,999 (``+100043RDNG#``), as the
@@ -51,6 +57,7 @@ COMMANDS = ScpiParser([
     C("*OPT", "options", query=True),
     C("*WAI", "wait"),
     C("SYSTem:ERRor[:NEXT]", "error", query=True),
+    C("SYSTem:PRESet", "preset"),
     C("SYSTem:RNUMber:RESet", "reading_number_reset"),
     C("STATus:QUEue:CLEar", "clear_queue"),
     C("STATus:PRESet", "status_preset"),
@@ -69,6 +76,7 @@ COMMANDS = ScpiParser([
     C("[SENSe:]TEMPerature:FRTD:TYPE", "rtd_type",
       (choice("PT100", "D100", "F100", "PT3916", "PT385", "USER"), channel_list(True))),
     C("INITiate:CONTinuous", "continuous", (choice(*ON_OFF),)),
+    C("INITiate:CONTinuous", "continuous_query", query=True),
     C("TRIGger:SOURce", "trigger_source",
       (choice("IMMediate", "TIMer", "MANual", "BUS", "EXTernal"),)),
     C("TRIGger:COUNt", "trigger_count", (integer(1, 55000),)),
@@ -92,16 +100,17 @@ class Keithley2700Emulator(LineEmulator):
         self.errors: deque[tuple[int, str]] = deque(maxlen=QUEUE_SIZE)
         self.readings_taken = 0              # the reading counter (RNUM)
         self._t0 = backing.instruments.clock.now()
-        self.reset()
+        self.reset(continuous=True)          # power-on: the factory default setup
 
-    def reset(self) -> None:
-        """``*RST``: the set-up is lost (the error queue and reading counter are not)."""
+    def reset(self, continuous: bool = False) -> None:
+        """The set-up is lost (the error queue and reading counter are not); continuous
+        initiation OFF as ``*RST`` leaves it, ON as power-on and ``SYSTem:PRESet`` do."""
         self.function: dict[int, str] = {}       # per channel, as set by SENS:FUNC
         self.transducer: dict[int, str] = {}
         self.rtd_type: dict[int, str] = {}
         self.scan: tuple[int, ...] = ()
         self.scan_select = "NONE"
-        self.continuous = True
+        self.continuous = continuous
         self.trigger_source = "IMMEDIATE"
         self.scan_trigger = "SPECIFIC"
         self.elements = DEFAULT_ELEMENTS
@@ -181,6 +190,9 @@ class Keithley2700Emulator(LineEmulator):
         code, reason = self.errors.popleft() if self.errors else (0, "No error")
         return f'{code},"{reason}"'
 
+    def on_preset(self):
+        self.reset(continuous=True)
+
     def on_reading_number_reset(self):
         self.readings_taken = 0
 
@@ -230,6 +242,9 @@ class Keithley2700Emulator(LineEmulator):
 
     def on_continuous(self, state):
         self.continuous = state in ("ON", "1")
+
+    def on_continuous_query(self):
+        return "1" if self.continuous else "0"
 
     def on_trigger_source(self, source):
         self.trigger_source = source

@@ -1,4 +1,4 @@
-"""calibration/compare.py and ``deltatwin compare``: where a model fails, on data with a hidden
+"""calibration/diagnosis/compare.py and ``deltatwin compare``: where a model fails, on data with a hidden
 effect (scenarios/quiet/magnetic-force, reduced scale), with real fits, real files and the
 real command line."""
 import json

@@ -1,4 +1,4 @@
-"""Compensation in the loop (issue 19): the physics model inverted, and each model kind's
+"""Compensation in the loop: the physics model inverted, and each model kind's
 command with the zero transfer, checked against the models' own forward predictions."""
 import numpy as np
 import pytest

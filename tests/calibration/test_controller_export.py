@@ -1,4 +1,4 @@
-"""The physics model exported for a controller (issue 19 item 4): the standalone reference
+"""The physics model exported for a controller: the standalone reference
 evaluator's forward and inverse against the fitted model it was exported from, and the
 portable C evaluator (compiled here with the system compiler) against both."""
 import ast

@@ -159,7 +159,7 @@ def test_a_saved_converged_model_is_kept_in_the_directions_it_was_fitted_in(tmp_
     """fit, save, ``deltatwin diagnose``: the file's values are kept with one Jacobian and
     diagnosed as the fit would be. On this case the directions identified at the fitted values
     (not the fit's, which were identified at its start) leave a step above the convergence limit:
-    judged in them, the model was refitted on reloading (issue 21)."""
+    judged in them, the model was refitted on reloading."""
     from deltatwin.calibration.physics.model_file import saved_directions
 
     sc = Scenario.load("quiet/magnetic-force")

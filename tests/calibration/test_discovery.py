@@ -1,6 +1,6 @@
-"""Issue 15: a fit that always returns, effects the baseline absorbs reported as absorbed, a
-candidate that fails named in its row, the achievable floor, and extrapolation flagged (small
-simulated campaigns)."""
+"""The find-the-missing-effect loop: a fit that always returns, effects the baseline absorbs
+reported as absorbed, a candidate that fails named in its row, the achievable floor, and
+extrapolation flagged (small simulated campaigns)."""
 import functools
 import logging
 from types import SimpleNamespace
@@ -86,8 +86,8 @@ def test_achievable_floor_refits_the_true_model(loop_drift):
     instrument = meta["truth"]["noise_floor_nm"]
     for a in "xyz":
         budget = floor["budget_nm"][a]
-        assert budget["interferometer_noise_nm"] == instrument[a]
-        assert np.hypot(budget["interferometer_noise_nm"], budget["other_instruments_nm"]) \
+        assert budget["noise_floor_nm"] == instrument[a]
+        assert np.hypot(budget["noise_floor_nm"], budget["above_noise_floor_nm"]) \
             == pytest.approx(max(floor["achievable_floor_nm"][a], instrument[a]))
     assert floor["converged"], floor["status"]
     # the twin's complete model, refitted, reaches near the interferometers' floor here (every
@@ -136,15 +136,15 @@ def two_basins(tmp_path_factory):
 
 
 def test_the_achievable_floor_fits_at_least_as_well_as_a_model_with_fewer_effects(two_basins):
-    # the true model holds the baseline's effects and more: at its best it fits the calibration
-    # rows at least as well (from the twin's values alone: 13.0 nm rms against the baseline's
-    # 7.9, and a floor of 26 nm above the baseline's 14 nm validation error)
+    # the true model holds the baseline's effects and more: fitted as a researcher would (from
+    # the library's starting values, never the twin's values) it fits the calibration rows at
+    # least as well (from the twin's values it stopped in a shallower basin: 13.0 nm rms
+    # against the baseline's 7.9, and a floor of 26 nm above the baseline's 14 nm)
     case, df, meta = two_basins
     floor = achievable_floor(df, meta)
     base = fit_from_starts(list(case.baseline), {"priors": {"start": case.known}}, df, meta)
-    assert set(floor["calibration_rms_nm"]) == {"twin's values", "library's starting values"}
+    assert set(floor["calibration_rms_nm"]) == {"library's starting values"}
     kept = floor["calibration_rms_nm"][floor["start"]]
-    assert kept == min(floor["calibration_rms_nm"].values())
     assert kept <= base.start_costs_["priors"] * 1.001, (floor["calibration_rms_nm"],
                                                           base.start_costs_)
     assert floor["achievable_floor_nm"]["all"] <= 1.1 * base.val_["all"]["err_p90"]
@@ -235,87 +235,12 @@ def _ar1(rng, n: int, rho: float) -> np.ndarray:
     return e
 
 
-@pytest.mark.parametrize("rho", [0.0, 0.9])
-def test_the_validation_test_holds_its_level_on_correlated_residuals(rho):
-    """Under the null (a change unrelated to the residual, both slow where rho = 0.9) the
-    validation p-value is not small more often than its level allows: the effective number of
-    rows guards against the spurious regression of two slow series."""
-    rng = np.random.default_rng(15)
-    n, val = 300, np.ones(300, bool)
-    p = []
-    for _ in range(400):
-        before = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
-        change = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
-        p.append(diagnosis._validation_p(before, before - change, val))
-    p = np.array(p)
-    assert np.mean(p < 0.05) <= 0.08
-    assert np.mean(p < 0.01) <= 0.025
-
-
-@pytest.mark.parametrize("rho", [0.0, 0.95])
-def test_the_calibration_f_test_holds_its_level_on_correlated_rows(rho):
-    """Under the null (a slow candidate change unrelated to a slow residual, both AR(1) with
-    rho = 0.95) the F test on independent rows is below 0.01 in over a third of the draws (a
-    null case's air refraction: p = 8e-15); with the serial-correlation factor it comes near
-    its level (measured on 2000 draws: 55 % -> 3.5 % below 0.01, 46 % -> 1.0 % below 0.001;
-    the autocorrelations of 400 mean-removed rows are estimated a little low). On independent
-    rows the factor stays near 1 (nothing lost), and a change that varies row to row is barely
-    penalised on a slow residual."""
-    rng = np.random.default_rng(31)
-    n = 400
-    meas = _one_group(n)
-    nothing, val = np.zeros((n, 3)), np.zeros(n, bool)
-    naive, corrected, factors, pose_factors = [], [], [], []
-    for _ in range(300):
-        e, x = _ar1(rng, n, rho), _ar1(rng, n, rho)
-        e, x = e - e.mean(), x - x.mean()
-        e1 = e - x * (x @ e) / (x @ x)
-        factors.append(diagnosis._serial_inflation(meas, e - e1, e1))
-        for out, factor in ((naive, 1.0), (corrected, factors[-1])):
-            out.append(diagnosis._verdict(e @ e, e1 @ e1, 1, n, n - 2, nothing, nothing, val,
-                                          inflation=factor)["p_value"])
-        white = rng.standard_normal(n)
-        left = e - white * (white @ e) / (white @ white)
-        pose_factors.append(diagnosis._serial_inflation(meas, e - left, left))
-    naive, corrected = np.array(naive), np.array(corrected)
-    assert np.mean(corrected < 0.01) <= 0.07
-    assert np.median(pose_factors) < 1.5
-    if rho:
-        assert np.mean(naive < 0.01) > 0.3 and np.median(factors) > 5
-    else:
-        assert np.median(factors) < 1.2
-
-
-def test_the_serial_factor_skips_groups_without_calibration_readings():
-    """A (session, axis) group with no calibration readings (a validation-only session) adds
-    nothing to the factor, and one of a single reading no lag: the factor is that of the other
-    groups, not 1."""
-    rng = np.random.default_rng(37)
-    n = 200
-    e, x = _ar1(rng, n, 0.95), _ar1(rng, n, 0.95)
-    e1 = e - x * (x @ e) / (x @ x)
-    one = _one_group(n)
-    alone = diagnosis._serial_inflation(one, e - e1, e1)
-    # group 1: one calibration reading (row n, y); group 2: five validation rows (z)
-    group = np.full((n + 6, 3), -1)
-    group[:n, 0], group[n, 1], group[n + 1:, 2] = 0, 1, 2
-    three = SimpleNamespace(group=group, groups=[(0, "x"), (0, "y"), (1, "z")],
-                            cal=np.arange(n + 6) <= n)
-    padded = diagnosis._serial_inflation(three, np.r_[e - e1, 0.0], np.r_[e1, 0.0])
-    assert alone > 5 and padded == pytest.approx(alone, rel=1e-9)
-
-
-def test_the_validation_test_finds_a_change_that_explains_the_residual():
-    """A change that is the residual's structure, leaving white noise, is confirmed (tiny p);
-    the same change with the opposite sign, or none, is not."""
-    rng = np.random.default_rng(16)
-    t = np.linspace(0, 1, 300)
-    change = np.column_stack([np.sin(3 * t), t ** 2, np.cos(2 * t)]) * 2e-8
-    before = change + rng.standard_normal((300, 3)) * 5e-9
-    val = np.ones(300, bool)
-    assert diagnosis._validation_p(before, before - change, val) < 1e-6
-    assert diagnosis._validation_p(before, before + change, val) == 1.0
-    assert diagnosis._validation_p(before, before, val) == 1.0
+def _validation_rows(n: int) -> SimpleNamespace:
+    """The measurements' layout of n validation rows read on x, y and z in one session (a
+    group per axis, rows in time order)."""
+    return SimpleNamespace(val=np.ones(n, bool), group=np.tile(np.arange(3), (n, 1)),
+                           df=pd.DataFrame({"t_s": np.arange(n, dtype=float),
+                                            "session": np.zeros(n, int)}))
 
 
 def test_a_candidate_the_calibration_rows_barely_see_is_claimed_when_validation_confirms_it():
@@ -328,15 +253,16 @@ def test_a_candidate_the_calibration_rows_barely_see_is_claimed_when_validation_
     change = np.column_stack([t ** 2, 0.3 * t, np.sin(2 * t)]) * 1e-7
     noise = rng.standard_normal((300, 3)) * 1e-8
     val = np.ones(300, bool)
+    meas = _validation_rows(300)
     floor_nm = diagnosis.figures_nm(noise, val)["all"]["err_p90"]
     args = (3002.0, 2990.0, 2, 3000, 2990)
-    v = diagnosis._verdict(*args, change + noise, noise, val, floor_nm)
+    v = diagnosis._verdict(meas, *args, change + noise, noise, floor_nm)
     assert 1e-3 < v["p_value"] < 1e-2 and v["delta_bic"] > 0
     assert v["gap_closed"] > 0.9 and v["p_combined"] < 1e-3 and v["significant"]
-    assert not diagnosis._verdict(*args, change + noise, noise, val, None)["significant"]
-    at_floor = diagnosis._verdict(*args, noise, noise - 0.1 * change, val, floor_nm)
+    assert not diagnosis._verdict(meas, *args, change + noise, noise, None)["significant"]
+    at_floor = diagnosis._verdict(meas, *args, noise, noise - 0.1 * change, floor_nm)
     assert at_floor["gap_closed"] == 0 and not at_floor["significant"]
-    useless = diagnosis._verdict(*args, change + noise, change + noise, val, floor_nm)
+    useless = diagnosis._verdict(meas, *args, change + noise, change + noise, floor_nm)
     assert not useless["significant"]
 
 
@@ -350,12 +276,13 @@ def test_nothing_is_claimed_from_a_model_at_the_achievable_floor():
     change = shape / np.sqrt(np.mean(shape ** 2)) * 0.4e-8
     noise = rng.standard_normal((300, 3)) * 1e-8
     val = np.ones(300, bool)
+    meas = _validation_rows(300)
     floor_nm = diagnosis.figures_nm(noise, val)["all"]["err_p90"]
     args = (3100.0, 2990.0, 1, 3000, 2990)
-    free = diagnosis._verdict(*args, change + noise, noise, val, None)
+    free = diagnosis._verdict(meas, *args, change + noise, noise, None)
     assert free["explained_fraction"] > 0.1 and free["p_value"] < 1e-6 and free["significant"]
     assert diagnosis.figures_nm(change + noise, val)["all"]["err_p90"] <= 1.1 * floor_nm
-    assert not diagnosis._verdict(*args, change + noise, noise, val, floor_nm)["significant"]
+    assert not diagnosis._verdict(meas, *args, change + noise, noise, floor_nm)["significant"]
 
 
 def test_a_candidate_held_at_the_librarys_start_does_not_make_the_calibration_worse(tmp_path):
@@ -591,16 +518,14 @@ def test_a_candidate_matched_by_generic_terms_is_judged_again_refitted(tmp_path)
 def test_a_refit_that_determines_nothing_new_is_not_named_on_the_validation_rows_alone(tmp_path):
     """A generated force case hiding loop drift at the library's strength (seed 2222, its
     second case): the calibration grid barely moves the temperatures and the linearised change
-    closes a fifth of the gap to the floor though the validation rows confirm it (p = 2e-57).
-    Refitted with the model it is judged again only if the data determine it: here the refit
-    identifies no direction beyond the model's and leaves the calibration rows no better, so
-    only the library's starting values (the twin's own at x1) would carry it. It is not named,
-    and the row says why."""
+    closes a fifth of the gap to the floor. On the validation rows it is mostly an offset per
+    (session, axis), which the offset-immune block test does not count (the per-reading test
+    it replaced gave p = 2e-57), so nothing confirms it and it is not refitted. It is not
+    named; its row says that most of its signature is absorbed by the model's geometry."""
     _, diagnoses, row = _loop_drift_x1(tmp_path, 2222, 1, "force", 0.3)
-    assert row["p_validation_any"] < diagnosis.ALPHA and row["gap_closed"] < diagnosis.GAP_CLOSED
-    assert row["new_directions"] >= 1 and "refit_p_combined" not in row
-    assert "determines 0 direction(s)" in row["refit_rejected"], row
-    assert "cannot determine it" in row["verdict"] and "interleaved" in row["verdict"]
+    assert row["p_validation_any"] >= diagnosis.ALPHA and row["gap_closed"] < diagnosis.GAP_CLOSED
+    assert "refit_p_combined" not in row
+    assert not row["significant"] and "absorbed by geometric_errors" in row["verdict"], row
     assert not any(c["significant"] for c in diagnoses[0]["ranking"])
 
 
@@ -610,6 +535,7 @@ def _one_group(n: int) -> SimpleNamespace:
     grouping = SimpleNamespace(group=np.column_stack([np.zeros(n, int), np.full((n, 2), -1)]),
                                groups=[(0, "x")], cal=np.ones(n, bool))
     grouping.residual_dof = functools.partial(Measurements.residual_dof, grouping)
+    grouping.reading_counts = functools.partial(Measurements.reading_counts, grouping)
     return grouping
 
 
@@ -773,6 +699,9 @@ def test_two_effects_too_small_alone_are_added_together_and_reach_the_floor(tmp_
     assert ladder[-1]["val_err90_nm"] <= 1.1 * floor["all"], ladder
 
 
+@pytest.mark.xfail(strict=True, reason="the validation rows' evidence for loop drift here was "
+                   "its drift offset, which the offset-immune block test does not count (p = "
+                   "0.08): in the papers' order only an interleaved plan shows it")
 def test_a_candidate_closing_half_the_gap_but_not_confirmed_linearised_is_judged_refitted(
         tmp_path):
     """A generated force campaign in the papers' order hiding loop drift x3 beside beam

@@ -1,4 +1,4 @@
-"""The achievable floor's budget (issue 15): per source, nm per axis, measured in the twin by
+"""The achievable floor's budget: per source, nm per axis, measured in the twin by
 switching each source alone on and refitting the true model; it adds up in quadrature to the
 floor. For laboratory data, predicted from the instruments' specifications through a fitted
 model's sensitivities."""

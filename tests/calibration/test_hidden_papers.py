@@ -1,5 +1,5 @@
 """The find-the-missing-effect loop on the shipped hidden scenarios in the papers' conditions
-(scenarios/hidden/, reduced scale; issue 15): the baseline fit returns (a misspecified model is
+(scenarios/hidden/, reduced scale): the baseline fit returns (a misspecified model is
 a result), the hidden effect is named as the missing one or reported absorbed by the baseline,
 and a named effect, added, brings the model to the achievable floor (within AT_FLOOR of the
 twin's complete model refitted on the same data)."""

@@ -1,4 +1,4 @@
-"""The IGM respects the robot (issue 14 item 4): a root outside the actuators' stroke or a
+"""The IGM respects the robot: a root outside the actuators' stroke or a
 target out of reach is reported as such with a reason, never as converged; in-stroke roots are
 preferred over out-of-stroke ones."""
 import numpy as np

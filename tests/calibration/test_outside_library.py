@@ -1,4 +1,4 @@
-"""When the missing effect is not in the library (issue 16): terms from outside the library,
+"""When the missing effect is not in the library: terms from outside the library,
 written as the researcher's own effects (tests/calibration/outside_effects.py), are injected into
 simulated data; the diagnosis claims no library effect, names the variable the term depends on
 first, proposes a form that explains most of the residual, and with the researcher's effect
@@ -305,7 +305,7 @@ def test_users_effect_from_a_file_in_a_scenario_fit_and_model_file(tmp_path):
     text = text.replace('on = ["gravity_sag"]', f'on = ["gravity_sag", "./{path.name}:Ripple"]')
     text += "\n[effects.ripple_a]\namplitude_m = 30e-9\n"
     (tmp_path / "lab.toml").write_text(text)
-    sc = Scenario.load(tmp_path / "lab.toml")
+    sc = Scenario.load(tmp_path / "lab.toml", trust_effects=True)
     assert [e.name for e in sc.effects] == ["gravity_sag", "ripple_a"]
     assert sc.effects[1].amplitude_m == 30e-9
     df, meta = sc.simulate(0.1)
@@ -317,7 +317,7 @@ def test_users_effect_from_a_file_in_a_scenario_fit_and_model_file(tmp_path):
     from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 
     (tmp_path / "fitted.toml").write_text(fitted_toml(fit, "data"))
-    model, _ = load_fitted(tmp_path / "fitted.toml")
+    model, _ = load_fitted(tmp_path / "fitted.toml", trust_effects=True)
     assert model.names == ["gravity_sag", "ripple_a"]
 
 
@@ -354,7 +354,7 @@ def test_errors_in_a_users_effect_name_its_file_and_line(tmp_path):
         'on = ["gravity_sag"]', 'on = ["gravity_sag", "./nowhere.py:Ripple"]')
     (tmp_path / "s.toml").write_text(text)
     with pytest.raises(ScenarioError, match=r"s.toml \[effects\] on: .*no such file"):
-        Scenario.load(tmp_path / "s.toml")
+        Scenario.load(tmp_path / "s.toml", trust_effects=True)
 
 
 def test_users_effect_from_an_entry_point(tmp_path, monkeypatch):
@@ -633,7 +633,7 @@ def test_the_joint_frames_step_scan_is_the_model_readjusted_one_made_once():
     on a mirror step whose moment the model's drift shifts (the residual's scan misplaces it)."""
     from deltatwin.calibration.diagnosis.attribution import laboratory_variables, scan_together
     from deltatwin.calibration.diagnosis.model_form import JointFrame, ModelSpan
-    from deltatwin.calibration.physics.model import _projected
+    from deltatwin.calibration.physics.model import projected
     from tests.calibration.outside_effects import simulate_case
 
     # seed 12345 g09: a 230 nm Z mirror step on the portal's force campaign (model_form's
@@ -645,8 +645,8 @@ def test_the_joint_frames_step_scan_is_the_model_readjusted_one_made_once():
     meas, J = fit.measurements_, fit.jacobian_
     JS = (J.reshape(-1, J.shape[2]) @ (fit.model_.scales[:, None] * fit.identified_directions_)
           ).reshape(J.shape[:2] + (fit.identified_directions_.shape[1],))
-    Jm = _projected(meas, meas.cal, JS)
-    r0 = _projected(meas, meas.cal, fit.residual_)
+    Jm = projected(meas, meas.cal, JS)
+    r0 = projected(meas, meas.cal, fit.residual_)
     frames = [JointFrame(fit, Jm, JS, r0, ModelSpan(Jm)) for _ in range(2)]
     variables = laboratory_variables(meas.df)
     frames[0].scan(variables)

@@ -2,6 +2,7 @@
 Broyden-updated Jacobian, an exact Jacobian wherever convergence is judged, a trust region where
 steps fail, and the fitted model's Jacobian complete."""
 import numpy as np
+import pytest
 import scipy.optimize
 
 from deltatwin.calibration.physics.fit import (
@@ -219,3 +220,42 @@ def test_an_accepted_step_the_updated_jacobian_predicted_poorly_recomputes_it():
     assert _solver_calls(6, [[0.5, 0.5], [0.497, 0.497]])[:3] == ["fun", "fun", "jac"]
     # the exact Jacobian's step predicted poorly (3 % of its fall): no Jacobian before the next
     assert _solver_calls(6, [[0.985, 0.985], [0.5, 0.5]])[:3] == ["fun", "fun", "fun"]
+
+
+def _frame_column_beyond_the_others(df, meta) -> float:
+    """The frame's expansion column of the complete model's calibration Jacobian (scaled,
+    session zeros out) beyond the span of every other column, m."""
+    from deltatwin.calibration.diagnosis.floor import true_model
+    from deltatwin.calibration.physics.model import PhysicsModel, projected
+
+    effects, values = true_model(meta)
+    model = PhysicsModel(effects, None, {"loop_drift": {"frame_arm_m": [-0.6, 0.0]}})
+    meas = measurements(df, meta, model.params)
+    Js = projected(meas, meas.cal, model.jacobian(meas, model.theta())[1], scale=model.scales)
+    j = model.labels.index("loop_drift.frame_cte_per_K")
+    Q = np.linalg.qr(np.delete(Js, j, axis=1))[0]
+    return float(np.linalg.norm(Js[:, j] - Q @ (Q.T @ Js[:, j])))
+
+
+@pytest.mark.slow
+def test_a_direction_the_thermometers_noise_alone_determines_is_not_fitted():
+    """The force campaign in the papers' conditions (hidden/magnetic-force, 30 %): with
+    perfect thermometers (the twin's same timeline and draws) the frame's expansion column
+    lies within the other columns' span to below the fit's threshold (noise / identifiable
+    ratio); with the papers' 3 mK thermometers it reaches far above it, all of it noise. A
+    fit that counted it regressed on the noise; the fit counts information beyond the
+    thermometers' own, and holds the frame's coefficient as the perfect-thermometer fit does."""
+    from deltatwin.calibration.diagnosis.floor import true_fit
+
+    sc = Scenario.load("hidden/magnetic-force")
+    noisy, perfect = sc, sc.with_perfect(["thermometers"])
+    (df, meta), (df_p, meta_p) = (s.simulate(sc.reduced_scale) for s in (noisy, perfect))
+    threshold = 5e-9 / 0.3
+    assert _frame_column_beyond_the_others(df_p, meta_p) < 0.5 * threshold
+    assert _frame_column_beyond_the_others(df, meta) > 2 * threshold
+    fraction = {}
+    for name, (d, m) in {"noisy": (df, meta), "perfect": (df_p, meta_p)}.items():
+        table = true_fit(d, m).parameter_table()
+        fraction[name] = table.loc["loop_drift.frame_cte_per_K", "identified_fraction"]
+    assert fraction["perfect"] < 0.5 and fraction["noisy"] < 0.5, fraction
+    assert meta_p["instruments"]["T_noise_C"] == 0.0 and meta["instruments"]["T_noise_C"] > 0

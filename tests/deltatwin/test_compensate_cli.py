@@ -1,4 +1,4 @@
-"""``deltatwin compensate`` end to end (issue 19): commanded through the twin's own physics (the
+"""``deltatwin compensate`` end to end: commanded through the twin's own physics (the
 true model), the robot reaches its targets to the readings' noise, far better than the nominal
 kinematics, though the run's temperatures leave the calibration range; a run stopped midway and
 resumed from its journal gives the same data."""

@@ -1,5 +1,5 @@
 """The same compensated campaign through the serial drivers and emulators equals the simulated
-one to the instruments' resolution (issue 19): the same decisions (motor coordinates), the same
+one to the instruments' resolution: the same decisions (motor coordinates), the same
 readings."""
 import json
 

@@ -117,6 +117,40 @@ def test_pymeasure_keithley2700_drives_the_emulator(emulated):
         k.adapter.close()
 
 
+def test_pymeasure_scan_after_reset_reads_without_init_cont_off(emulated):
+    """The Model 2700 manual (section 8, "Idle"): *RST restores the one-shot mode (continuous
+    initiation OFF); power-on (the factory default setup) and SYSTem:PRESet leave it ON. So
+    PyMeasure's Keithley2700 reset, the PT100 set-up, a scan list, TSO IMM, LSEL INT and READ?
+    read the scan with no INIT:CONT OFF sent, and no error is queued."""
+    from pymeasure.adapters import VISAAdapter
+    from pymeasure.instruments.keithley import Keithley2700
+    backing, lab = emulated
+    emu = lab.emulators["thermometers"]
+    adapter = VISAAdapter(f"ASRL{emu.link.device}::INSTR", visa_library="@py", baud_rate=19200,
+                          read_termination="\n", write_termination="\n", timeout=3000)
+    k = Keithley2700(adapter)
+    try:
+        assert k.ask("INIT:CONT?").strip() == "1"              # power-on: factory defaults
+        k.reset()                                              # status:queue:clear;*RST;...
+        assert k.ask("INIT:CONT?").strip() == "0"
+        chans = "(@101:103)"
+        for cmd in [f"SENS:FUNC 'TEMP',{chans}", f"SENS:TEMP:TRAN FRTD,{chans}",
+                    f"SENS:TEMP:FRTD:TYPE PT100,{chans}", f"ROUT:SCAN {chans}",
+                    "ROUT:SCAN:TSO IMM", "ROUT:SCAN:LSEL INT", "FORM:ELEM READ"]:
+            k.write(cmd)
+        temps = k.values("READ?")
+        assert len(temps) == 3
+        t = backing.clock.now()
+        np.testing.assert_allclose(temps, 20.0 + 1e-3 * t + np.array([0.1, 0.2, 0.3]),
+                                   atol=0.01)
+        assert k.check_errors() == []
+        k.write("SYST:PRES")
+        assert k.ask("INIT:CONT?").strip() == "1"
+        assert k.ask("ROUT:SCAN?").strip() == "(@)"           # the set-up is lost
+    finally:
+        k.adapter.close()
+
+
 def test_reading_counter_past_99999(emulated, drivers):
     """The reading number grows past 5 digits (+100001RDNG#); the driver keeps reading."""
     backing, lab = emulated

@@ -1,4 +1,4 @@
-"""The laboratory's air records (issue 15): a barometer and a hygrometer as instruments of the
+"""The laboratory's air records: a barometer and a hygrometer as instruments of the
 common interface, their columns (p_Pa, RH_pct) in the dataset, the same through the interface as
 through the fast path, and the physics model reading them."""
 import dataclasses

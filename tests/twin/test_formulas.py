@@ -80,7 +80,7 @@ def ciddor_index(wavelength_m, T_C, p_Pa, vapour_Pa, co2_ppm=450.0):
 def test_ciddor_implementation_gives_the_published_reference_values():
     """This Ciddor implementation at 633 nm, 20 degC, 101.325 kPa, 450 ppm CO2: 1.000271800 dry
     and 1.000271375 at 50 % relative humidity (1169 Pa): the values NIST's Engineering Metrology
-    Toolbox calculator is quoted for (recalled, not re-checked online in this session)."""
+    Toolbox calculator is quoted for (recalled, not re-checked online)."""
     assert ciddor_index(632.99e-9, 20.0, 101325.0, 0.0) == pytest.approx(1.000271800, abs=1e-9)
     assert ciddor_index(632.99e-9, 20.0, 101325.0, 1169.0) == pytest.approx(1.000271375, abs=1e-9)
 

@@ -14,7 +14,7 @@ def geom():
 
 def williams_fk(geom, q):
     """R. L. Williams II (2015), revolute-input Delta FK: intersection of three spheres solved by
-    eliminating x and y linearly, then a quadratic in z (written independently of twin.kinematics)."""
+    eliminating x and y linearly, then a quadratic in z (written independently of models.kinematics)."""
     theta = q + geom.theta_zero
     out = []
     for th in theta:

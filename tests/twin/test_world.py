@@ -1,4 +1,4 @@
-"""The twin's thermal grid at floating-point boundaries (issue 17 item 1)."""
+"""The twin's thermal grid at floating-point boundaries."""
 import numpy as np
 import pytest
 

@@ -11,6 +11,14 @@ The researcher's own effects join the library the same way (docs/effects.md), na
 
 Once resolved, a user effect is also known by its ``name``. Errors in its file (at import) or in
 its hooks (at evaluation) are reported as an ``EffectError`` naming the file and line.
+
+A user effect is code: a file (a scenario, a fitted model) that names one would run it when
+read. The readers of files therefore pass ``trust``: False (the default of ``Scenario.load``,
+``load_fitted``, ...) refuses every ``file.py:Class`` and ``module:Class`` a file names with an
+``UntrustedEffectError`` naming the file and the code; True runs them; a collection of specs runs
+only the code those name (the same file or module the user gave on the command line). A spec
+given directly (``effect_class``, ``PhysicsFit([...])``, ``fit --effects``) is the user's own
+choice and trusted. Library effects and installed entry points need no consent.
 """
 from __future__ import annotations
 
@@ -47,8 +55,10 @@ LIBRARY: dict[str, type[Effect]] = {cls.name: cls for cls in (
     BeamMisalignment, SensorContact, ServoSettling, RoomClimate, PeltierSupports, MotorHeating, CoilHeating)}
 
 ENTRY_POINT_GROUP = "deltatwin.effects"
+# every hook a user effect may define (base.py's stage hooks), each guarded by ``_guarded``
 HOOKS = ("robot", "environment", "heat_sources", "motor_settling", "thermometers",
-         "sensed_parts", "part_temperatures", "wrench", "optics")
+         "sensed_parts", "part_temperatures", "motor_angles", "wrench", "wrench_derivatives",
+         "optics")
 
 # user effects resolved so far: by their name, and the spec each was loaded from
 _USER: dict[str, type[Effect]] = {}
@@ -104,6 +114,31 @@ def _checked(obj, spec: str, where: str) -> type[Effect]:
         raise EffectError(f"{where}: {spec!r}: parameters must be Parameter(...) entries, got "
                           f"{bad[0]!r}")
     return obj
+
+
+class UntrustedEffectError(EffectError):
+    """A file names a user effect whose code the user has not consented to run."""
+
+
+def _code_of(spec: str, base_dir=None) -> str:
+    """The code a ``file.py:Class`` or ``module:Class`` spec runs: the file's resolved path, or
+    the module's name (a bare ``file.py`` or module names the same code)."""
+    target, sep, cls_name = spec.strip().rpartition(":")
+    if not (sep and cls_name.isidentifier() and target):
+        target = spec.strip()
+    if target.endswith(".py") or "/" in target or "\\" in target:
+        path = Path(target).expanduser()
+        if not path.is_absolute():
+            path = Path(base_dir or ".") / path
+        return str(path.resolve())
+    return target
+
+
+def _consented(trust, code: str) -> bool:
+    """Whether ``trust`` (True, False, or the specs the user gave) lets ``code`` run."""
+    if isinstance(trust, bool):
+        return trust
+    return code in {_code_of(s) for s in trust}
 
 
 def _load_file(path: Path, cls_name: str, spec: str, where: str) -> type[Effect]:
@@ -167,11 +202,13 @@ def _entry_point(name: str, where: str) -> type[Effect] | None:
     return None
 
 
-def effect_class(spec, base_dir=None, where: str = "effects") -> type[Effect]:
+def effect_class(spec, base_dir=None, where: str = "effects", trust=True) -> type[Effect]:
     """The Effect subclass a spec names: a library name, a user effect already resolved (by its
     name), ``file.py:Class`` (relative to ``base_dir``, default the working directory),
     ``module:Class``, an entry point of the ``deltatwin.effects`` group, or an Effect subclass
-    itself. Errors name ``where``."""
+    itself. Errors name ``where``. ``trust`` (see the module docstring): whether the code of a
+    ``file.py:Class`` or ``module:Class`` may run (False: UntrustedEffectError; a collection of
+    specs: only their code)."""
     if isinstance(spec, type):
         cls = _checked(spec, getattr(spec, "__name__", str(spec)), where)
         if cls.name not in LIBRARY:
@@ -186,6 +223,12 @@ def effect_class(spec, base_dir=None, where: str = "effects") -> type[Effect]:
         return _USER[spec]
     target, sep, cls_name = spec.rpartition(":")
     if sep and cls_name.isidentifier() and target:
+        code = _code_of(spec, base_dir)
+        if not _consented(trust, code):
+            raise UntrustedEffectError(
+                f"{where}: {spec!r} is a user effect: reading this file would run the Python code "
+                f"{code}; refused, as it may do anything. Run it only if you trust it: "
+                "--trust-effects (Python: trust_effects=True)")
         if target.endswith(".py") or "/" in target or "\\" in target:
             path = Path(target).expanduser()
             if not path.is_absolute():
@@ -321,13 +364,14 @@ def _installed(source: str) -> bool:
 
 
 def make_effect(spec, values: dict | None = None, where: str = "effects",
-                check_minimum: bool = True, base_dir=None) -> Effect:
-    """The effect ``spec`` names (see ``effect_class``) with parameter ``values`` (validated; a
-    fitted model's values may be below a parameter's physical minimum with
-    ``check_minimum=False``); errors name ``where``."""
-    cls = effect_class(spec, base_dir, where)
+                check_minimum: bool = True, base_dir=None, trust=True) -> Effect:
+    """The effect ``spec`` names (see ``effect_class``, and its ``trust``) with parameter
+    ``values`` (validated; a fitted model's values may be below a parameter's physical minimum
+    with ``check_minimum=False``); errors name ``where``."""
+    cls = effect_class(spec, base_dir, where, trust)
     return cls(where=f"{where}.{cls.name}", check_minimum=check_minimum, **(values or {}))
 
 
-__all__ = ["ENTRY_POINT_GROUP", "LIBRARY", "Effect", "EffectError", "Parameter", "code_sha256",
-           "effect_class", "effect_spec", "make_effect", "shift_reading"]
+__all__ = ["ENTRY_POINT_GROUP", "LIBRARY", "Effect", "EffectError", "Parameter",
+           "UntrustedEffectError", "code_sha256", "effect_class", "effect_spec", "make_effect",
+           "shift_reading"]

@@ -9,7 +9,7 @@ else; an effect that is off is simply absent, and every stage then keeps its ide
 index constant). Adding an effect = one module in twin/effects/ + one line in LIBRARY, or a
 researcher's own file / package (twin/effects/__init__.py, docs/effects.md).
 
-The same effect is also a term of a physics model fitted to measurements (calibration/physics.py):
+The same effect is also a term of a physics model fitted to measurements (calibration/physics/):
 there the stages that act on the robot (``robot``, ``part_temperatures``, ``wrench``, ``optics``)
 and the sensors' reading of the parts (``sensed_parts``) are evaluated on conditions taken from
 the data (sensor temperatures, motor coordinates, coil

@@ -1,0 +1,176 @@
+"""The statistical rule (calibration/stats.py): each test's false-claim rate on null data where
+the truth is known, its immunity to offsets, its power on a real change, and its formulas
+against independent computations (scipy.stats, a plain loop)."""
+import math
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from deltatwin.calibration import stats
+
+
+def _ar1(rng, n: int, rho: float) -> np.ndarray:
+    e = np.empty(n)
+    e[0] = rng.standard_normal()
+    for i in range(1, n):
+        e[i] = rho * e[i - 1] + np.sqrt(1 - rho ** 2) * rng.standard_normal()
+    return e
+
+
+def _layout(n: int, sessions: int = 1):
+    """(group (N,3), val (N,), session (N,), t_s (N,)): n validation rows read on three axes,
+    cut into ``sessions`` consecutive sessions (a group per (session, axis))."""
+    session = np.arange(n) * sessions // n
+    group = session[:, None] * 3 + np.arange(3)[None, :]
+    return group, np.ones(n, bool), session, np.arange(n, dtype=float)
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9, 0.97])
+def test_the_validation_test_holds_its_level_on_correlated_residuals(rho):
+    """Under the null (a change unrelated to the residual, both AR(1), slow where rho is near
+    1) the block test's p-value is below a level no more often than the level allows: the
+    spurious regression of two slow series is what the blocks guard against (rho = 0.97: a
+    series correlated over about 60 rows, a fifth of the rows)."""
+    rng = np.random.default_rng(15)
+    n = 300
+    group, val, session, t = _layout(n)
+    p = []
+    for _ in range(600):
+        before = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
+        change = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
+        p.append(stats.validation_p(before, before - change, group, val, session, t))
+    p = np.array(p)
+    # 600 draws: a rate of 0.05 lies within 0.03-0.07 with 99 % probability
+    assert np.mean(p < 0.05) <= 0.08
+    assert np.mean(p < 0.01) <= 0.025
+    assert np.mean(p < 0.001) <= 0.005
+
+
+def test_offsets_are_never_evidence():
+    """Constant offsets per (session, axis), 1-50 nm, drawn 1000 times: as the change they are
+    no evidence (p = 1), and added to the residual they leave a real change's p-value as it
+    was (to round-off)."""
+    rng = np.random.default_rng(41)
+    n = 240
+    group, val, session, t = _layout(n, sessions=2)
+    tt = np.linspace(0, 1, n)
+    shape = np.column_stack([np.sin(5 * tt), tt ** 2, np.cos(3 * tt)]) * 1e-8
+    for _ in range(1000):
+        before = rng.standard_normal((n, 3)) * 1e-8
+        offsets = rng.uniform(1e-9, 50e-9, 6) * rng.choice([-1, 1], 6)
+        shift = offsets[group]
+        assert stats.validation_p(before, before - shift, group, val, session, t) == 1.0
+        real = before + shape
+        p = stats.validation_p(real, real - shape, group, val, session, t)
+        p_shifted = stats.validation_p(real + shift, real + shift - shape, group, val, session, t)
+        assert p_shifted == pytest.approx(p, rel=1e-9, abs=1e-300)
+
+
+def test_the_validation_test_finds_a_change_that_explains_the_residual():
+    """A change that is the residual's structure, leaving white noise, is shown (tiny p); the
+    same change with the opposite sign, or none, is not."""
+    rng = np.random.default_rng(16)
+    n = 300
+    group, val, session, t = _layout(n)
+    tt = np.linspace(0, 1, n)
+    change = np.column_stack([np.sin(9 * tt), tt ** 2, np.cos(7 * tt)]) * 2e-8
+    before = change + rng.standard_normal((n, 3)) * 5e-9
+    assert stats.validation_p(before, before - change, group, val, session, t) < 1e-6
+    assert stats.validation_p(before, before + change, group, val, session, t) > 0.99
+    assert stats.validation_p(before, before, group, val, session, t) == 1.0
+
+
+def test_the_validation_test_against_a_cluster_robust_regression_written_here():
+    """The p-value equals a plain-loop computation of the cluster-robust slope t test: each
+    group's means removed, the slope through the origin, the blocks' score sums, G / (G - 1)
+    small-sample factor, Student's t with G - 1 degrees of freedom (scipy.stats); eight time
+    blocks, each holding the three axes' readings of its span."""
+    rng = np.random.default_rng(5)
+    n = 97                                  # blocks of unequal length
+    group, val, session, t = _layout(n)
+    before = rng.standard_normal((n, 3))
+    change = 0.3 * before + rng.standard_normal((n, 3))
+    got = stats.validation_p(before, before - change, group, val, session, t)
+    xs, ys, clusters = [], [], []
+    for g in range(3):
+        b = before[:, g] - before[:, g].mean()
+        c = change[:, g] - change[:, g].mean()
+        for i in range(n):
+            xs.append(c[i])
+            ys.append(b[i])
+            clusters.append((i * 8) // n)    # a block holds every axis of its time span
+    xs, ys = np.array(xs), np.array(ys)
+    slope = sum(x * y for x, y in zip(xs, ys)) / sum(x * x for x in xs)
+    sums = {}
+    for x, y, c in zip(xs, ys, clusters):
+        sums[c] = sums.get(c, 0.0) + x * (y - slope * x)
+    G = len(sums)
+    var = G / (G - 1) * sum(v * v for v in sums.values()) / sum(x * x for x in xs) ** 2
+    assert G == 8
+    assert got == pytest.approx(sps.t.sf(slope / math.sqrt(var), G - 1), rel=1e-10)
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.95])
+def test_the_calibration_f_test_holds_its_level_on_correlated_rows(rho):
+    """Under the null (a slow candidate change unrelated to a slow residual, both AR(1) with
+    rho = 0.95) the F test on independent rows is below 0.01 in over a third of the draws;
+    with the serial-correlation factor it comes near its level. On independent rows the factor
+    stays near 1 (nothing lost), and a change that varies row to row is barely penalised on a
+    slow residual."""
+    rng = np.random.default_rng(31)
+    n = 400
+    naive, corrected, factors, pose_factors = [], [], [], []
+    for _ in range(300):
+        e, x = _ar1(rng, n, rho), _ar1(rng, n, rho)
+        e, x = e - e.mean(), x - x.mean()
+        e1 = e - x * (x @ e) / (x @ x)
+        factors.append(stats.serial_inflation([n], e - e1, e1))
+        naive.append(stats.f_test_p(e @ e, e1 @ e1, 1, n - 2))
+        corrected.append(stats.f_test_p(e @ e, e1 @ e1, 1, n - 2, factors[-1]))
+        white = rng.standard_normal(n)
+        left = e - white * (white @ e) / (white @ white)
+        pose_factors.append(stats.serial_inflation([n], e - left, left))
+    naive, corrected = np.array(naive), np.array(corrected)
+    assert np.mean(corrected < 0.01) <= 0.07
+    assert np.median(pose_factors) < 1.5
+    if rho:
+        assert np.mean(naive < 0.01) > 0.3 and np.median(factors) > 5
+    else:
+        assert np.median(factors) < 1.2
+
+
+def test_the_serial_factor_skips_groups_without_readings():
+    """A (session, axis) group with no readings adds nothing to the factor, and one of a
+    single reading no lag: the factor is that of the other groups."""
+    rng = np.random.default_rng(37)
+    n = 200
+    e, x = _ar1(rng, n, 0.95), _ar1(rng, n, 0.95)
+    e1 = e - x * (x @ e) / (x @ x)
+    alone = stats.serial_inflation([n], e - e1, e1)
+    padded = stats.serial_inflation([n, 1, 0], np.r_[e - e1, 0.0], np.r_[e1, 0.0])
+    assert alone > 5 and padded == pytest.approx(alone, rel=1e-9)
+
+
+def test_the_formulas_against_scipy():
+    """The F test's p-value against scipy.stats.f, the rule's critical F against its inverse,
+    the BIC's zero against the BIC itself, Fisher's combination against scipy.stats."""
+    assert stats.f_test_p(120.0, 100.0, 3, 400) == pytest.approx(
+        sps.f.sf((20.0 / 3) / (100.0 / 400), 3, 400), rel=1e-12)
+    assert stats.f_test_p(100.0, 120.0, 3, 400) == 1.0
+    rule = stats.DecisionRule(alpha=1e-3)
+    assert rule.f_critical(4, 300) == pytest.approx(sps.f.isf(1e-3, 4, 300), rel=1e-10)
+    n, k, df2 = 1000, 3, 980
+    F = stats.f_at_zero_bic(n, k, df2)
+    rss0 = 1.0
+    rss1 = rss0 / (1 + F * k / df2)               # the F statistic's definition inverted
+    assert stats.bic_change(n, rss0, rss1, k) == pytest.approx(0.0, abs=1e-9)
+    assert stats.fisher_p(0.01, 0.2) == pytest.approx(
+        sps.combine_pvalues([0.01, 0.2], method="fisher")[1], rel=1e-12)
+
+
+def test_a_bad_rule_is_refused():
+    with pytest.raises(ValueError, match="alpha = 0"):
+        stats.DecisionRule(alpha=0)
+    with pytest.raises(ValueError, match="validation_blocks = 1"):
+        stats.DecisionRule(validation_blocks=1)
