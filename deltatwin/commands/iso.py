@@ -327,7 +327,10 @@ def write_outputs(args, sc, sci, scale, test, arms, results, rows) -> None:
     intro = (f"{title} on {sc.name} (seed {sci.seed}), "
              f"{'dataset ' + str(args.data) if args.data else args.instruments}; "
              f"{len(test.plan)} points; parameters {strict_json(test.parameters)}. "
-             f"deltatwin {__import__('deltatwin').__version__}.")
+             + (f"Every arm {args.after_h:g} h after the robot's calibration campaign (scale "
+                f"{args.cal_scale or 1:g}), from the same time in the same climate. "
+                if args.compensate else "")
+             + f"deltatwin {__import__('deltatwin').__version__}.")
     extra = ("## Per target\n\n" + report.per_target_tables(results)
              if test.test == "iso230-2" else "")
     report.write_markdown(out / "report.md", report.markdown(f"{title} report", rows, figures,
