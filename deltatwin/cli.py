@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "deltatwin.commands.emulate",
     "deltatwin.commands.campaign",
     "deltatwin.commands.compensate",
+    "deltatwin.commands.iso",
     "deltatwin.commands.sweep",
 )
 

@@ -3,7 +3,8 @@
 Tables: [scenario] name, description, seed; [robot] file (robot parameter TOML, default the
 nominal robot); [effects] on = [names] and one sub-table of parameters per effect;
 [sensors] sensor name = part; [instruments] InstrumentSettings fields + cosine_correction;
-[campaign] kind = "thermal" | "force" and its plan; [reduced] scale for tests; [hidden] effects,
+[campaign] kind = "thermal" | "force" | "iso9283" | "iso230-2" | "iso230-3" and its plan
+(the last three: the standards' tests, twin/standard_tests.py); [reduced] scale for tests; [hidden] effects,
 baseline and known (the laboratory's constants given to every fit) for a hidden-effect case.
 Every key is checked: an unknown or misspelled key, a value of the wrong type or unit, an
 impossible value, all raise ScenarioError naming the file, the key and the reason.
@@ -50,7 +51,13 @@ TABLES = {"scenario": {"name", "description", "seed"}, "robot": {"file"},
           "reduced": {"scale"}, "hidden": {"effects", "baseline", "known"}}
 CAMPAIGN_KEYS = {"thermal": {"kind", "warmup_s", "n_positions", "cal_fraction", "sessions"},
                  "force": {"kind", "warmup_s", "cal_levels", "val_levels", "forces_N",
-                           "force_per_A", "readings", "order"}}
+                           "force_per_A", "readings", "order"},
+                 "iso9283": {"kind", "warmup_s", "cycles", "order", "corner_fraction",
+                             "stroke_fraction"},
+                 "iso230-2": {"kind", "warmup_s", "axes", "targets", "approaches", "overrun",
+                              "stroke_fraction"},
+                 "iso230-3": {"kind", "warmup_s", "duration_h", "position_m", "stroke_fraction"}}
+STANDARD_TESTS = ("iso9283", "iso230-2", "iso230-3")   # twin/standard_tests.py
 FORCE_ORDERS = ("papers", "interleaved")   # the cal grid then the val grid, or merged
 SESSION_KEYS = {"name", "axes", "cal", "val"}
 
@@ -184,6 +191,14 @@ class Scenario:
             text = path.read_text(encoding="utf-8")
         except UnicodeDecodeError as exc:
             raise ScenarioError(f"{path}: not a UTF-8 text file ({exc})") from exc
+        return cls.from_text(text, path, seed, scale, trust_effects)
+
+    @classmethod
+    def from_text(cls, text: str, path, seed: int | None = None, scale: float | None = None,
+                  trust_effects=False) -> Scenario:
+        """Validate a scenario's TOML ``text`` as the file ``path`` (relative paths in it are
+        from that file's folder; ``trust_effects``: ``load``'s)."""
+        path = Path(path)
         try:
             doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
@@ -330,6 +345,21 @@ class Scenario:
             return path.relative_to(SCENARIO_DIR.resolve()).with_suffix("").as_posix()
         return str(self.path)
 
+    def with_campaign(self, campaign: dict, path=None, instruments: dict | None = None,
+                      trust_effects=False) -> Scenario:
+        """This scenario (robot, laboratory, seed) with another [campaign] table, e.g. a
+        standard's test (``{"kind": "iso9283", "cycles": 30}``), and ``instruments`` settings
+        changed: its TOML text rewritten and validated again, as the file ``path`` (default:
+        this one's; ``trust_effects``: ``load``'s)."""
+        import tomli_w
+
+        doc = tomllib.loads(self.text)
+        doc["campaign"] = campaign
+        if instruments:
+            doc["instruments"] = {**doc.get("instruments", {}), **instruments}
+        return Scenario.from_text(tomli_w.dumps(doc), path or self.path, self.seed,
+                                  trust_effects=trust_effects)
+
     # -- the laboratory's error sources -------------------------------------------------------
     def sources(self) -> list[str]:
         """The laboratory's error sources (keys of ERROR_SOURCES) present in this scenario: the
@@ -388,6 +418,8 @@ class Scenario:
     def plan(self, rng, scale: float | None = None) -> Plan:
         """The campaign plan, at full scale or scaled (number of points times ``scale``)."""
         c, f = self.campaign, f"{self.path} [campaign]"
+        if c["kind"] in STANDARD_TESTS:
+            return self.standard_test(rng, scale).plan
         scale = 1.0 if scale is None else check_scale(scale)
         stroke = self.params.stroke_rad
         if c["kind"] == "thermal":
@@ -431,6 +463,46 @@ class Scenario:
                                 "(the papers' cal grid then val grid, or the two merged)")
         return force_plan(stroke, cal, val, forces, per_A, readings,
                           interleaved=order == "interleaved")
+
+    def standard_test(self, rng, scale: float | None = None):
+        """The standard's test of an ``iso*`` campaign (``twin.standard_tests.StandardTest``:
+        its plan and what each point is), at full scale or scaled: fewer cycles (ISO 9283),
+        targets and approaches (ISO 230-2), hours (ISO 230-3)."""
+        from deltatwin.twin import standard_tests as st
+
+        c, f = self.campaign, f"{self.path} [campaign]"
+        scale = 1.0 if scale is None else check_scale(scale)
+        num = lambda k, d, lo, integer=False, hi=None: _number(f"{f} {k}", c.get(k, d), lo,
+                                                                integer, hi)
+        shrink = lambda n, low: max(low, int(round(n * scale)))
+        frac = num("stroke_fraction", st.STROKE_FRACTION, 0.0, hi=1.0)
+        try:
+            if c["kind"] == "iso9283":
+                order = c.get("order", list(st.ISO9283_ORDER))
+                return st.iso9283_plan(self.params, shrink(num("cycles", st.ISO9283_CYCLES, 2,
+                                                               True, 10**4), 2),
+                                       tuple(order) if isinstance(order, list) else order,
+                                       num("corner_fraction", st.ISO9283_CORNER_FRACTION, 0.0),
+                                       frac)
+            if c["kind"] == "iso230-2":
+                axes = c.get("axes", ["x", "y", "z"])
+                if not isinstance(axes, list):
+                    raise ValueError(f"axes = {axes!r}: expected a list of x, y, z")
+                return st.iso230_2_plan(
+                    self.params, rng, tuple(axes),
+                    shrink(num("targets", st.ISO230_2_TARGETS, 2, True, 1000), 3),
+                    shrink(num("approaches", st.ISO230_2_APPROACHES, 2, True, 1000), 2),
+                    num("overrun", st.ISO230_2_OVERRUN, 0.0, hi=0.5), frac)
+            position = c.get("position_m")
+            if position is not None and (not isinstance(position, list) or len(position) != 3):
+                raise ValueError(f"position_m = {position!r}: expected [x, y, z] in m")
+            return st.iso230_3_plan(self.params, self.settings,
+                                    num("duration_h", st.ISO230_3_HOURS, 0.0, hi=720.0) * scale,
+                                    position, frac)
+        except ValueError as exc:
+            if isinstance(exc, ScenarioError):
+                raise
+            raise ScenarioError(f"{f}: {exc}") from exc
 
     def dead_path(self) -> dict:
         """Nominal beam path head -> cube face (m) per axis, for the cosine correction."""

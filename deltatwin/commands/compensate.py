@@ -112,23 +112,25 @@ def compensation_plan(sc, rng, n_targets: int, nominal, axes):
     return plan, ["nominal", "model"] * n_targets, targets[rep], per_A
 
 
-def compensation_world(sc, scale, after_h: float, plan, seed: int):
+def compensation_world(sc, scale, after_h: float, plan, seed: int, lab=None):
     """(twin, simulated lab) of the scenario's robot and laboratory, the lab's clock set
     ``after_h`` hours after the end of the calibration campaign at ``scale`` (the twin's horizon
     covers the compensated campaign ``plan`` from there). The session's settles and reading
     windows are its own draws, from its ``seed`` and start time (``twin.world.random_streams``):
     counted from the world's start with the robot's seed, every session's zero would sit on the
-    same servo settle as the calibration campaign's."""
+    same servo settle as the calibration campaign's. ``lab``: the scenario whose laboratory
+    settings run ``plan`` (default ``sc``; e.g. the same with a longer time per point)."""
     from deltatwin.twin.instruments.simulated import SimulatedLab
     from deltatwin.twin.world import Twin
 
     _, cal_plan = sc.build(scale)
     start_s = sc.horizon_s(cal_plan) + after_h * 3600.0
-    twin = Twin(sc.params, sc.effects, sc.sensors, sc.seed, start_s + sc.horizon_s(plan),
+    lab = sc if lab is None else lab
+    twin = Twin(sc.params, sc.effects, sc.sensors, sc.seed, start_s + lab.horizon_s(plan),
                 sc.campaign.get("warmup_s", 7200.0), session=(seed, round(start_s * 1e3)))
-    lab = SimulatedLab(twin, sc.settings)
-    lab.t = start_s
-    return twin, lab
+    simulated = SimulatedLab(twin, lab.settings)
+    simulated.t = start_s
+    return twin, simulated
 
 
 def _check_robot(instruments, sc) -> None:
