@@ -185,14 +185,13 @@ def correlation_rows(x: np.ndarray) -> float:
 def sandwich_covariance(J: np.ndarray, r: np.ndarray, row: np.ndarray,
                         t_s: np.ndarray) -> np.ndarray:
     """(k, k) covariance of least-squares coefficients whose residuals are serially
-    correlated: (J^T J)^-1 S (J^T J)^-1 (the sandwich), S the Newey-West (Bartlett kernel)
-    long-run covariance of the scores summed per data row (``row`` (n,) of each reading of
-    ``J`` (n, k) and ``r`` (n,); the readings of one row share its moment and its
-    temperatures), rows in the time order of ``t_s`` (N,). The kernel reaches twice the
-    scores' integrated correlation time (``correlation_rows``), at least Newey and West's
-    4 (rows / 100)^(2/9), at most a quarter of the rows (statsmodels ``S_hac_simple``)."""
-    from statsmodels.stats.sandwich_covariance import S_hac_simple
-
+    correlated: (J^T J)^-1 S (J^T J)^-1 (the sandwich), S the long-run covariance of the
+    scores summed per data row (``row`` (n,) of each reading of ``J`` (n, k) and ``r`` (n,);
+    the readings of one row share its moment and its temperatures), rows in the time order of
+    ``t_s`` (N,), by overlapping batch means (Meketon & Schmeiser 1984: the Bartlett-kernel
+    estimator of Newey and West to O(L / n), in O(n k^2) from cumulative sums). The batches
+    are twice the scores' integrated correlation time (``correlation_rows``), at least Newey
+    and West's 4 (rows / 100)^(2/9), at most a quarter of the rows."""
     k = J.shape[1]
     if k == 0 or r.size == 0:
         return np.zeros((k, k))
@@ -202,9 +201,21 @@ def sandwich_covariance(J: np.ndarray, r: np.ndarray, row: np.ndarray,
     scores = scores[np.argsort(t_s[used], kind="stable")]
     n = scores.shape[0]
     tau = max(correlation_rows(scores[:, j]) for j in range(k))
-    lags = int(min(n // 4, max(np.floor(4 * (n / 100.0) ** (2 / 9)), np.ceil(2 * tau))))
+    batch = int(min(max(n // 4, 1), max(np.floor(4 * (n / 100.0) ** (2 / 9)), np.ceil(2 * tau))))
     bread = np.linalg.pinv(J.T @ J)
-    return bread @ S_hac_simple(scores, nlags=lags) @ bread
+    return bread @ overlapping_batch_means(scores, batch) @ bread
+
+
+def overlapping_batch_means(scores: np.ndarray, batch: int) -> np.ndarray:
+    """(k, k) long-run covariance of the sum of the rows of ``scores`` (n, k), in time order:
+    n / (batch (n - batch + 1)) sum over every window of ``batch`` consecutive rows of its
+    sum's outer product (Meketon & Schmeiser 1984); the plain sum of outer products when
+    ``batch`` is 1."""
+    n = scores.shape[0]
+    batch = int(min(max(batch, 1), n))
+    cum = np.vstack([np.zeros((1, scores.shape[1])), np.cumsum(scores, axis=0)])
+    sums = cum[batch:] - cum[:-batch]                                # (n - batch + 1, k)
+    return sums.T @ sums * (n / (batch * (n - batch + 1)))
 
 
 @dataclass(frozen=True)

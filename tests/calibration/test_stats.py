@@ -174,3 +174,20 @@ def test_a_bad_rule_is_refused():
         stats.DecisionRule(alpha=0)
     with pytest.raises(ValueError, match="validation_blocks = 1"):
         stats.DecisionRule(validation_blocks=1)
+
+
+def test_overlapping_batch_means_against_statsmodels_newey_west():
+    """The long-run covariance by overlapping batches of L rows equals statsmodels' Bartlett-
+    kernel (Newey-West) estimate with L - 1 lags to within 1 % on 20,000 rows of AR(1)
+    scores, and the plain sum of outer products at L = 1."""
+    from scipy.signal import lfilter
+    from statsmodels.stats.sandwich_covariance import S_hac_simple
+
+    rng = np.random.default_rng(0)
+    for rho in (0.0, 0.9):
+        x = lfilter([1.0], [1.0, -rho], rng.standard_normal((20000, 3)), axis=0)
+        x -= x.mean(axis=0)
+        assert np.allclose(stats.overlapping_batch_means(x, 1), x.T @ x, rtol=1e-12)
+        for L in (20, 100):
+            nw, obm = S_hac_simple(x, nlags=L - 1), stats.overlapping_batch_means(x, L)
+            assert np.allclose(np.diag(obm), np.diag(nw), rtol=0.01), (rho, L)
