@@ -263,7 +263,7 @@ def record_achievable_floor(df, meta: dict, scenario=None, scale=None) -> tuple[
     truth (``meta["truth"]``); returns the floor (nm by axis and pooled) and its fit (the other
     starts' fits in its ``start_fits_``, for a later fit of the same model to reuse). With the twin's
     ``scenario`` (and the ``scale`` it ran at) the budget is measured per source
-    (``measured_floor_budget``), else it is the interferometers' share and the rest."""
+    (``measured_floor_budget``), else it is the noise floor's share and the rest."""
     fit = true_fit(df, meta)
     floor = achievable_floor(df, meta, fit=fit)
     meta["truth"]["achievable_floor_nm"] = floor["achievable_floor_nm"]

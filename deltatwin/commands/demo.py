@@ -32,7 +32,7 @@ def register(sub) -> None:
                    help="split the floor's budget per source on the twin (one twin run and "
                         "refit of the complete model per source, as `deltatwin simulate` "
                         "records it: several times the demo's time); without it the budget is "
-                        "the interferometers' share and the other instruments'")
+                        "the noise floor's share and the other instruments'")
     add_trust_option(p)
     p.set_defaults(func=run)
 
@@ -153,11 +153,11 @@ def run(args) -> int:
           f"values; at the floor: within "
           f"{AT_FLOOR}x). No effect added brings a model much below it: the model reads the "
           "robot's conditions through the lab's instruments, whose errors no effect can remove")
-    # measured either way: the complete model's refit gives the interferometers' share and the
+    # measured either way: the complete model's refit gives the noise floor's share and the
     # rest's; --measured-budget splits the rest per source (a twin run and refit per source)
     print("  the floor's budget, measured on the twin " + (
         "(each source alone, the complete model refitted):" if args.measured_budget else
-        "(the interferometers' share and the other instruments'; --measured-budget splits it "
+        "(the noise floor's share and the other instruments'; --measured-budget splits it "
         "per source):"))
     for line in budget_lines(meta["truth"]["floor_budget_nm"]):
         print("  " + line)
