@@ -19,6 +19,7 @@ from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.cases import KNOWN, MODEL, Case, generate_cases
 from deltatwin.twin.scenario import Scenario
+from tests.calibration.series import ar1
 
 BASELINE = ["geometric_errors", "thermal_expansion", "sensor_contact"]
 
@@ -236,14 +237,6 @@ def test_a_later_start_is_kept_only_when_it_lowers_the_cost_beyond_chance():
     assert better.start_costs_["priors"] < 0.5 * better.start_costs_["stopped"]
     with pytest.raises(FitError, match="chance_alpha = 0"):
         fit_from_starts(effects, starts, df, meta, chance_alpha=0)
-
-
-def _ar1(rng, n: int, rho: float) -> np.ndarray:
-    e = np.empty(n)
-    e[0] = rng.standard_normal()
-    for i in range(1, n):
-        e[i] = rho * e[i - 1] + np.sqrt(1 - rho ** 2) * rng.standard_normal()
-    return e
 
 
 def _validation_rows(n: int) -> SimpleNamespace:
@@ -565,7 +558,7 @@ def test_the_test_beyond_generic_terms_holds_its_level_on_correlated_rows():
     meas, Jm = _one_group(n), np.zeros((n, 0))
     p = []
     for _ in range(200):
-        e, x = _ar1(rng, n, 0.95), _ar1(rng, n, 0.95)
+        e, x = ar1(rng, n, 0.95), ar1(rng, n, 0.95)
         G = rng.standard_normal((n, 2))
         generic = diagnosis._generic(Jm, G, 0.5, e - e.mean(), 1.0)
         p.append(diagnosis._beyond_generic(meas, e - e.mean(), (x - x.mean())[:, None], Jm,
@@ -573,7 +566,7 @@ def test_the_test_beyond_generic_terms_holds_its_level_on_correlated_rows():
     p = np.array(p)
     assert np.mean(p < 0.01) <= 0.07 and np.mean(p < diagnosis.ALPHA) <= 0.03
     # the naive F test on these draws: below 0.01 in a third or more (the test above)
-    x = _ar1(rng, n, 0.95)
+    x = ar1(rng, n, 0.95)
     r = x + 0.2 * rng.standard_normal(n)
     found = diagnosis._beyond_generic(meas, r - r.mean(), (x - x.mean())[:, None], Jm,
                                       diagnosis._generic(Jm, rng.standard_normal((n, 2)), 0.5,

@@ -8,14 +8,7 @@ import pytest
 from scipy import stats as sps
 
 from deltatwin.calibration import stats
-
-
-def _ar1(rng, n: int, rho: float) -> np.ndarray:
-    e = np.empty(n)
-    e[0] = rng.standard_normal()
-    for i in range(1, n):
-        e[i] = rho * e[i - 1] + np.sqrt(1 - rho ** 2) * rng.standard_normal()
-    return e
+from tests.calibration.series import ar1
 
 
 def _layout(n: int, sessions: int = 1):
@@ -37,8 +30,8 @@ def test_the_validation_test_holds_its_level_on_correlated_residuals(rho):
     group, val, session, t = _layout(n)
     p = []
     for _ in range(600):
-        before = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
-        change = np.column_stack([_ar1(rng, n, rho) for _ in range(3)]) * 1e-8
+        before = np.column_stack([ar1(rng, n, rho) for _ in range(3)]) * 1e-8
+        change = np.column_stack([ar1(rng, n, rho) for _ in range(3)]) * 1e-8
         p.append(stats.validation_p(before, before - change, group, val, session, t))
     p = np.array(p)
     # 600 draws: a rate of 0.05 lies within 0.03-0.07 with 99 % probability
@@ -122,7 +115,7 @@ def test_the_calibration_f_test_holds_its_level_on_correlated_rows(rho):
     n = 400
     naive, corrected, factors, pose_factors = [], [], [], []
     for _ in range(300):
-        e, x = _ar1(rng, n, rho), _ar1(rng, n, rho)
+        e, x = ar1(rng, n, rho), ar1(rng, n, rho)
         e, x = e - e.mean(), x - x.mean()
         e1 = e - x * (x @ e) / (x @ x)
         factors.append(stats.serial_inflation([n], e - e1, e1))
@@ -145,7 +138,7 @@ def test_the_serial_factor_skips_groups_without_readings():
     single reading no lag: the factor is that of the other groups."""
     rng = np.random.default_rng(37)
     n = 200
-    e, x = _ar1(rng, n, 0.95), _ar1(rng, n, 0.95)
+    e, x = ar1(rng, n, 0.95), ar1(rng, n, 0.95)
     e1 = e - x * (x @ e) / (x @ x)
     alone = stats.serial_inflation([n], e - e1, e1)
     padded = stats.serial_inflation([n, 1, 0], np.r_[e - e1, 0.0], np.r_[e1, 0.0])
