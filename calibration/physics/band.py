@@ -54,6 +54,13 @@ def _ar1(rng: np.random.Generator, n: int, draws: int, sigma: float, rho: float)
     return out
 
 
+def _square_root(cov: np.ndarray) -> np.ndarray:
+    """L with L L^T = ``cov`` (symmetric, positive semi-definite up to round-off: the
+    sandwich's eigenvalues below zero, round-off, are taken as zero)."""
+    w, U = np.linalg.eigh(0.5 * (cov + cov.T))
+    return U * np.sqrt(np.clip(w, 0.0, None))
+
+
 def validation_band(fit, rng: np.random.Generator, draws: int = BAND_DRAWS,
                     level: float = BAND_LEVEL) -> dict:
     """{axis or "all": (low, high) nm}: the band the validation error 90 % of ``fit`` (a
@@ -66,7 +73,7 @@ def validation_band(fit, rng: np.random.Generator, draws: int = BAND_DRAWS,
     cov = fit.covariance_z_
     k = cov.shape[0]
     JV = (fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_ if k else None
-    L = np.linalg.cholesky(cov + 1e-12 * np.trace(cov) / max(k, 1) * np.eye(k)) if k else None
+    L = _square_root(cov) if k else None
     t = meas.df["t_s"].to_numpy()
     errors = np.full(meas.y.shape + (draws,), np.nan)
     for a in range(3):

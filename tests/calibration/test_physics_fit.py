@@ -259,3 +259,18 @@ def test_a_direction_the_thermometers_noise_alone_determines_is_not_fitted():
         fraction[name] = table.loc["loop_drift.frame_cte_per_K", "identified_fraction"]
     assert fraction["perfect"] < 0.5 and fraction["noisy"] < 0.5, fraction
     assert meta_p["instruments"]["T_noise_C"] == 0.0 and meta["instruments"]["T_noise_C"] > 0
+
+
+def test_the_band_draws_from_a_covariance_that_round_off_left_indefinite():
+    """The sandwich covariance is positive semi-definite only to round-off: its square root
+    for the band's draws takes a slightly negative eigenvalue as zero (a Cholesky
+    factorisation refused one on a generated force case)."""
+    from deltatwin.calibration.physics.band import _square_root
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((6, 3))
+    cov = A @ A.T                                    # rank 3: three zero eigenvalues
+    cov[0, 0] -= 1e-12                               # one of them slightly negative
+    assert np.linalg.eigvalsh(cov).min() < 0
+    L = _square_root(cov)
+    assert np.allclose(L @ L.T, cov, atol=1e-10)
