@@ -75,13 +75,21 @@ def regenerate(text: str, cwd: Path, progress=print) -> str:
 ELAPSED = re.compile(r"\[\s*[\d.]+ s\]")      # the demo's elapsed-time stamps: not figures
 
 
-def _figures(text: str) -> list[list[float]]:
-    return [[float(x) for x in NUMBER.findall(ELAPSED.sub("", body))]
+def _figures(text: str) -> list[list[tuple[float, float]]]:
+    """Each output block's figures as (value, one unit of its last printed digit)."""
+    def unit(x: str) -> float:
+        mantissa = x.lower().split("e")[0]
+        decimals = len(mantissa.split(".")[1]) if "." in mantissa else 0
+        exponent = int(x.lower().split("e")[1]) if "e" in x.lower() else 0
+        return 10.0 ** (exponent - decimals)
+    return [[(float(x), unit(x)) for x in NUMBER.findall(ELAPSED.sub("", body))]
             for lang, body in BLOCK.findall(text) if lang in ("text", "json")]
 
 
 def moved_figures(old: str, new: str, rel_tol: float) -> list[str]:
-    """Quoted figures that moved by more than ``rel_tol`` (relative, 0.05 absolute floor)."""
+    """Quoted figures that moved by more than ``rel_tol`` (relative), with an absolute floor of
+    0.05 or one unit of the figure's last printed digit, whichever is larger (a figure printed
+    to 0.1 flips by 0.1 where its value sits on a rounding boundary)."""
     problems = []
     a, b = _figures(old), _figures(new)
     if len(a) != len(b):
@@ -90,8 +98,8 @@ def moved_figures(old: str, new: str, rel_tol: float) -> list[str]:
         if len(x) != len(y):
             problems.append(f"output block {k + 1}: {len(x)} figures in the file, {len(y)} now")
             continue
-        for u, v in zip(x, y):
-            if abs(u - v) > max(rel_tol * max(abs(u), abs(v)), 0.05):
+        for (u, du), (v, dv) in zip(x, y):
+            if abs(u - v) > max(rel_tol * max(abs(u), abs(v)), 0.05, du, dv) * (1 + 1e-9):
                 problems.append(f"output block {k + 1}: {u:g} in the file, {v:g} now")
     return problems
 

@@ -246,3 +246,18 @@ def _run_page(path: Path, tmp_path: Path) -> None:
                                                else []) for p in PY_PAGES])
 def test_python_blocks_of_the_page_run(path, tmp_path):
     _run_page(path, tmp_path)
+
+
+def test_the_walkthrough_check_allows_a_figure_one_printed_digit_off():
+    """A figure printed to 0.1 that sits on a rounding boundary flips by 0.1 between runs whose
+    round-off differs (3.85 -> 3.9 or 3.8): not a moved figure; two units are."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "generate_walkthrough", README.parent / "docs" / "generate_walkthrough.py")
+    walkthrough = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(walkthrough)
+    block = "```text\n{}\n```\n".format
+    assert walkthrough.moved_figures(block("x 3.9 nm"), block("x 3.8 nm"), 0.02) == []
+    assert walkthrough.moved_figures(block("x 3.9 nm"), block("x 3.7 nm"), 0.02)
+    assert walkthrough.moved_figures(block("1705 rows"), block("1707 rows"), 0.0)
