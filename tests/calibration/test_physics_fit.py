@@ -274,3 +274,25 @@ def test_the_band_draws_from_a_covariance_that_round_off_left_indefinite():
     assert np.linalg.eigvalsh(cov).min() < 0
     L = _square_root(cov)
     assert np.allclose(L @ L.T, cov, atol=1e-10)
+
+
+def test_the_fits_new_inputs_are_refused_in_one_line(tmp_path, capsys):
+    """``deltatwin fit --max-evaluations 0`` and a dataset whose thermometer specification is
+    not a temperature: one line naming it, exit 2, no model written."""
+    from deltatwin.cli import main
+    from deltatwin.twin.dataset import write_dataset
+
+    sc = Scenario.load("hidden/loop-drift")
+    df, meta = sc.simulate(0.01)
+    data, bad = tmp_path / "data.parquet", tmp_path / "bad.parquet"
+    write_dataset(df, meta, data)
+    write_dataset(df, {**meta, "instruments": {"T_noise_C": "three"}}, bad)
+    out = tmp_path / "model.toml"
+    for args, words in (([str(data), "--max-evaluations", "0"], "max_evaluations = 0"),
+                        ([str(bad)], "'T_noise_C' = 'three'")):
+        capsys.readouterr()
+        assert main(["fit", *args, "--effects", "geometric_errors,thermal_expansion",
+                     "-o", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and len(err.splitlines()) == 1, err
+        assert not out.exists()
