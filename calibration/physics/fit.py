@@ -43,6 +43,10 @@ UNSEEN_FRACTION = 1e-16
 STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of their uncertainty
 # draws of the thermometers' noise that estimate the information it alone gives the fit
 THERMOMETER_DRAWS = 4
+# thermometer_information's estimates kept in the process (oldest dropped first): each is
+# (p, p), a few kB; the key holds the data's fingerprint
+THERMOMETER_INFORMATION_KEPT = 32
+_THERMOMETER_INFORMATION: dict = {}
 log = logging.getLogger(__name__)
 
 
@@ -138,6 +142,10 @@ class PhysicsFit:
                                     f"parameters and {len(meas.groups)} zero offsets: take "
                                     "more points or fit fewer effects")
         theta0 = model.theta()
+        # directions the data cannot determine are held at the prior (the effects' starting
+        # values), not at a warm start's values: a previous fit may have pushed them anywhere
+        # while standing in for an effect it lacked
+        prior_theta = PhysicsModel(self.effects, self.params, self.prior).theta()
         S = model.scales
         A0, J0 = model.jacobian(meas, theta0)
         Js = projected(meas, cal, J0, scale=S)
@@ -150,18 +158,16 @@ class PhysicsFit:
             V = _checked_directions(start_directions, p)
             s, Vt, keep = _directions_report(Js, V)
         else:
-            noise_info = thermometer_information(model, meas, meta, theta0, J0,
-                                                 np.random.default_rng(self.seed))
+            noise_info = thermometer_information(model, meas, meta, prior_theta, self.seed,
+                                                 J0 if np.array_equal(prior_theta, theta0)
+                                                 else None)
             self.thermometer_information_ = noise_info
             s, Vt = _information_directions(Js, noise_info)
             keep = _identified(s, self.noise_nm, self.identifiable_ratio)
             V = Vt[keep].T                                               # (p, k)
         self.n_evaluations_, self.n_jacobians_ = p + 1, 1
         self.fitted_again_ = False
-        # directions the data cannot determine are held at the prior (the effects' starting
-        # values), not at a warm start's values: a previous fit may have pushed them anywhere
-        # while standing in for an effect it lacked
-        prior = PhysicsModel(self.effects, self.params, self.prior).theta()
+        prior = prior_theta
         z_start = V.T @ ((theta0 - prior) / S) if p else np.zeros(0)
 
         def theta_of(z):
@@ -502,31 +508,46 @@ def thermometer_u_K(meta: dict | None) -> float:
 
 
 def thermometer_information(model: PhysicsModel, meas: Measurements, meta: dict | None,
-                            theta: np.ndarray, J: np.ndarray,
-                            rng: np.random.Generator) -> np.ndarray:
+                            theta: np.ndarray, seed: int,
+                            J: np.ndarray | None = None) -> np.ndarray:
     """(p, p) m^2 per fit scale^2: the information the thermometers' noise alone puts into
     the scaled calibration Jacobian, E[N^T N], N the change of ``projected`` Jacobian columns
-    when every thermometer reading gets a fresh draw of its noise (``thermometer_u_K``),
-    averaged over THERMOMETER_DRAWS draws of ``rng``; zero for a model that reads no
-    temperature. A parameter that multiplies a temperature (an expansion coefficient) has a
-    Jacobian column made of the readings: noise there is a column the data seem to determine
-    though it holds nothing of the robot (errors in the variables; a 0.6 m frame arm's
-    expansion column gains 47 nm beyond the others from 3 mK thermometers, 1.7 nm without
-    them, where the fit's threshold is 17 nm). The fit counts a direction as determined on
-    the information beyond this (``_information_directions``)."""
+    (at ``theta``; ``J`` the model's Jacobian there, if at hand) when every thermometer
+    reading gets a fresh draw of its noise (``thermometer_u_K``), averaged over
+    THERMOMETER_DRAWS draws seeded ``seed``; zero for a model that reads no temperature. A
+    parameter that multiplies a temperature (an expansion coefficient) has a Jacobian column
+    made of the readings: noise there is a column the data seem to determine though it holds
+    nothing of the robot (errors in the variables; a 0.6 m frame arm's expansion column gains
+    47 nm beyond the others from 3 mK thermometers, 1.7 nm without them, where the fit's
+    threshold is 17 nm). The fit counts a direction as determined on the information beyond
+    this (``_information_directions``). The fit evaluates it at the prior: the columns hold
+    the temperatures times a geometry that the parameters move by parts per million, so one
+    estimate serves every start of the same effects on the same data (kept for the process,
+    keyed by the data's fingerprint, the parameters, ``theta`` and ``seed``)."""
     columns = np.zeros(model.n_free, bool)
     for f in model.free:
         columns[f.sl] = next(e for e in model.effects if e.name == f.effect).reads_temperatures
     u = thermometer_u_K(meta)
     if not columns.any() or u <= 0 or not meas.sensors:
         return np.zeros((model.n_free, model.n_free))
+    fingerprint = data_sha256(meas)
+    key = (fingerprint, tuple(model.labels), theta.tobytes(), u, int(seed), repr(model.params))
+    if fingerprint is not None and key in _THERMOMETER_INFORMATION:
+        return _THERMOMETER_INFORMATION[key].copy()
+    if J is None:
+        J = model.jacobian(meas, theta, columns)[1]
     base = np.where(columns, J, 0.0)
+    rng = np.random.default_rng(seed)
     info = np.zeros((model.n_free, model.n_free))
     for _ in range(THERMOMETER_DRAWS):
         noisy = thermometer_draw(meas, meta, model.params, rng, u)
         N = projected(meas, meas.cal, model.jacobian(noisy, theta, columns)[1] - base,
                       scale=model.scales)
         info += N.T @ N / THERMOMETER_DRAWS
+    if fingerprint is not None:
+        while len(_THERMOMETER_INFORMATION) >= THERMOMETER_INFORMATION_KEPT:
+            _THERMOMETER_INFORMATION.pop(next(iter(_THERMOMETER_INFORMATION)))
+        _THERMOMETER_INFORMATION[key] = info.copy()
     return info
 
 
