@@ -310,6 +310,11 @@ def test_every_task_has_a_how_to_indexed():
 @pytest.mark.parametrize("path", [pytest.param(p, id=p.name, marks=[] if p.name in FAST_HOWTOS
                                                else [pytest.mark.slow]) for p in HOWTOS])
 def test_how_to_runs_as_written(path, tmp_path):
+    """Each block runs in its own process group; what a block leaves running in the background
+    (an emulator the page stops in a later block) is stopped when the page ends, pass or fail."""
+    import os
+    import signal
+
     bin_dir = Path(sys.executable).parent
     env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "HOME": str(tmp_path), "OPENBLAS_NUM_THREADS": "1",
            "DELTATWIN_THREADS": "1", "TQDM_DISABLE": "1", "MPLBACKEND": "Agg"}
@@ -317,18 +322,28 @@ def test_how_to_runs_as_written(path, tmp_path):
     for b in blocks:                     # files the page's commands run are written first
         if b["file"]:
             (tmp_path / b["file"]).write_text(b["code"])
-    for k, b in enumerate(blocks):
-        if b["skip"] is not None or b["file"]:
-            continue
-        if b["lang"] == "bash":
-            argv = ["bash", "-euo", "pipefail", "-c", b["code"]]
-        else:
-            (tmp_path / f"block_{k}.py").write_text(b["code"])
-            argv = [sys.executable, f"block_{k}.py"]
-        r = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True,
-                           timeout=280)
-        assert r.returncode == 0, (f"{path.name}:{b['line']} failed:\n{b['code']}\n--- stdout:\n"
-                                   f"{r.stdout[-2000:]}\n--- stderr:\n{r.stderr[-3000:]}")
+    groups = []
+    try:
+        for k, b in enumerate(blocks):
+            if b["skip"] is not None or b["file"]:
+                continue
+            if b["lang"] == "bash":
+                argv = ["bash", "-euo", "pipefail", "-c", b["code"]]
+            else:
+                (tmp_path / f"block_{k}.py").write_text(b["code"])
+                argv = [sys.executable, f"block_{k}.py"]
+            proc = subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True, start_new_session=True)
+            groups.append(proc.pid)
+            out, err = proc.communicate(timeout=280)
+            assert proc.returncode == 0, (f"{path.name}:{b['line']} failed:\n{b['code']}\n"
+                                          f"--- stdout:\n{out[-2000:]}\n--- stderr:\n{err[-3000:]}")
+    finally:
+        for group in groups:
+            try:
+                os.killpg(group, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
 
 
 # -- relative links and the generated reference ---------------------------------------------------
