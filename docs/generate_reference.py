@@ -80,9 +80,9 @@ def option_table(parser: argparse.ArgumentParser) -> str:
 def command_block(parser: argparse.ArgumentParser) -> str:
     """The usage and options of one command (and of each of its actions)."""
     parts = [f"```text\n{parser.format_usage().strip()}\n```", "", option_table(parser)]
-    for name, action in _subcommands(parser).items():
-        parts += ["", f"#### `{action.prog}`", "", _cell(action.description or ""), "",
-                  f"```text\n{action.format_usage().strip()}\n```", "", option_table(action)]
+    for sub in _subcommands(parser).values():
+        parts += ["", f"#### `{sub.prog}`", "", _cell(sub.description or ""), "",
+                  f"```text\n{sub.format_usage().strip()}\n```", "", option_table(sub)]
     if parser.epilog:
         parts += ["", _cell(parser.epilog[:1].upper() + parser.epilog[1:]) + "."]
     return "\n".join(parts) + "\n"

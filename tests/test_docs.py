@@ -269,7 +269,6 @@ def test_the_walkthrough_check_allows_a_figure_one_printed_digit_off():
 # A how-to is a task done at small scale: its bash and Python blocks run in order in one fresh
 # folder, as a reader pastes them (markers as above; a no-run block still counts as shown).
 HOWTO_BLOCK = re.compile(r"```(bash|python)\n(.*?)```", re.S)
-FAST_HOWTOS = {"add-an-effect.md"}   # the others take 10 s or more on 2 shared cores: slow
 
 
 def _howto_blocks(path: Path) -> list[dict]:
@@ -303,12 +302,12 @@ def test_every_task_has_a_how_to_indexed():
         assert f"{p.parent.name}/{p.name}" in index, f"docs/README.md does not link {p.name}"
     for p in HOWTOS:
         blocks = _howto_blocks(p)
-        assert any(b["lang"] == "bash" or b["lang"] == "python" for b in blocks), p.name
+        assert blocks, f"{p.name}: no bash or Python block"
         assert all(b["skip"].strip() for b in blocks if b["skip"] is not None), p.name
 
 
-@pytest.mark.parametrize("path", [pytest.param(p, id=p.name, marks=[] if p.name in FAST_HOWTOS
-                                               else [pytest.mark.slow]) for p in HOWTOS])
+@pytest.mark.slow            # every how-to simulates and fits: 15-60 s each on 2 shared cores
+@pytest.mark.parametrize("path", HOWTOS, ids=[p.name for p in HOWTOS])
 def test_how_to_runs_as_written(path, tmp_path):
     """Each block runs in its own process group; what a block leaves running in the background
     (an emulator the page stops in a later block) is stopped when the page ends, pass or fail."""
