@@ -246,6 +246,15 @@ def used_constants(effects, known: dict, setup_known: dict | None = None) -> dic
     return out
 
 
+def model_overrides(effects, known: dict, meta: dict | None, where: str = "data") -> list[str]:
+    """One line per constant a fitted model used (its ``effects``, Effect instances, and the
+    ``known`` constants of effects outside it) that is not the value of the data's setup."""
+    setup = known_constants(meta, where)
+    return [f"the model's {key} = {used} overrides the data's setup value {value} (refit to "
+            "use the setup's)"
+            for key, used, value in overridden(used_constants(effects, known, setup), setup)]
+
+
 def beyond_setup(constants: dict, setup_known: dict) -> dict:
     """The ``constants`` ({effect: {parameter: value}}) a command must state with ``--set``
     on data whose setup gives ``setup_known``: those the setup does not give as they are."""
@@ -276,4 +285,4 @@ def describe(meta: dict) -> str:
         words.append(f"thermometer noise {spec['T_noise_C'] * 1e3:g} mK")
     if "interferometer_noise_m" in spec:
         words.append(f"interferometer noise {spec['interferometer_noise_m'] * 1e9:g} nm")
-    return (f"from {setup['source']}: " if setup.get("source") else "") + "; ".join(words)
+    return "; ".join(words) + (f" (from {setup['source']})" if setup.get("source") else "")

@@ -178,7 +178,7 @@ def run_diagnose(args) -> int:
     from deltatwin.calibration.physics.model_file import fitted_on, load_fitted, saved_directions
     from deltatwin.models.batched import in_background
     from deltatwin.twin.dataset import read_dataset
-    from deltatwin.twin.lab_setup import known_constants, overridden, used_constants
+    from deltatwin.twin.lab_setup import model_overrides
 
     df, meta = read_dataset(args.data)
     if str(args.model).lower().endswith(".json"):
@@ -187,10 +187,8 @@ def run_diagnose(args) -> int:
     # the constants the model was fitted with (the file's [known], its [effects]) stand over
     # the data's setup: said where they differ
     outside = {e: v for e, v in doc.get("known", {}).items() if e not in model.names}
-    setup = known_constants(meta, str(args.data))
-    for key, used, value in overridden(used_constants(model.effects, outside, setup), setup):
-        print(f"{args.model}: the model's {key} = {used} overrides the data's setup value "
-              f"{value} (refit to use the setup's)", file=sys.stderr)
+    for line in model_overrides(model.effects, outside, meta, str(args.data)):
+        print(f"{args.model}: {line}", file=sys.stderr)
     # the laboratory variables the diagnosis scans depend on the data alone: made beside the
     # model's Jacobian on a second core where the command has one (docs/performance.md)
     variables = in_background(laboratory_variables, df)
