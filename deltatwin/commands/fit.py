@@ -108,11 +108,23 @@ def _model_effects(args, meta: dict) -> list[str]:
     return baseline
 
 
+def _constants_used(fit, known: dict, setup: dict) -> dict:
+    """The laboratory's constants the model used and where each came from (``known``: --set,
+    else the data's ``setup``)."""
+    from deltatwin.twin.lab_setup import used_constants
+
+    constants = used_constants(fit.model_.effects, fit.known_, setup)
+    return {"constants": constants,
+            "constants_from": {f"{e}.{p}": "--set" if p in known.get(e, {}) else
+                               "the data's setup" for e, values in constants.items()
+                               for p in values}}
+
+
 def run_fit(args) -> int:
     from deltatwin.calibration.physics.fit import PhysicsFit
     from deltatwin.calibration.physics.model_file import fitted_toml
     from deltatwin.twin.dataset import read_dataset
-    from deltatwin.twin.lab_setup import known_constants, overridden, used_constants
+    from deltatwin.twin.lab_setup import known_constants, overridden
 
     known = _known_values(args.set)
     df, meta = read_dataset(args.data)
@@ -127,10 +139,7 @@ def run_fit(args) -> int:
     s = fit.summary()
     band = fit.validation_band()
     s["val_band_95_nm"] = {a: list(v) for a, v in band.items()}
-    # the laboratory's constants the model used, and where each came from
-    s["constants"] = used_constants(fit.model_.effects, fit.known_, setup)
-    s["constants_from"] = {f"{e}.{p}": "--set" if p in known.get(e, {}) else "the data's setup"
-                           for e, values in s["constants"].items() for p in values}
+    s.update(_constants_used(fit, known, setup))
     if args.json:
         print(strict_json(s))
         return 0
