@@ -42,6 +42,12 @@ class SetupError(ValueError):
     value of the wrong type, shape or unit."""
 
 
+def _shown(value) -> str:
+    """``value`` as an error message quotes it: its repr, cut at 80 characters."""
+    text = repr(value)
+    return text if len(text) <= 80 else text[:76] + " ..."
+
+
 def _close(word: str, choices) -> str:
     close = difflib.get_close_matches(str(word), list(choices), n=1)
     return f" (did you mean {close[0]!r}?)" if close else ""
@@ -61,7 +67,7 @@ def check_known(known, where: str) -> dict:
             raise SetupError(f"{where}.{effect}: unknown effect{_close(effect, LIBRARY)}; "
                              f"library effects: {sorted(LIBRARY)}")
         if not isinstance(values, dict):
-            raise SetupError(f"{where}.{effect} = {values!r}: expected a table of "
+            raise SetupError(f"{where}.{effect} = {_shown(values)}: expected a table of "
                              "parameter = value (SI units)")
         try:
             made = make_effect(effect, values, where=where, check_minimum=False)
@@ -72,14 +78,16 @@ def check_known(known, where: str) -> dict:
 
 
 def check_baseline(baseline, where: str) -> list[str]:
-    """``baseline``: a list of library effect names, else SetupError."""
+    """``baseline``: a list of library effect names, each once, else SetupError."""
     from deltatwin.twin.effects import LIBRARY
 
     if not isinstance(baseline, list) or not all(isinstance(e, str) for e in baseline):
-        raise SetupError(f"{where} = {baseline!r}: expected a list of effect names")
-    for effect in baseline:
+        raise SetupError(f"{where} = {_shown(baseline)}: expected a list of effect names")
+    for k, effect in enumerate(baseline):
+        if effect in baseline[:k]:
+            raise SetupError(f"{where}: effect {_shown(effect)} is named twice")
         if effect not in LIBRARY:
-            raise SetupError(f"{where}: unknown effect {effect!r}{_close(effect, LIBRARY)}; "
+            raise SetupError(f"{where}: unknown effect {_shown(effect)}{_close(effect, LIBRARY)}; "
                              f"library effects: {sorted(LIBRARY)}")
     return list(baseline)
 
@@ -91,12 +99,12 @@ def check_instruments(specs, where: str) -> dict:
         raise SetupError(f"{where}: expected a table of specification = value")
     for key, value in specs.items():
         if key not in INSTRUMENT_SPECS:
-            raise SetupError(f"{where}: unknown key {key!r}{_close(key, INSTRUMENT_SPECS)}; "
+            raise SetupError(f"{where}: unknown key {_shown(key)}{_close(key, INSTRUMENT_SPECS)}; "
                              f"allowed: {list(INSTRUMENT_SPECS)}")
         unit, largest = INSTRUMENT_SPECS[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) \
                 or not math.isfinite(value) or not 0 <= value < largest:
-            raise SetupError(f"{where}.{key} = {value!r}: expected a number in {unit}, 0 to "
+            raise SetupError(f"{where}.{key} = {_shown(value)}: expected a number in {unit}, 0 to "
                              f"{largest:g} (SI units)")
     return {k: float(v) for k, v in specs.items()}
 
@@ -114,7 +122,7 @@ def check_sensors(sensors, where: str) -> dict:
             raise SetupError(f"{where}.{name}: a sensor name is letters, digits and _ (it "
                              "names the column T_<name>_C)")
         if not isinstance(part, str) or part not in parts:
-            raise SetupError(f"{where}.{name} = {part!r}: unknown part{_close(part, parts)}; "
+            raise SetupError(f"{where}.{name} = {_shown(part)}: unknown part{_close(part, parts)}; "
                              f"parts: {parts}")
     return dict(sensors)
 
@@ -134,11 +142,14 @@ def load_setup(path) -> dict:
         raise SetupError(f"{path}: not a TOML setup file ({exc})") from None
     for key in doc:
         if key not in SETUP_FILE_KEYS:
-            raise SetupError(f"{path}: unknown key {key!r}{_close(key, SETUP_FILE_KEYS)}; "
+            raise SetupError(f"{path}: unknown key {_shown(key)}{_close(key, SETUP_FILE_KEYS)}; "
                              f"allowed: {list(SETUP_FILE_KEYS)}")
+    if not doc:
+        raise SetupError(f"{path}: states nothing: give at least one of "
+                         f"{list(SETUP_FILE_KEYS[1:])} (docs/lab-setup.toml)")
     version = doc.pop("format_version", FORMAT_VERSION)
     if version != FORMAT_VERSION or isinstance(version, bool):
-        raise SetupError(f"{path}: format_version = {version!r}: this deltatwin reads setup "
+        raise SetupError(f"{path}: format_version = {_shown(version)}: this deltatwin reads setup "
                          f"files of version {FORMAT_VERSION}")
     checks = {"baseline": check_baseline, "known": check_known,
               "instruments": check_instruments, "sensors": check_sensors}
@@ -189,7 +200,7 @@ def setup_problem(setup) -> str | None:
     except SetupError as exc:
         return str(exc)
     if not isinstance(setup.get("source", ""), str):
-        return f"source = {setup['source']!r} is not text"
+        return f"source = {_shown(setup['source'])} is not text"
     return None
 
 

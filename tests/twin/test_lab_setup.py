@@ -62,6 +62,8 @@ def test_the_documented_example_setup_file_is_read_as_written():
     ("[instruments]\nT_noise_C = true", ["instruments.T_noise_C = True", "in K"]),
     ("baseline = ['geometric_error']", ["baseline", "did you mean 'geometric_errors'"]),
     ("baseline = 'geometric_errors'", ["baseline = 'geometric_errors'", "a list"]),
+    ("baseline = ['loop_drift', 'loop_drift']", ["baseline", "'loop_drift' is named twice"]),
+    ("", ["states nothing", "known"]),
     ("[sensors]\nbase = 'bse'", ["sensors.base = 'bse'", "unknown part", "'base'"]),
     ("[sensors]\n'T base' = 'base'", ["sensors.T base", "letters, digits and _"]),
     ("[know.loop_drift]\nframe_arm_m = [-0.6, 0]", ["unknown key 'know'", "'known'"]),
