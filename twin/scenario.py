@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import hashlib
-import re
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -28,6 +27,7 @@ from deltatwin.twin.campaign import Plan, force_plan, run_campaign, simulate_cam
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, make_effect
 from deltatwin.twin.instruments.optics import nominal_dead_path, saturation_vapour_pressure
 from deltatwin.twin.instruments.simulated import InstrumentSettings, SimulatedLab
+from deltatwin.twin.lab_setup import SENSOR_NAME, scenario_setup
 from deltatwin.twin.noise import quantised_u
 from deltatwin.twin.thermal import PART_NODES
 from deltatwin.twin.world import Twin, random_streams
@@ -135,7 +135,6 @@ def _number(where, value, minimum=None, integer=False, maximum=None, above=False
     return int(value) if integer else float(value)
 
 
-SENSOR_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")   # it becomes a column name, T_<name>_C
 MAX_DAYS = 60.0                 # the longest campaign the twin simulates (its environment is
                                 # integrated over the whole campaign before it starts)
 
@@ -568,7 +567,10 @@ class Scenario:
                           "reading_noise_std_nm": self.settings.noise_floor_m * 1e9,
                           "noise_floor_nm": noise_floor_nm,
                           "cosine_correction": self.cosine},
-                "cosine_dead_path_m": self.dead_path()}
+                "cosine_dead_path_m": self.dead_path(),
+                # what the laboratory states about itself: its [hidden] known constants and
+                # baseline (twin/lab_setup.py; the instruments and sensors above)
+                "setup": scenario_setup(self.hidden, f"scenario {self.file_name()}")}
 
     def simulate(self, scale: float | None = None) -> tuple[pd.DataFrame, dict]:
         """The campaign's dataset through the vectorised fast path."""

@@ -34,6 +34,7 @@ from deltatwin.calibration.stats import sandwich_covariance
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.models.params import ParameterError, RobotParams
 from deltatwin.twin.instruments.optics import AXES
+from deltatwin.twin.lab_setup import known_constants, merged
 
 NM = 1e9   # the solver works on residuals in nm
 RADIUS_MIN = 1e-9   # fit scales: a trust region this small has only round-off left
@@ -56,7 +57,8 @@ class PhysicsFit:
     Parameters: ``effects`` (library names), ``params`` (the robot file; default nominal),
     ``start`` ({effect: {parameter: value}}: starting values, e.g. a previous fit, or known
     constants; those of effects outside the model are kept in ``known_`` for the candidates a
-    diagnosis adds),
+    diagnosis adds; ``fit`` puts them over the known constants of the data's setup,
+    twin/lab_setup.py, parameter by parameter),
     ``noise_nm`` (the readings' noise, nm: sets which directions are identifiable),
     ``identifiable_ratio`` (a direction is fitted if the data determine it to better than this
     fraction of its parameters' typical size), ``max_evaluations`` (the points the solver
@@ -96,9 +98,10 @@ class PhysicsFit:
         # values for effects outside the model are the laboratory's known constants (e.g. a
         # frame arm): kept for the candidates a diagnosis adds, checked against the library
         start = dict(start or {})
-        self.known_ = {e: v for e, v in start.items() if e not in self.effects}
-        for name, values in self.known_.items():
+        self.known = {e: v for e, v in start.items() if e not in self.effects}
+        for name, values in self.known.items():
             PhysicsModel([name], params, {name: values}, where="known constants")
+        self.known_ = self.known        # with the data's setup once fitted
         self.start = {e: v for e, v in start.items() if e in self.effects} or None
         self.prior = prior
         self.noise_nm = noise_nm
@@ -132,7 +135,13 @@ class PhysicsFit:
         ``start_directions``): refining it would diagnose another model than the file's, and
         the diagnosis takes the model's own remaining linear step as its reference anyway;
         its status says how far from converged it is."""
-        model = PhysicsModel(self.effects, self.params, self.start)
+        # the laboratory's constants the data's setup gives, where the start does not
+        setup = known_constants(meta, where)
+        self.known_ = merged({e: v for e, v in setup.items() if e not in self.effects},
+                             self.known)
+        model = PhysicsModel(self.effects, self.params,
+                             merged({e: v for e, v in setup.items() if e in self.effects},
+                                    self.start) or None)
         meas = meas or measurements(df, meta, model.params, where)
         check_sensors(model.names, meas, where)
         self.data_sha256_ = data_sha256(meas)
@@ -801,7 +810,7 @@ def _same_problem(a: PhysicsFit, b: PhysicsFit) -> bool:
     effects, robot, starting values, prior and options, so the same solver path."""
     def values(fit, start):
         return PhysicsModel(fit.effects, fit.params, start).values()
-    return (a.effects == b.effects and a.params is b.params and a.known_ == b.known_
+    return (a.effects == b.effects and a.params is b.params and a.known == b.known
             and (a.noise_nm, a.identifiable_ratio, a.max_evaluations)
             == (b.noise_nm, b.identifiable_ratio, b.max_evaluations)
             and values(a, a.start) == values(b, b.start)
