@@ -424,8 +424,8 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
     except (CalibrationInputError, EffectError, KinematicsError, np.linalg.LinAlgError) as exc:
         row["refit_failed"] = str(exc)
         return
-    r0 = projected(meas, meas.cal, base.residual_)
-    r1 = projected(meas, meas.cal, refit.residual_)
+    r0 = projected(meas, meas.cal, base.least_squares_residual_)       # as nested_verdict
+    r1 = projected(meas, meas.cal, refit.least_squares_residual_)
     k_refit = refit.identifiability_["n_identified_directions"]
     k = k_refit - base.identifiability_["n_identified_directions"]
     rss0, rss1 = float(r0 @ r0), float(r1 @ r1)
@@ -1029,8 +1029,10 @@ def nested_verdict(fit: PhysicsFit, other: PhysicsFit, alpha: float = ALPHA,
     (``other`` leaves the calibration rows' sum of squares lower). Used by ``_joint_verdict``
     and by benchmarks/discovery.py to ask whether a round's data show the complete model."""
     meas = fit.measurements_
-    r0 = projected(meas, meas.cal, fit.residual_)
-    r1 = projected(meas, meas.cal, other.residual_)
+    # the calibration test on least squares' residuals (a fit corrected for the thermometers
+    # leaves a larger sum of squares by design); the validation rows see the fitted models
+    r0 = projected(meas, meas.cal, fit.least_squares_residual_)
+    r1 = projected(meas, meas.cal, other.least_squares_residual_)
     rss0, rss1 = float(r0 @ r0), float(r1 @ r1)
     k1 = other.identifiability_["n_identified_directions"]
     k = k1 - fit.identifiability_["n_identified_directions"]

@@ -81,7 +81,9 @@ class PhysicsFit:
     ``thermometer_information_`` its information), ``thermometer_corrected_`` (whether the
     estimate is corrected for that noise in the variables: ``_corrected_for_thermometers``)
     and ``thermometer_correction_`` (the share of ``thermometer_noise_`` it corrected for),
-    ``fitted_again_`` (whether ``fitted_again_where_it_ended`` replaced it by its refit).
+    ``least_squares_residual_`` ((N,3) m: the residual where least squares ended, before that
+    correction: what tests of nested models compare), ``fitted_again_`` (whether
+    ``fitted_again_where_it_ended`` replaced it by its refit).
     """
 
     def __init__(self, effects, params: RobotParams | None = None, start: dict | None = None,
@@ -224,6 +226,7 @@ class PhysicsFit:
             V = V_test
             s, Vt, keep = _directions_report(Js, V)
         theta, J, A = theta0, J0, A0
+        A_least_squares = None
         # a kept start was fitted with it (or is judged so)
         used = noise.restricted(V, Js @ V)
         if keep_start:
@@ -240,8 +243,13 @@ class PhysicsFit:
                     np.sqrt(np.mean(r ** 2)), extra={"progress": "fit"}))
                 if self.progress else None)
             # the correction's share of the noise (none if it is not made)
+            A_least_squares = A
             used = noise.restricted(V, projected(meas, cal, J, scale=S) @ V)
-            if used.terms(V, prior / S) is not None:
+            if not self.solver_message_.startswith("converged"):
+                # corrected from the least-squares solution only: a fit stopped short (its
+                # evaluations spent) returns its best least-squares point, as it says
+                used = ThermometerNoise.none(p)
+            elif used.terms(V, prior / S) is not None:
                 z, A, J, corrected = _corrected_for_thermometers(
                     fun, jac, z, A, J, lambda J: -projected(meas, cal, J, scale=S) @ V * NM,
                     lambda z: used.terms(V, prior / S + V @ z, NM),
@@ -290,6 +298,12 @@ class PhysicsFit:
         self.measurements_ = meas
         self.offsets_ = group_offsets(meas, A, cal)
         self.residual_ = residuals(meas, A, self.offsets_)
+        # what the tests of nested models compare (the F test's theory is least squares'):
+        # the residual where least squares ended, before the correction for the thermometers
+        self.least_squares_residual_ = (
+            residuals(meas, A_least_squares, group_offsets(meas, A_least_squares, cal))
+            if self.thermometer_corrected_ and A_least_squares is not None
+            else self.residual_)
         self.prediction_ = A
         self.reading_m_ = meas.y - self.residual_      # the model's reading per row (m)
         self.cal_ = figures_nm(self.residual_, meas.cal)
@@ -743,9 +757,10 @@ def _correction_defined(H: np.ndarray, least: float) -> bool:
 
 
 def calibration_cost(fit: PhysicsFit) -> float:
-    """Sum of squared calibration residuals (m^2, after each session's zero): what every fit
-    minimises, so fits of one model from different starts compare on it."""
-    res = fit.residual_[fit.measurements_.cal]
+    """Sum of squared calibration residuals (m^2, after each session's zero) where least
+    squares ended (``least_squares_residual_``, before the correction for the thermometers):
+    what every fit minimises, so fits of one model from different starts compare on it."""
+    res = fit.least_squares_residual_[fit.measurements_.cal]
     return float(np.nansum(res ** 2))
 
 
