@@ -70,7 +70,6 @@ AXIS_COLOURS = {"x": (214, 39, 40), "y": (44, 160, 44), "z": (31, 119, 180)}   #
 # the screen and the axes' triad to its left.
 VIEW_DIRECTION_DEG = (-60.0, 25.0)
 VIEW_FOV_Y_DEG = 55.0        # the viewer's vertical field of view (its default eye)
-FIELD_VIEW_ASPECT = 0.95     # the narrowest field view's width / height (error fields tab)
 _ERROR_TAB_SHARES = (0.5, 0.5)                     # 3D field | residual series and ladder
 _COIL_COLUMNS = ("coil1_A", "coil2_A", "coil3_A")
 _STD_COLUMN = re.compile(r"^(.+)_std_([A-Za-z]+)$")
@@ -283,15 +282,32 @@ def _field_colours(magnitude_nm: np.ndarray, scale: float, extent_mm: float) -> 
     return (c[:, :3] * 255).round().astype(np.uint8)
 
 
-def _stage(vertices_mm: np.ndarray, extent_mm: float) -> _Stage:
-    """The field views' stage around the workspace (its hull's ``vertices_mm``): seen from
-    ``VIEW_DIRECTION_DEG``, the legend's column right of it, as tall as the workspace (up to
-    8 rows), its caption above the workspace, the triad at its lower left, the eye at the
-    distance that frames them all in a view of ``FIELD_VIEW_ASPECT`` or wider."""
+def _screen_axes() -> tuple[np.ndarray, np.ndarray]:
+    """From the scene towards the eye (``VIEW_DIRECTION_DEG``), and the screen's right (a
+    horizontal unit vector)."""
     az, el = np.radians(VIEW_DIRECTION_DEG)
     to_eye = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     right = np.cross(-to_eye, (0.0, 0.0, 1.0))
-    right /= np.linalg.norm(right)
+    return to_eye, right / np.linalg.norm(right)
+
+
+def _eye_on(framed_mm: np.ndarray) -> _Eye:
+    """An eye from ``VIEW_DIRECTION_DEG`` on the centre of the box around ``framed_mm``, with
+    their half width and height on the screen."""
+    to_eye, right = _screen_axes()
+    target = framed_mm.min(axis=0) / 2.0 + framed_mm.max(axis=0) / 2.0
+    screen_up = np.cross(right, -to_eye)
+    return _Eye(to_eye, target,
+                (float(np.max(np.abs((framed_mm - target) @ right))),
+                 float(np.max(np.abs((framed_mm - target) @ screen_up)))))
+
+
+def _stage(vertices_mm: np.ndarray, extent_mm: float) -> _Stage:
+    """The field views' stage around the workspace (its hull's ``vertices_mm``): seen from
+    ``VIEW_DIRECTION_DEG``, the legend's column right of it, as tall as the workspace (up to
+    8 rows), its caption above the workspace, the triad at its lower left, and the eye on
+    them all."""
+    _, right = _screen_axes()
     up = np.array([0.0, 0.0, 1.0])
     across = vertices_mm @ right
     bottom, top = float(vertices_mm[:, 2].min()), float(vertices_mm[:, 2].max())
@@ -303,21 +319,14 @@ def _stage(vertices_mm: np.ndarray, extent_mm: float) -> _Stage:
     # caption's three lines, the triad
     legend_end = legend_x + (ARROW_SPAN_SHARE[1] + 0.1) * extent_mm
     caption_z = top + 2.5 * row
-    framed = np.vstack([vertices_mm, legend_end * right + top * up,
-                        legend_end * right + bottom * up, triad_origin,
-                        triad_origin + triad * np.eye(3),
-                        (caption_z + row) * up + across.min() * right,
-                        (caption_z + row) * up + legend_end * right])
-    target = framed.min(axis=0) / 2.0 + framed.max(axis=0) / 2.0
-    screen_up = np.cross(right, -to_eye)
-    half_w = float(np.max(np.abs((framed - target) @ right)))
-    half_h = float(np.max(np.abs((framed - target) @ screen_up)))
-    t = np.tan(np.radians(VIEW_FOV_Y_DEG) / 2.0)
-    distance = 1.08 * max(half_h / t, half_w / (t * FIELD_VIEW_ASPECT))
-    caption = (target - (target @ up) * up) + caption_z * up
+    eye = _eye_on(np.vstack([vertices_mm, legend_end * right + top * up,
+                             legend_end * right + bottom * up, triad_origin,
+                             triad_origin + triad * np.eye(3),
+                             (caption_z + row) * up + across.min() * right,
+                             (caption_z + row) * up + legend_end * right]))
+    caption = (eye.target_mm - (eye.target_mm @ up) * up) + caption_z * up
     return _Stage(right=right, legend_x_mm=legend_x, legend_top_mm=top, row_mm=row,
-                  caption_mm=caption, triad_origin_mm=triad_origin, triad_mm=triad,
-                  eye_mm=target + distance * to_eye, target_mm=target)
+                  caption_mm=caption, triad_origin_mm=triad_origin, triad_mm=triad, eye=eye)
 
 
 def _round_step_below(x: float) -> float:
@@ -433,12 +442,33 @@ class _Field:
 
 
 @dataclass
+class _Eye:
+    """A 3D view's eye: its direction from the scene (unit), its target (mm) and the half
+    width and height (mm, on the screen) of what it must frame."""
+    to_eye: np.ndarray
+    target_mm: np.ndarray
+    half_mm: tuple[float, float]
+
+    def position_mm(self, aspect: float) -> np.ndarray:
+        """Where the eye frames it all (12 % margin) in a view of width / height ``aspect``
+        (the viewer's vertical field of view: ``VIEW_FOV_Y_DEG``)."""
+        t = np.tan(np.radians(VIEW_FOV_Y_DEG) / 2.0)
+        half_w, half_h = self.half_mm
+        return self.target_mm + 1.12 * max(half_h / t, half_w / (t * aspect)) * self.to_eye
+
+    def controls(self, size_px: tuple[float, float]):
+        """The blueprint's eye for a view of ``size_px`` (width, height)."""
+        import rerun.blueprint as rrb
+        return rrb.EyeControls3D(position=self.position_mm(size_px[0] / size_px[1]),
+                                 look_target=self.target_mm, eye_up=(0.0, 0.0, 1.0))
+
+
+@dataclass
 class _Stage:
     """Where a 3D field view puts what it shows beside the workspace (mm, scene frame): the
     screen's right (``VIEW_DIRECTION_DEG``: a horizontal unit vector), the legend's column
     (left end along ``right``, height of its top and the rows' spacing), its caption's
-    place, the axes' triad
-    (origin and arrow length), and the eye (position and target)."""
+    place, the axes' triad (origin and arrow length), and the eye."""
     right: np.ndarray
     legend_x_mm: float
     legend_top_mm: float
@@ -446,8 +476,7 @@ class _Stage:
     caption_mm: np.ndarray
     triad_origin_mm: np.ndarray
     triad_mm: float
-    eye_mm: np.ndarray
-    target_mm: np.ndarray
+    eye: _Eye
 
 
 @dataclass
@@ -608,7 +637,7 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     fields = _fields(df["pos_id"].to_numpy(), residuals, scene.extent_mm, arrow_scale)
     residual_panels = _residual_panels(labels, slugs, residuals)
     campaign_panels = _campaign_panels(df)
-    robot = _robot(geom, params, q, max_poses, progress)
+    robot = _robot(geom, params, q, origin, max_poses, progress)
 
     path = Path(path)
     floor = floor_of(meta)
@@ -616,8 +645,8 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
                                pose_rows=robot.rows, position_ids=scene.ids,
                                floor_nm=floor[0], floor_kind=floor[1])
     summary.ladder = _ladder_rows(df, ladder, labels, slugs, residuals, fields)
-    summary.blueprint = _blueprint(summary, scene, fields, residual_panels, campaign_panels,
-                                   t_s)
+    summary.blueprint = _blueprint(summary, scene, robot.eye, fields, residual_panels,
+                                   campaign_panels, t_s)
 
     def write(tmp):
         rec = rr.RecordingStream("deltatwin")
@@ -663,10 +692,29 @@ class _Robot:
     gpos: np.ndarray
     gmat: np.ndarray
     beams: dict
+    triad_origin_mm: np.ndarray          # the robot view's triad and eye (_robot_framing)
+    triad_mm: float
+    eye: _Eye
 
 
-def _robot(geom, params, q, max_poses: int, progress: bool) -> _Robot:
-    """The robot posed at ``max_poses`` readings at most, evenly spaced (first and last)."""
+def _robot_framing(meshes, gpos, gmat, origin) -> tuple[np.ndarray, float, _Eye]:
+    """The robot view's triad, at the lower left of the robot posed at ``gpos``, ``gmat``
+    (a round length near a quarter of the robot's extent), and its eye on both."""
+    _, right = _screen_axes()
+    up = np.array([0.0, 0.0, 1.0])
+    corners = np.vstack([(mesh.bounding_box.vertices @ R.T + p - origin) * MM_PER_M
+                         for (_, mesh, _), p, R in zip(meshes, gpos, gmat)])
+    extent = float(np.max(np.ptp(corners, axis=0)))
+    triad = _round_step_below(0.25 * extent)
+    triad_origin = ((float(np.min(corners @ right)) - 0.05 * extent - triad) * right
+                    + float(np.min(corners[:, 2])) * up)
+    return triad_origin, triad, _eye_on(np.vstack([corners, triad_origin,
+                                                    triad_origin + 1.25 * triad * np.eye(3)]))
+
+
+def _robot(geom, params, q, origin, max_poses: int, progress: bool) -> _Robot:
+    """The robot posed at ``max_poses`` readings at most, evenly spaced (first and last);
+    ``origin``: the scene's local origin (world frame, m)."""
     from deltatwin.models.kinematics import forward
     from deltatwin.models.mjcf import build_model
     _, model = build_model(params)
@@ -677,7 +725,8 @@ def _robot(geom, params, q, max_poses: int, progress: bool) -> _Robot:
     cube_home = forward(geom, np.zeros((1, 3))).point(geom.cube_offset)[0]
     beams = _beams(model, data, params, cube, cube_home)
     fixed = np.array([model.body_weldid[model.geom(n).bodyid[0]] == 0 for n in names])
-    return _Robot(meshes, names, fixed, rows, gpos, gmat, beams)
+    return _Robot(meshes, names, fixed, rows, gpos, gmat, beams,
+                  *_robot_framing(meshes, gpos[0], gmat[0], origin))
 
 
 def _ladder_rows(df, ladder, labels, slugs, residuals, fields) -> list[dict]:
@@ -898,14 +947,10 @@ def _log_scene(rec, meshes, ws, origin, scene: _Scene) -> None:
 
 def _log_robot(rec, robot: _Robot, origin, t_rows) -> None:
     """Geoms on moving bodies and the beams along the campaign; those fixed to the room
-    (base, coils, instruments) once; a triad of the scene's axes below the robot's geoms,
-    a round length near a quarter of their spread."""
+    (base, coils, instruments) once; a triad of the scene's axes at the robot's lower left."""
     import rerun as rr
     names, fixed, gpos, gmat = robot.names, robot.fixed, robot.gpos, robot.gmat
-    centres_mm = (gpos[0] - origin) * MM_PER_M
-    spread_mm = float(np.max(np.ptp(centres_mm, axis=0)))
-    _log_axes(rec, "world/axes/robot", centres_mm.min(axis=0),
-              _round_step_below(0.25 * spread_mm))
+    _log_axes(rec, "world/axes/robot", robot.triad_origin_mm, robot.triad_mm)
     campaign = [rr.TimeColumn(CAMPAIGN_TIMELINE, duration=t_rows)]
     for g, name in enumerate(names):
         trans = (gpos[:, g] - origin) * MM_PER_M
@@ -955,6 +1000,7 @@ TAB_CHAR_PX, TAB_CHROME_PX = 7.0, 40.0
 # plot's title or tab bar and x tick labels, and the least plot area with y tick labels at
 # any data range (``_error_tab``)
 WINDOW_CHROME_PX, PLOT_CHROME_PX, PLOT_MIN_PX = 100.0, 60.0, 240.0
+TITLE_PX = 24.0              # a view's title bar, a tab bar
 
 
 def tab_title(text: str, width_px: float, n_tabs: int) -> str:
@@ -964,10 +1010,12 @@ def tab_title(text: str, width_px: float, n_tabs: int) -> str:
     return text if len(text) <= chars else text[:max(chars - 1, 1)].rstrip() + "\u2026"
 
 
-def _field_view(name: str, entity: str | None, legend: str | None, stage: _Stage):
+def _field_view(name: str, entity: str | None, legend: str | None, stage: _Stage,
+                size_px: tuple[float, float]):
     """A 3D view of the workspace (hull, points), its axes' triad, the arrows of the field
     ``entity`` (``_log_arrows``) and its ``legend`` (entities under ``world``) only, so the viewer frames it on them (the
-    robot, 20 times larger, would shrink them to a few pixels); seen from the stage's eye.
+    robot, 20 times larger, would shrink them to a few pixels); seen from the stage's eye,
+    framed for the view's planned ``size_px`` (width, height).
     The hull does not take the pointer: hovering an arrow shows the arrow's label."""
     import rerun.blueprint as rrb
     import rerun as rr
@@ -978,8 +1026,7 @@ def _field_view(name: str, entity: str | None, legend: str | None, stage: _Stage
     return rrb.Spatial3DView(
         origin="world", name=name, contents=contents, line_grid=rrb.LineGrid3D(visible=False),
         defaults=[rr.Arrows3D.from_fields(radii=rr.Radius.ui_points(2.0), show_labels=False)],
-        eye_controls=rrb.EyeControls3D(position=stage.eye_mm, look_target=stage.target_mm,
-                                       eye_up=(0.0, 0.0, 1.0)),
+        eye_controls=stage.eye.controls(size_px),
         overrides={"world/workspace/hull": passive, "world/workspace/hull_edges": passive})
 
 
@@ -1008,25 +1055,33 @@ def _series_view(panel: _Panel, name: str, axis):
                                                          visible=True))
 
 
-def _model_views(rows, fields, stage, width_px):
+def _model_views(rows, fields, stage, size_px):
     """The error-field tab's 3D tabs: per model its field at its own scale."""
-    return [_field_view(tab_title(f"{r['label']}: 1 mm = {f.scale:g} nm", width_px, len(rows)),
-                        f"error/{r['entity']}", f"legend/{r['entity']}", stage)
+    return [_field_view(tab_title(f"{r['label']}: 1 mm = {f.scale:g} nm", size_px[0],
+                                  len(rows)),
+                        f"error/{r['entity']}", f"legend/{r['entity']}", stage, size_px)
             for r, f in zip(rows, fields)]
+
+
+def _content_px() -> tuple[float, float]:
+    """Width and height (px at SCREEN_PX) below the viewer's own bars and the top tabs."""
+    return SCREEN_PX[0], SCREEN_PX[1] - WINDOW_CHROME_PX - TITLE_PX
 
 
 def _axes_tab(rows, fields, stage):
     """Per model (a tab each) a 2 x 2 grid: its x, y and z residual fields and its field."""
     import rerun.blueprint as rrb
-    width = SCREEN_PX[0]
+    width, height = _content_px()
+    cell = (width / 2, (height - TITLE_PX) / 2 - TITLE_PX)
     grids = []
     for r, f in zip(rows, fields):
         e, scale = r["entity"], f.scale
         views = [_field_view(tab_title(f"{a} residual: {r['label']}, 1 mm = {scale:g} nm",
-                                       width / 2, 1), f"error/{e}/{a}", f"legend/{e}", stage)
+                                       cell[0], 1), f"error/{e}/{a}", f"legend/{e}", stage, cell)
                  for a in r["axes"]]
         views.append(_field_view(tab_title(f"|residual|: {r['label']}, 1 mm = {scale:g} nm",
-                                           width / 2, 1), f"error/{e}", f"legend/{e}", stage))
+                                           cell[0], 1), f"error/{e}", f"legend/{e}", stage,
+                                 cell))
         grids.append(rrb.Grid(*views, grid_columns=2,
                               name=tab_title(r["label"], width, len(rows))))
     return rrb.Tabs(*grids, active_tab=0, name="per axis")
@@ -1036,16 +1091,16 @@ def _steps_tab(rows, fields, stage):
     """Per step (a tab each) the previous model's field above the new model's, both at the
     previous model's scale: the residual before and after the step shown the same way."""
     import rerun.blueprint as rrb
-    width, steps = SCREEN_PX[0], []
+    width, height = _content_px()
+    half, steps = (width, (height - TITLE_PX) / 2 - TITLE_PX), []
     for k in range(1, len(rows)):
         prev, r, s = rows[k - 1], rows[k], fields[k - 1].scale
-        # one above the other: the views are wide, and the viewer frames a 3D view on its
-        # height
+        # one above the other: the views are wide, and the stage is wider than tall
         steps.append(rrb.Vertical(
             _field_view(f"before: {prev['label']}, 1 mm = {s:g} nm", f"error/{prev['entity']}",
-                        f"legend/{prev['entity']}", stage),
+                        f"legend/{prev['entity']}", stage, half),
             _field_view(f"after: {r['label']}, 1 mm = {s:g} nm", f"step/{r['entity']}/after",
-                        f"step/{r['entity']}/legend", stage),
+                        f"step/{r['entity']}/legend", stage, half),
             name=tab_title(f"before/after {r['label']}", width, len(rows) - 1)))
     return rrb.Tabs(*steps, active_tab=0, name="before/after")
 
@@ -1058,10 +1113,12 @@ def _error_tab(summary, fields, stage, residual_panels, axis):
     worst, so every plot keeps ``PLOT_MIN_PX``."""
     import rerun.blueprint as rrb
     rows = summary.ladder
-    right_px = SCREEN_PX[0] * _ERROR_TAB_SHARES[1]
-    spatial = (_model_views(rows, fields, stage, SCREEN_PX[0] * _ERROR_TAB_SHARES[0]) if rows
+    width, height = _content_px()
+    right_px = width * _ERROR_TAB_SHARES[1]
+    left = (width * _ERROR_TAB_SHARES[0], height - TITLE_PX)
+    spatial = (_model_views(rows, fields, stage, left) if rows
                else [_field_view("workspace: calibration and validation positions", None, None,
-                                 stage)])
+                                 stage, left)])
     info = rrb.TextDocumentView(origin="info", name="info")
     side, heights = [info], [1.0]
     if rows:
@@ -1080,7 +1137,8 @@ def _error_tab(summary, fields, stage, residual_panels, axis):
                           column_shares=list(_ERROR_TAB_SHARES), name="error fields")
 
 
-def _blueprint(summary, scene: _Scene, fields, residual_panels, campaign_panels, t_s):
+def _blueprint(summary, scene: _Scene, robot_eye: _Eye, fields, residual_panels,
+               campaign_panels, t_s):
     """Top tabs: "error fields" (``_error_tab``), "per axis" (``_axes_tab``), "before/after"
     (``_steps_tab``, from two models on), "robot and beams", "campaign" (the recorded
     signals, one unit per plot, two columns from three plots on).  Every time-series plot
@@ -1099,7 +1157,7 @@ def _blueprint(summary, scene: _Scene, fields, residual_panels, campaign_panels,
     tabs.append(rrb.Spatial3DView(
         origin="world", name="robot and beams",
         contents=["$origin/robot/**", "$origin/instruments/**", "$origin/workspace/**",
-                  "$origin/axes/robot/**"]))
+                  "$origin/axes/robot/**"], eye_controls=robot_eye.controls(_content_px())))
     if campaign_panels:
         tabs.append(rrb.Grid(*[_series_view(p, p.title, axis) for p in campaign_panels],
                              grid_columns=columns, name="campaign"))
