@@ -45,7 +45,8 @@ from deltatwin.twin.dataset import AXES, SPLITS, temperature_columns, validate
 
 __all__ = ["LadderStep", "RecordingSummary", "calibration_step", "model_file_step",
            "residuals_m", "position_field", "robot_meshes", "arrow_scale_nm_per_mm",
-           "step_labels", "colour_legend", "tab_title", "write_recording", "CAMPAIGN_TIMELINE",
+           "step_labels", "colour_legend", "tab_title", "p90_text", "floor_text",
+           "write_recording", "CAMPAIGN_TIMELINE",
            "ARROW_SPAN_SHARE", "ARROW_SPAN_PERCENTILES", "AXIS_COLOURS", "SCREEN_PX"]
 
 CAMPAIGN_TIMELINE = "campaign_time"
@@ -810,18 +811,19 @@ def _log_fields(rec, rows, fields, scene: _Scene, floor) -> None:
         _log_legend(rec, f"world/step/{e}/legend", scale, scene, _caption(row, scale, floor))
 
 
-def _figures_text(p90_nm: dict) -> str:
+def p90_text(p90_nm: dict) -> str:
     """'54.2 nm (x 50.1, y 60.2, z 30.3)': pooled, then per axis (nm)."""
     axes = ", ".join(f"{a} {p90_nm[a]:.1f}" for a in AXES if a in p90_nm)
     return (f"{p90_nm['all']:.1f} nm ({axes})" if "all" in p90_nm else f"({axes} nm)")
 
 
-def _floor_text(floor) -> str:
-    """The floor line of a legend and the ladder table, in the ladder's statistic."""
+def floor_text(floor) -> str:
+    """The floor line of a legend and of ``deltatwin view``'s output, in the ladder's
+    statistic: ``floor`` = (nm by axis or None, kind), as ``RecordingSummary`` holds it."""
     values, kind = floor
     if not values:
         return "floor: none recorded with the data"
-    return f"{kind} floor {_figures_text(values)}"
+    return f"{kind} floor {p90_text(values)}"
 
 
 def _caption(row: dict, scale: float, floor) -> str:
@@ -829,8 +831,8 @@ def _caption(row: dict, scale: float, floor) -> str:
     p90 and the floor in the same statistic (what ``deltatwin compare`` prints)."""
     rows = "validation" if row["p90_rows"] == "val" else "all readings'"
     return "\n".join([f"{row['label']}: |model - measurement|, 1 mm = {scale:g} nm",
-                      f"{rows} p90 {_figures_text(row['p90_nm'])}",
-                      _floor_text(floor)])
+                      f"{rows} p90 {p90_text(row['p90_nm'])}",
+                      floor_text(floor)])
 
 
 def _log_legend(rec, entity: str, scale: float, scene: _Scene, caption: str) -> None:
@@ -974,19 +976,21 @@ def _log_robot(rec, robot: _Robot, origin, t_rows) -> None:
 def _log_info(rec, df, meta, summary: RecordingSummary, n_rows) -> None:
     import rerun as rr
     o = summary.origin_m * MM_PER_M
-    name, lo, hi = FIELD_COLOURMAP
     splits = ", ".join(f"{s} {n}" for s, n in df.groupby("split")["pos_id"].nunique().items())
     text = "\n".join([
         f"**{meta.get('scenario', 'dataset')}** ({meta.get('source', 'unknown source')}): "
         f"{n_rows} readings, {summary.position_ids.size} positions ({splits}).", "",
         "* Arrows: model - measurement, mean per position; **1 mm of arrow = the view's "
-        "scale** (in its name), chosen so the 90-95th percentile arrow spans "
+        "scale** (in its name and its legend), chosen so the 90-95th percentile arrow spans "
         f"{ARROW_SPAN_SHARE[0]:.0%}-{ARROW_SPAN_SHARE[1]:.0%} of the "
-        f"{summary.extent_mm:.1f} mm workspace. Colour: dark red (small) to light yellow "
-        f"(spans {ARROW_SPAN_SHARE[1]:.0%} or more).",
+        f"{summary.extent_mm:.1f} mm workspace. Colour: the legend beside the workspace, "
+        "in nm. The pointer on an arrow shows its residual in nm.",
+        "* Above the workspace: the model's validation p90 of |model - measurement| and the "
+        "floor, as `deltatwin compare` prints them. Tab *per axis*: x, y, z apart.",
         "* Points: calibration blue, validation teal.",
-        f"* mm, z up, from the workspace centre ({o[0]:.2f}, {o[1]:.2f}, {o[2]:.2f}) mm. "
-        f"Robot posed at {summary.pose_rows.size} readings along `{CAMPAIGN_TIMELINE}`."])
+        f"* mm (the triad: X red, Y green, Z blue), z up, from the workspace centre "
+        f"({o[0]:.2f}, {o[1]:.2f}, {o[2]:.2f}) mm. Robot posed at {summary.pose_rows.size} "
+        f"readings along `{CAMPAIGN_TIMELINE}`."])
     rec.log("info", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
 
 
