@@ -285,6 +285,140 @@ def test_each_field_has_its_own_readable_scale(written):
     assert scales[1] < scales[0]                 # the second model's field gets a finer scale
 
 
+def rgb(packed):
+    """(r, g, b) of Rerun's packed 0xRRGGBBAA colour."""
+    return ((packed >> 24) & 255, (packed >> 16) & 255, (packed >> 8) & 255)
+
+
+def colour_of(magnitude_nm, top_nm):
+    """The stated colour rule: YlOrRd_r from 0 to 0.85 of its range as the magnitude goes
+    from 0 to the arrow spanning 20 % of the workspace (``top_nm``), saturating above."""
+    import matplotlib
+    c = matplotlib.colormaps["YlOrRd_r"](0.85 * np.clip(np.asarray(magnitude_nm) / top_nm, 0, 1))
+    return [tuple(int(v) for v in row) for row in np.round(np.atleast_2d(c)[:, :3] * 255)]
+
+
+def annotations(rrd, entity):
+    """{class id: (label, rgb)} of the annotation context at ``entity``."""
+    (row,) = rows_of(rrd, entity, "AnnotationContext:context")[1]
+    (context,) = row                                  # one context: a list of classes
+    return {c["class_id"]: (c["class_description"]["info"]["label"],
+                            rgb(c["class_description"]["info"]["color"])) for c in context}
+
+
+def test_colour_legend_in_nm_in_every_field_view(written):
+    """Each field view holds its scale's legend: arrows drawn at that scale (length x scale =
+    the nm in its label), in the colour the rule gives that many nm, from round values to
+    the top of the colour map; and the field's arrows are coloured by the same rule."""
+    df, ladder, summary, rrd = written
+    layout = Layout(summary.path)
+    extent = summary.extent_mm
+    legends = set()
+    for ref in layout.views("3D"):
+        contents = layout.contents(ref)
+        legend = [c for c in contents if "legend" in c]
+        if "$origin/robot/**" in contents:
+            continue
+        assert len(legend) == 1, layout[ref]["display_name"]     # every field view has one
+        legends.add(legend[0].replace("$origin", "/world")[:-3])
+    assert len(legends) == 3                # two models' own scales, the step's after view
+    for entity in legends:
+        _, labels = rows_of(rrd, f"{entity}/colours", "Arrows3D:labels")
+        _, vectors = rows_of(rrd, f"{entity}/colours", "Arrows3D:vectors")
+        _, colours = rows_of(rrd, f"{entity}/colours", "Arrows3D:colors")
+        caption = rows_of(rrd, f"{entity}/caption", "Points3D:labels")[1][0][0]
+        scale = float(re.search(r"1 mm = ([0-9.e+-]+) nm", caption).group(1))
+        top = scale * 0.20 * extent
+        nm = [float(t.split()[-2]) for t in labels[0]]
+        assert labels[0][-1].startswith("\u2265 ") and nm[-1] == pytest.approx(top, rel=2e-3)
+        assert 3 <= len(nm) - 1 <= 7 and np.all(np.diff(nm) > 0)
+        lengths = np.linalg.norm(np.array(vectors[0], dtype=float), axis=1)
+        np.testing.assert_allclose(lengths * scale, [*nm[:-1], top], rtol=1e-6)
+        assert [rgb(c) for c in colours[0]] == colour_of([*nm[:-1], top], top)
+    for k, r in enumerate(summary.ladder):
+        scale = r["arrow_scale_nm_per_mm"]
+        exp = expected_field_nm(df, ladder[k])
+        got = annotations(rrd, f"/world/error/{r['entity']}")
+        assert [got[int(i)][1] for i in exp.index] == colour_of(
+            np.linalg.norm(exp.to_numpy(), axis=1), scale * 0.20 * extent)
+
+
+def test_hovering_an_arrow_gives_its_residual_in_nm(written):
+    """The viewer's hover card lists an instance's components only when it has three or
+    fewer (measured in the real viewer, Rerun 0.41: docs/view-hover.png): every field's
+    arrows hold origins, vectors and class ids alone, and each class's label (the card shows
+    it) starts with the arrow's residual in nm; the hull does not take the pointer."""
+    df, ladder, summary, rrd = written
+    for k, r in enumerate(summary.ladder):
+        exp = expected_field_nm(df, ladder[k])
+        for part in ("", "/x", "/y", "/z"):
+            arrows = field_entity(summary, k, part)
+            assert {c for _, comps in rrd[arrows] for c in comps} == {
+                "Arrows3D:origins", "Arrows3D:vectors", "Arrows3D:class_ids"}, arrows
+            (ids,) = rows_of(rrd, arrows, "Arrows3D:class_ids")[1]
+            assert ids == list(exp.index)                       # the positions' ids
+            labels = annotations(rrd, arrows.rsplit("/", 1)[0])
+            for i, v in zip(exp.index, exp.to_numpy()):
+                text = labels[int(i)][0]
+                if part:
+                    a = part[1]
+                    assert text.startswith(f"{a} {v['xyz'.index(a)]:+.1f} nm at pos {i} ")
+                else:
+                    assert text.startswith(f"{np.linalg.norm(v):.1f} nm at pos {i} ")
+                    assert text.endswith(f"x {v[0]:+.1f}, y {v[1]:+.1f}, z {v[2]:+.1f} nm")
+    layout = Layout(summary.path)
+    fields = [ref for ref in layout.views("3D") if "$origin/robot/**" not in layout.contents(ref)]
+    for ref in fields:
+        for entity in ("hull", "hull_edges"):
+            assert layout[f"{ref}/ViewContents/overrides/world/workspace/{entity}/visualizers"
+                          ] == {"interactive": False}
+
+
+def test_per_axis_fields(written):
+    """Each model's x, y and z residuals are fields of their own, at the model's scale, with
+    a tab per model ("per axis") showing the three and the whole field."""
+    df, ladder, summary, rrd = written
+    layout = Layout(summary.path)
+    per_axis = layout.named("per axis")
+    for k, r in enumerate(summary.ladder):
+        exp = expected_field_nm(df, ladder[k]).to_numpy()
+        for a, axis in enumerate("xyz"):
+            _, vec = static_arrows(rrd, field_entity(summary, k, f"/{axis}"))
+            got = vec * r["arrow_scale_nm_per_mm"]
+            assert np.all(np.abs(got[:, a] - exp[:, a]) <= F32_REL * np.abs(exp[:, a]))
+            assert not np.delete(got, a, axis=1).any()          # along its axis only
+        grid = layout.children(per_axis)[k]
+        assert layout[grid]["container_kind"] == Layout.GRID
+        assert [layout.contents(v)[2] for v in layout.children(grid)] == [
+            f"$origin/error/{r['entity']}{part}/arrows" for part in ("/x", "/y", "/z", "")]
+
+
+def test_axes_in_mm_with_a_triad(written):
+    """The scene is in mm: a triad X, Y, Z (red, green, blue) of a round length in mm, so
+    labelled, beside the workspace in every field view, and a larger one by the robot."""
+    df, ladder, summary, rrd = written
+    geom = build_geometry(load_params())
+    ws = hull(geom, point=geom.cube_offset)
+    for entity, (lo, hi) in (("/world/axes/workspace", (0.2, 0.3)),
+                             ("/world/axes/robot", (0.1, 0.25))):
+        (vectors,) = rows_of(rrd, entity, "Arrows3D:vectors")[1]
+        (origins,) = rows_of(rrd, entity, "Arrows3D:origins")[1]
+        (labels,) = rows_of(rrd, f"{entity}/labels", "Points3D:labels")[1]
+        (colours,) = rows_of(rrd, entity, "Arrows3D:colors")[1]
+        length = vectors[0][0]
+        np.testing.assert_array_equal(vectors, length * np.eye(3))
+        assert len({tuple(o) for o in origins}) == 1
+        assert one_two_five(length) or one_two_five(length / 2.5)   # 1, 2, 2.5, 5 x 10^n
+        assert labels == [f"{a} {length:g} mm" for a in "XYZ"]
+        assert [rgb(c) for c in colours] == [view.AXIS_COLOURS[a] for a in "xyz"]
+        if entity.endswith("workspace"):       # beside the workspace: outside its hull
+            assert lo * summary.extent_mm <= length <= hi * summary.extent_mm
+            o_m = np.array(origins[0]) / 1e3 + summary.origin_m
+            assert not ws.contains([o_m])[0]
+        else:                                   # mm: the robot is ~0.4 m tall
+            assert 50.0 <= length <= 200.0
+
+
 def test_arrow_scale_rule_on_random_fields():
     """``arrow_scale_nm_per_mm`` against a brute force over 1-2-5 steps, on fields with a
     span of 1 nm to 100 um and spreads from none to wide."""
@@ -460,15 +594,17 @@ def test_layout_opens_on_the_first_field(written):
 
 
 def test_time_series_views_span_the_campaign(written):
-    """Every plot spans the whole campaign, one unit per plot, explicit and distinct colours,
-    readings as points, and x room after the last reading for the legend (top right), so the
-    legend covers no data."""
+    """Every plot spans the whole campaign, the same x range in every plot (stacked plots line
+    up in time), one unit per plot, explicit and distinct colours, readings as points, and x
+    room after the last reading for the legend (top right), so the legend covers no data."""
     df, ladder, summary, rrd = written
     layout = Layout(summary.path)
     t0, t1 = df["t_s"].min() * 1e9, df["t_s"].max() * 1e9
     plots = layout.views("TimeSeries")
     assert len(plots) == len(ladder) + 5      # residual per model; T, coils, force, std, ac
     units = re.compile(r"_(C|A|N|nm|arcsec)$")
+    ranges = {str(layout[f"{ref}/TimeAxis"]["view_range"]) for ref in plots}
+    assert len(ranges) == 1                                     # one x range for all
     for ref, p in plots.items():
         rng = layout[f"{ref}/TimeAxis"]["view_range"]
         assert rng["start"] <= t0 and rng["end"] >= t1 + 0.1 * (t1 - t0), p["display_name"]
@@ -485,6 +621,74 @@ def test_time_series_views_span_the_campaign(written):
         assert len(set(colours)) == len(colours), origin            # distinct in a plot
     origins = {p["space_origin"] for p in plots.values()}
     assert {"timeseries/coil_current_A", "timeseries/force_N"} <= origins   # A apart from N
+
+
+def planned_boxes(layout):
+    """{ref: (width, height) px} of every container and view as the default layout plans
+    them at view.SCREEN_PX: the window less the viewer's own bars, split by the containers'
+    shares; a view's box holds its title bar (or, in tabs, the tab bar)."""
+    def walk(ref, w, h):
+        boxes[ref] = (w, h)
+        if not ref.startswith("container/"):
+            return
+        part, kids = layout[ref], layout.children(ref)
+        kind = part["container_kind"]
+        if kind == Layout.TABS:
+            inner = [(w, h)] * len(kids)
+        elif kind == Layout.GRID:
+            cols = part.get("grid_columns") or 1
+            rows = -(-len(kids) // cols)
+            inner = [(w / cols, h / rows)] * len(kids)
+        else:
+            key = "col_shares" if kind == Layout.HORIZONTAL else "row_shares"
+            shares = np.asarray(part.get(key) or [1.0] * len(kids), dtype=float)
+            shares = shares / shares.sum()
+            inner = [(w * f, h) if kind == Layout.HORIZONTAL else (w, h * f) for f in shares]
+        for kid, (kw, kh) in zip(kids, inner):
+            walk(kid, kw, kh)
+    boxes = {}
+    walk(layout.root, view.SCREEN_PX[0], view.SCREEN_PX[1] - view.WINDOW_CHROME_PX)
+    return boxes
+
+
+def long_ladder(campaign):
+    """Four steps with long effect names (titles that must be cut to fit)."""
+    df, meta, models = campaign
+    steps = [calibration_step(name, m, df) for name, m in models]
+    effects = ["geometric_errors", "thermal_expansion_of_the_frame", "loop_drift_with_lag",
+               "magnetic_force_of_the_coils", "air_refraction_by_pressure_and_humidity"]
+    return [LadderStep("m", steps[k % 2].reading_m, tuple(effects[:k + 1])) for k in range(4)]
+
+
+@pytest.mark.parametrize("ladder_of", ["two", "four"])
+def test_every_tab_title_and_every_plots_tick_labels_fit(campaign, written, tmp_path,
+                                                          ladder_of):
+    """In the default layout at SCREEN_PX, every tab bar holds its tabs' titles whole
+    (measured on screenshots: 6.4 px a character and 30 px of icon and padding at most;
+    view.TAB_CHAR_PX, TAB_CHROME_PX add a margin), and every plot keeps the height at which
+    its y tick labels show at any data range: egui_plot labels a grid line a power of ten
+    apart only when such lines lie more than 20 px apart, which is a tenth of the plot's
+    height at worst (view.PLOT_MIN_PX)."""
+    if ladder_of == "two":
+        summary = written[2]
+    else:
+        df, meta, _ = campaign
+        summary = write_recording(df, meta, long_ladder(campaign), tmp_path / "long.rrd",
+                                  max_poses=2)
+    layout = Layout(summary.path)
+    boxes = planned_boxes(layout)
+    tab_bars = [ref for ref in boxes if ref.startswith("container/")
+                and layout[ref]["container_kind"] == Layout.TABS]
+    assert len(tab_bars) >= 5
+    for ref in tab_bars:
+        titles = [layout[kid]["display_name"] for kid in layout.children(ref)]
+        needed = sum(view.TAB_CHAR_PX * len(t) + view.TAB_CHROME_PX for t in titles)
+        assert needed <= boxes[ref][0], titles
+    plots = {**layout.views("TimeSeries"), **layout.views("BarChart")}
+    assert len(plots) >= 7
+    for ref in plots:
+        assert boxes[ref][1] >= view.PLOT_MIN_PX + view.PLOT_CHROME_PX - 1e-9, \
+            layout[ref]["display_name"]
 
 
 def test_robot_posed_along_the_campaign(written):
