@@ -7,28 +7,39 @@ The recording holds (all static unless said)
   drawn where the mirror cube's centre is (the measured point), and the error arrows there;
 * ``world/error/<k>_<step>``: model k's residual field, per position the arrow of the residual
   (model minus measurement, mean over the position's readings), at that model's own arrow
-  scale, coloured by magnitude;
+  scale, coloured by magnitude (``/arrows``: origins, vectors, class ids; the entity itself:
+  the annotation context giving each class its colour and its label, the residual in nm);
+  ``world/error/<k>_<step>/<axis>``: its x, y and z components alike;
 * ``world/step/<k>_<step>/after`` (k >= 1): model k's residual field at model k-1's scale, to
   set beside ``world/error/<k-1>_...``: the residual before and after the step shown the same
   way;
+* ``world/legend/<k>_<step>`` (and ``world/step/<k>_<step>/legend``): the colour legend of a
+  scale, arrows labelled in nm (``/colours``), and the caption (``/caption``): the model, the
+  scale, its validation p90 and the floor;
+* ``world/axes/workspace``, ``world/axes/robot``: triads of the scene's axes, in mm;
 * ``world/robot/<geom>``: every geom of the MuJoCo model (``models.mjcf``) as a mesh, posed
   along the campaign (``max_poses`` evenly spaced readings) on ``campaign_time``;
   ``world/instruments/<site>``: the interferometer and autocollimator beams;
 * ``timeseries/...``: the residual per axis of each model, every temperature, the coil
   currents, the force, the reading std (acceptance) and the autocollimator angles, as points
   (one per reading) on ``campaign_time`` (s since the campaign's start);
-* ``ladder/<k>_<step>`` (a bar chart each: the RMS residual), ``ladder/table``, ``info`` (text), and the
-  default blueprint (``_blueprint``): opens paused on the first model's field.
+* ``ladder/<k>_<step>`` (a bar chart each: the validation p90), ``ladder/floor``,
+  ``ladder/table``, ``info`` (text), and the default blueprint (``_blueprint``): opens
+  paused on the first model's field.
 
 Ladder steps are named after their effects (``step_labels``): the first by its effects, each
-later one by the effects it adds ("+ magnetic_force").
+later one by the effects it adds ("+ magnetic_force").  Each model's figure is the one
+``deltatwin compare`` and ``diagnose`` print, the 90th percentile of |model - measurement| on
+the validation rows (``calibration.physics.model.figures_nm``), and the floor beside it is
+``calibration.diagnosis.floor.floor_of``'s (the achievable floor the data carry, else their
+noise floor).
 
 Units and frames (Rerun stores positions and vectors as float32): the 3D scene is in
 millimetres, z up, relative to a local origin, the centre of the workspace's bounding box, so
 positions keep ~1 nm.  Each field's arrows are drawn at ``1 mm = s nm`` with s a 1-2-5 step
 chosen (``arrow_scale_nm_per_mm``) so the 90th-95th percentile arrow spans 15-20 % of the
 workspace; the stored vector is the residual in units of s nm (float32's relative precision,
-2^-24), and s is stated in the view's name and the ladder table.
+2^-24), and s is stated in the view's name, its legend and the ladder table.
 """
 from __future__ import annotations
 
@@ -612,13 +623,7 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
     from deltatwin.models.params import load_params
     from deltatwin.twin.workspace import hull
 
-    validate(df, "view: dataset")
-    ladder = _check_ladder(df, ladder)
-    if max_poses < 1:
-        raise ValueError(f"max_poses must be >= 1, got {max_poses}")
-    if arrow_scale is not None and not (np.isfinite(arrow_scale) and arrow_scale > 0):
-        raise ValueError(f"arrow_scale must be a positive number of nm per mm, got {arrow_scale}")
-    df = df.reset_index(drop=True)
+    df, ladder = _checked(df, ladder, max_poses, arrow_scale)
     params = params or load_params()
     geom = build_geometry(params)
     t_s = df["t_s"].to_numpy(dtype=float)
@@ -667,6 +672,17 @@ def write_recording(df: pd.DataFrame, meta: dict, ladder=(), path="run.rrd", *, 
 
     atomic_write(path, write)
     return summary
+
+
+def _checked(df, ladder, max_poses: int, arrow_scale) -> tuple[pd.DataFrame, list]:
+    """The dataset (rows renumbered) and the ladder, checked, with the options."""
+    validate(df, "view: dataset")
+    ladder = _check_ladder(df, ladder)
+    if max_poses < 1:
+        raise ValueError(f"max_poses must be >= 1, got {max_poses}")
+    if arrow_scale is not None and not (np.isfinite(arrow_scale) and arrow_scale > 0):
+        raise ValueError(f"arrow_scale must be a positive number of nm per mm, got {arrow_scale}")
+    return df.reset_index(drop=True), ladder
 
 
 def _scene(df, q, geom, ws, origin) -> _Scene:
@@ -1017,12 +1033,12 @@ def tab_title(text: str, width_px: float, n_tabs: int) -> str:
 def _field_view(name: str, entity: str | None, legend: str | None, stage: _Stage,
                 size_px: tuple[float, float]):
     """A 3D view of the workspace (hull, points), its axes' triad, the arrows of the field
-    ``entity`` (``_log_arrows``) and its ``legend`` (entities under ``world``) only, so the viewer frames it on them (the
-    robot, 20 times larger, would shrink them to a few pixels); seen from the stage's eye,
-    framed for the view's planned ``size_px`` (width, height).
-    The hull does not take the pointer: hovering an arrow shows the arrow's label."""
-    import rerun.blueprint as rrb
+    ``entity`` (``_log_arrows``) and its ``legend`` (entities under ``world``) only, so the
+    view frames them (the robot, 20 times larger, would shrink them to a few pixels); seen
+    from the stage's eye, framed for the view's planned ``size_px`` (width, height).  The
+    hull does not take the pointer: hovering an arrow shows the arrow's label."""
     import rerun as rr
+    import rerun.blueprint as rrb
     contents = ["$origin/workspace/**", "$origin/axes/workspace/**"]
     contents += [f"$origin/{entity}/arrows"] if entity else []
     contents += [f"$origin/{legend}/**"] if legend else []

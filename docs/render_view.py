@@ -15,7 +15,7 @@ the recording.  Writes ``view-<shot>.png`` (halved from the viewer's 2x pixels, 
 colours) into ``--out``; docs/view.md shows them.
 
 Needs ``xvfb-run`` and a Vulkan driver: ``apt-get install -y xvfb mesa-vulkan-drivers
-libgl1-mesa-dri``.  Takes ~30 s per screenshot on llvmpipe.
+libgl1-mesa-dri``.  Takes ~30 s per screenshot on llvmpipe, one viewer at a time.
 """
 from __future__ import annotations
 
@@ -25,7 +25,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -188,11 +187,11 @@ def main(argv=None) -> int:
         layouts = {s: (hover_layout(summary, Path(tmp) / f"{s}.rrd") if s == "hover" else
                        tab_layout(summary, SHOTS[s], Path(tmp) / f"{s}.rrd") if SHOTS[s]
                        else None) for s in wanted}
-        with ThreadPoolExecutor(max_workers=2) as pool:      # one viewer per core
-            pngs = pool.map(lambda s: screenshot(summary.path, out / f"view-{s}.png",
-                                                 layouts[s]), wanted)
-            for png in pngs:
-                print(f"{png} ({png.stat().st_size / 1024:.0f} kB)")
+        # one viewer at a time: two at once on the 2-core machine once took the campaign's
+        # screenshot before its plots had all their points
+        for shot in wanted:
+            png = screenshot(summary.path, out / f"view-{shot}.png", layouts[shot])
+            print(f"{png} ({png.stat().st_size / 1024:.0f} kB)")
     return 0
 
 

@@ -349,7 +349,7 @@ def test_hovering_an_arrow_gives_its_residual_in_nm(written):
     arrows hold origins, vectors and class ids alone, and each class's label (the card shows
     it) starts with the arrow's residual in nm; the hull does not take the pointer."""
     df, ladder, summary, rrd = written
-    for k, r in enumerate(summary.ladder):
+    for k in range(len(summary.ladder)):
         exp = expected_field_nm(df, ladder[k])
         for part in ("", "/x", "/y", "/z"):
             arrows = field_entity(summary, k, part)
