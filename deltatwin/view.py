@@ -1012,10 +1012,11 @@ def _log_info(rec, df, meta, summary: RecordingSummary, n_rows) -> None:
 
 # ----- the default layout -------------------------------------------------------------------
 
-# A tab's width in the viewer: its title's characters and the icon and padding around them
-# (px at SCREEN_PX; upper bounds measured on screenshots of the viewer: 6.4 px a character,
-# 30 px the rest)
-TAB_CHAR_PX, TAB_CHROME_PX = 7.0, 40.0
+# A tab bar in the viewer: per tab its title's characters and the icon and gaps around them,
+# and at its right end the view's buttons (help, visibility, maximise).  Px at SCREEN_PX,
+# with a margin over what screenshots of the viewer measured: 5.1-6.4 px a character,
+# 40-41 px a tab's icon and gaps, 70 px the buttons
+TAB_CHAR_PX, TAB_CHROME_PX, TAB_BUTTONS_PX = 7.0, 44.0, 80.0
 # Heights (px at SCREEN_PX): the viewer's own bars (menu, top tabs, time panel collapsed), a
 # plot's title or tab bar and x tick labels, and the least plot area with y tick labels at
 # any data range (``_error_tab``)
@@ -1026,7 +1027,7 @@ TITLE_PX = 24.0              # a view's title bar, a tab bar
 def tab_title(text: str, width_px: float, n_tabs: int) -> str:
     """``text`` as the title of one of ``n_tabs`` tabs sharing ``width_px``: cut, with an
     ellipsis, to the characters its share holds, so every tab's title shows."""
-    chars = int((width_px / max(n_tabs, 1) - TAB_CHROME_PX) / TAB_CHAR_PX)
+    chars = int(((width_px - TAB_BUTTONS_PX) / max(n_tabs, 1) - TAB_CHROME_PX) / TAB_CHAR_PX)
     return text if len(text) <= chars else text[:max(chars - 1, 1)].rstrip() + "\u2026"
 
 

@@ -664,8 +664,9 @@ def long_ladder(campaign):
 def test_every_tab_title_and_every_plots_tick_labels_fit(campaign, written, tmp_path,
                                                           ladder_of):
     """In the default layout at SCREEN_PX, every tab bar holds its tabs' titles whole
-    (measured on screenshots: 6.4 px a character and 30 px of icon and padding at most;
-    view.TAB_CHAR_PX, TAB_CHROME_PX add a margin), and every plot keeps the height at which
+    beside the view's buttons (measured on screenshots: at most 6.4 px a character, 41 px a
+    tab's icon and gaps, 70 px the buttons; view.TAB_CHAR_PX, TAB_CHROME_PX, TAB_BUTTONS_PX
+    add a margin), and every plot keeps the height at which
     its y tick labels show at any data range: egui_plot labels a grid line a power of ten
     apart only when such lines lie more than 20 px apart, which is a tenth of the plot's
     height at worst (view.PLOT_MIN_PX)."""
@@ -683,7 +684,7 @@ def test_every_tab_title_and_every_plots_tick_labels_fit(campaign, written, tmp_
     for ref in tab_bars:
         titles = [layout[kid]["display_name"] for kid in layout.children(ref)]
         needed = sum(view.TAB_CHAR_PX * len(t) + view.TAB_CHROME_PX for t in titles)
-        assert needed <= boxes[ref][0], titles
+        assert needed + view.TAB_BUTTONS_PX <= boxes[ref][0], titles
     plots = {**layout.views("TimeSeries"), **layout.views("BarChart")}
     assert len(plots) >= 7
     for ref in plots:
