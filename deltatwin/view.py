@@ -911,14 +911,16 @@ def _log_ladder(rec, rows, floor) -> None:
                 rr.BarChart([r["p90_nm"]["all"]], abscissa=[r["step"]], color=colour),
                 static=True)
     values, kind = floor
-    if values and "all" in values:
+    pooled = bool(values) and "all" in values
+    if pooled:
         rec.log("ladder/floor", rr.BarChart([values["all"]], abscissa=[len(rows)],
                                             color=FLOOR_COLOUR), static=True)
     on = "validation split" if rows[0]["p90_rows"] == "val" else "dataset (no validation split)"
+    floor_note = (f"grey: the {kind} floor." if pooled else
+                  f"the {kind} floor (per axis only) in the table's last row." if values else
+                  "no floor recorded with the data.")
     lines = [f"Bars: p90 of |model - measurement| over every reading and axis of the {on}, "
-             f"as `deltatwin compare` prints it; grey: the {kind} floor." if values else
-             f"Bars: p90 of |model - measurement| over every reading and axis of the {on}, "
-             "as `deltatwin compare` prints it; no floor recorded with the data.", "",
+             f"as `deltatwin compare` prints it; {floor_note}", "",
              "| # | model | p90 nm | x | y | z | RMS val nm | RMS cal nm | 1 mm of arrow |",
              "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:

@@ -522,6 +522,9 @@ def test_floor_beside_each_models_figure(campaign, tmp_path):
                       "Points3D:labels")[1][0][0]
     assert caption.splitlines()[-1] == "noise floor (x 4.0, y 3.0, z 5.0 nm)"
     assert "/ladder/floor" not in rrd                          # no pooled noise floor
+    table = rows_of(rrd, "/ladder/table", "TextDocument:text")[1][0][0]
+    assert "| | **noise floor** | - | 4.0 | 3.0 | 5.0 | | | |" in table
+    assert "the noise floor (per axis only) in the table's last row" in table
     summary, rrd = floor_recording(campaign, tmp_path, {})     # laboratory data
     caption = rows_of(rrd, f"/world/legend/{summary.ladder[1]['entity']}/caption",
                       "Points3D:labels")[1][0][0]
