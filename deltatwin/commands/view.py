@@ -48,7 +48,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from deltatwin.models.params import load_params
     from deltatwin.twin.dataset import read_dataset
-    from deltatwin.view import model_file_step, write_recording
+    from deltatwin.view import floor_text, model_file_step, p90_text, write_recording
 
     df, meta = read_dataset(args.data)
     ladder = [model_file_step(m, df, meta, trust_of(args)) for m in args.model]
@@ -60,9 +60,12 @@ def run(args) -> int:
           f"positions, robot posed at {s.pose_rows.size} readings)")
     print("  3D scene in mm relative to the workspace centre")
     for r in s.ladder:
-        print(f"  ladder {r['step']}: {r['label']}: RMS residual cal {r['rms_cal_nm']:.3g} nm, "
-              f"val {r['rms_val_nm']:.3g} nm; residual arrows: 1 mm = "
-              f"{r['arrow_scale_nm_per_mm']:g} nm")
+        rows = "validation" if r["p90_rows"] == "val" else "all readings'"
+        print(f"  ladder {r['step']}: {r['label']}: {rows} p90 {p90_text(r['p90_nm'])}; "
+              f"RMS residual cal {r['rms_cal_nm']:.3g} nm, val {r['rms_val_nm']:.3g} nm; "
+              f"residual arrows: 1 mm = {r['arrow_scale_nm_per_mm']:g} nm")
+    if s.ladder:
+        print(f"  {floor_text((s.floor_nm, s.floor_kind))}")
     if args.spawn:
         subprocess.Popen([sys.executable, "-m", "rerun_cli", str(s.path)],
                          start_new_session=True)

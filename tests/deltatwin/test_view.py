@@ -1,6 +1,7 @@
 """``deltatwin view``: real .rrd files written from a small campaign of the twin and a ladder of
 fitted DGMs, read back with rerun.chunk.RrdReader and compared with the data; the default
 blueprint read back from the file (views, names, scales, ranges), not from the pixels."""
+import json
 import os
 import re
 import subprocess
@@ -25,7 +26,7 @@ from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import forward
 from deltatwin.models.mjcf import INSTRUMENT_SITES, PLATE_THICKNESS_M, build_model
 from deltatwin.models.params import load_params
-from deltatwin.twin.dataset import write_dataset
+from deltatwin.twin.dataset import read_dataset, write_dataset
 from deltatwin.twin.scenario import Scenario
 from deltatwin.twin.workspace import hull
 from deltatwin.view import LadderStep, calibration_step, write_recording
@@ -149,8 +150,9 @@ def written(campaign, tmp_path_factory):
     return df, ladder, summary, read_rrd(path)
 
 
-def field_entity(summary, k):
-    return f"/world/error/{summary.ladder[k]['entity']}"
+def field_entity(summary, k, part=""):
+    """The arrows of model k's field (``part``: "/x", "/y", "/z" for a component's)."""
+    return f"/world/error/{summary.ladder[k]['entity']}{part}/arrows"
 
 
 def static_arrows(rrd, entity):
@@ -184,9 +186,12 @@ def test_entities_exist(written):
         "geometric", "+ temperatures + geometric x temperature + temperature rates + "
         "temperature accelerations"]
     for e in ("/world/workspace/hull", "/world/workspace/cal", "/world/workspace/val",
-              f"/world/error/{entities[0]}", f"/world/error/{entities[1]}",
-              f"/world/step/{entities[1]}/after", f"/ladder/{entities[0]}",
-              f"/ladder/{entities[1]}", "/ladder/table", "/info"):
+              f"/world/error/{entities[0]}/arrows", f"/world/error/{entities[1]}/arrows",
+              f"/world/step/{entities[1]}/after/arrows", f"/ladder/{entities[0]}",
+              f"/ladder/{entities[1]}", "/ladder/table", "/info", "/world/axes/workspace",
+              "/world/axes/robot", f"/world/legend/{entities[0]}/colours",
+              f"/world/legend/{entities[1]}/caption", f"/world/step/{entities[1]}/legend/colours",
+              *(f"/world/error/{e}/{a}/arrows" for e in entities for a in "xyz")):
         assert e in rrd, e
     # one timeline, the campaign's: comparing models never leaves the time series blank
     assert timelines_of(summary.path) == {view.CAMPAIGN_TIMELINE}
@@ -268,9 +273,150 @@ def test_each_field_has_its_own_readable_scale(written):
         lengths_mm = np.linalg.norm(static_arrows(rrd, field_entity(summary, k))[1], axis=1)
         p95_share = np.percentile(lengths_mm, 95) / extent_mm
         assert 0.15 / 2.5 < p95_share < 0.20 * 2.5          # readable, never 1 % of it
-        layout.named(f"{r['label']}: 1 mm = {scale:g} nm")
+        # the scale in the view's name (its tab's title, cut to fit beside the others)
+        # and, whole, in the caption of the view's legend
+        full = f"{r['label']}: 1 mm = {scale:g} nm"
+        fields = layout.children(layout.children(layout.root)[0])[0]
+        shown = layout[layout.children(fields)[k]]["display_name"]
+        assert shown == full or (shown.endswith("\u2026") and full.startswith(shown[:-1]))
+        (caption,) = rows_of(rrd, f"/world/legend/{r['entity']}/caption", "Points3D:labels")[1]
+        assert caption[0].startswith(f"{r['label']}: |model - measurement|, 1 mm = {scale:g} nm\n")
         scales.append(scale)
     assert scales[1] < scales[0]                 # the second model's field gets a finer scale
+
+
+def rgb(packed):
+    """(r, g, b) of Rerun's packed 0xRRGGBBAA colour."""
+    return ((packed >> 24) & 255, (packed >> 16) & 255, (packed >> 8) & 255)
+
+
+def colour_of(magnitude_nm, top_nm):
+    """The stated colour rule: YlOrRd_r from 0 to 0.85 of its range as the magnitude goes
+    from 0 to the arrow spanning 20 % of the workspace (``top_nm``), saturating above."""
+    import matplotlib
+    c = matplotlib.colormaps["YlOrRd_r"](0.85 * np.clip(np.asarray(magnitude_nm) / top_nm, 0, 1))
+    return [tuple(int(v) for v in row) for row in np.round(np.atleast_2d(c)[:, :3] * 255)]
+
+
+def annotations(rrd, entity):
+    """{class id: (label, rgb)} of the annotation context at ``entity``."""
+    (row,) = rows_of(rrd, entity, "AnnotationContext:context")[1]
+    (context,) = row                                  # one context: a list of classes
+    return {c["class_id"]: (c["class_description"]["info"]["label"],
+                            rgb(c["class_description"]["info"]["color"])) for c in context}
+
+
+def test_colour_legend_in_nm_in_every_field_view(written):
+    """Each field view holds its scale's legend: arrows drawn at that scale (length x scale =
+    the nm in its label), in the colour the rule gives that many nm, from round values to
+    the top of the colour map; and the field's arrows are coloured by the same rule."""
+    df, ladder, summary, rrd = written
+    layout = Layout(summary.path)
+    extent = summary.extent_mm
+    legends = set()
+    for ref in layout.views("3D"):
+        contents = layout.contents(ref)
+        legend = [c for c in contents if "legend" in c]
+        if "$origin/robot/**" in contents:
+            continue
+        assert len(legend) == 1, layout[ref]["display_name"]     # every field view has one
+        legends.add(legend[0].replace("$origin", "/world")[:-3])
+    assert len(legends) == 3                # two models' own scales, the step's after view
+    for entity in legends:
+        _, labels = rows_of(rrd, f"{entity}/colours", "Arrows3D:labels")
+        _, vectors = rows_of(rrd, f"{entity}/colours", "Arrows3D:vectors")
+        _, colours = rows_of(rrd, f"{entity}/colours", "Arrows3D:colors")
+        caption = rows_of(rrd, f"{entity}/caption", "Points3D:labels")[1][0][0]
+        scale = float(re.search(r"1 mm = ([0-9.e+-]+) nm", caption).group(1))
+        top = scale * 0.20 * extent
+        nm = [float(t.split()[-2]) for t in labels[0]]
+        assert labels[0][-1].startswith("\u2265 ") and nm[-1] == pytest.approx(top, rel=2e-3)
+        assert 3 <= len(nm) - 1 <= 7 and np.all(np.diff(nm) > 0)
+        lengths = np.linalg.norm(np.array(vectors[0], dtype=float), axis=1)
+        np.testing.assert_allclose(lengths * scale, [*nm[:-1], top], rtol=1e-6)
+        assert [rgb(c) for c in colours[0]] == colour_of([*nm[:-1], top], top)
+    for k, r in enumerate(summary.ladder):
+        scale = r["arrow_scale_nm_per_mm"]
+        exp = expected_field_nm(df, ladder[k])
+        got = annotations(rrd, f"/world/error/{r['entity']}")
+        assert [got[int(i)][1] for i in exp.index] == colour_of(
+            np.linalg.norm(exp.to_numpy(), axis=1), scale * 0.20 * extent)
+
+
+def test_hovering_an_arrow_gives_its_residual_in_nm(written):
+    """The viewer's hover card lists an instance's components only when it has three or
+    fewer (measured in the real viewer, Rerun 0.41: docs/view-hover.png): every field's
+    arrows hold origins, vectors and class ids alone, and each class's label (the card shows
+    it) starts with the arrow's residual in nm; the hull does not take the pointer."""
+    df, ladder, summary, rrd = written
+    for k in range(len(summary.ladder)):
+        exp = expected_field_nm(df, ladder[k])
+        for part in ("", "/x", "/y", "/z"):
+            arrows = field_entity(summary, k, part)
+            assert {c for _, comps in rrd[arrows] for c in comps} == {
+                "Arrows3D:origins", "Arrows3D:vectors", "Arrows3D:class_ids"}, arrows
+            (ids,) = rows_of(rrd, arrows, "Arrows3D:class_ids")[1]
+            assert ids == list(exp.index)                       # the positions' ids
+            labels = annotations(rrd, arrows.rsplit("/", 1)[0])
+            for i, v in zip(exp.index, exp.to_numpy()):
+                text = labels[int(i)][0]
+                if part:
+                    a = part[1]
+                    assert text.startswith(f"{a} {v['xyz'.index(a)]:+.1f} nm at pos {i} ")
+                else:
+                    assert text.startswith(f"{np.linalg.norm(v):.1f} nm at pos {i} ")
+                    assert text.endswith(f"x {v[0]:+.1f}, y {v[1]:+.1f}, z {v[2]:+.1f} nm")
+    layout = Layout(summary.path)
+    fields = [ref for ref in layout.views("3D") if "$origin/robot/**" not in layout.contents(ref)]
+    for ref in fields:
+        for entity in ("hull", "hull_edges"):
+            assert layout[f"{ref}/ViewContents/overrides/world/workspace/{entity}/visualizers"
+                          ] == {"interactive": False}
+
+
+def test_per_axis_fields(written):
+    """Each model's x, y and z residuals are fields of their own, at the model's scale, with
+    a tab per model ("per axis") showing the three and the whole field."""
+    df, ladder, summary, rrd = written
+    layout = Layout(summary.path)
+    per_axis = layout.named("per axis")
+    for k, r in enumerate(summary.ladder):
+        exp = expected_field_nm(df, ladder[k]).to_numpy()
+        for a, axis in enumerate("xyz"):
+            _, vec = static_arrows(rrd, field_entity(summary, k, f"/{axis}"))
+            got = vec * r["arrow_scale_nm_per_mm"]
+            assert np.all(np.abs(got[:, a] - exp[:, a]) <= F32_REL * np.abs(exp[:, a]))
+            assert not np.delete(got, a, axis=1).any()          # along its axis only
+        grid = layout.children(per_axis)[k]
+        assert layout[grid]["container_kind"] == Layout.GRID
+        assert [layout.contents(v)[2] for v in layout.children(grid)] == [
+            f"$origin/error/{r['entity']}{part}/arrows" for part in ("/x", "/y", "/z", "")]
+
+
+def test_axes_in_mm_with_a_triad(written):
+    """The scene is in mm: a triad X, Y, Z (red, green, blue) of a round length in mm, so
+    labelled, beside the workspace in every field view, and a larger one by the robot."""
+    df, ladder, summary, rrd = written
+    geom = build_geometry(load_params())
+    ws = hull(geom, point=geom.cube_offset)
+    for entity, (lo, hi) in (("/world/axes/workspace", (0.2, 0.3)),
+                             ("/world/axes/robot", (0.1, 0.25))):
+        (vectors,) = rows_of(rrd, entity, "Arrows3D:vectors")[1]
+        (origins,) = rows_of(rrd, entity, "Arrows3D:origins")[1]
+        (labels,) = rows_of(rrd, f"{entity}/labels", "Points3D:labels")[1]
+        (colours,) = rows_of(rrd, entity, "Arrows3D:colors")[1]
+        length = vectors[0][0]
+        np.testing.assert_array_equal(vectors, length * np.eye(3))
+        assert len({tuple(o) for o in origins}) == 1
+        assert one_two_five(length) or one_two_five(length / 2.5)   # 1, 2, 2.5, 5 x 10^n
+        assert labels == [f"{a} {length:g} mm" for a in "XYZ"]
+        assert [rgb(c) for c in colours] == [view.AXIS_COLOURS[a] for a in "xyz"]
+        if entity.endswith("workspace"):       # beside the workspace: outside its hull
+            assert lo * summary.extent_mm <= length <= hi * summary.extent_mm
+            o_m = np.array(origins[0]) / 1e3 + summary.origin_m
+            assert not ws.contains([o_m])[0]
+        else:                                   # mm: the robot is ~0.4 m tall
+            assert 50.0 <= length <= 200.0
 
 
 def test_arrow_scale_rule_on_random_fields():
@@ -300,7 +446,7 @@ def test_residual_before_and_after_a_step_shown_the_same_way(written):
     scale0 = summary.ladder[0]["arrow_scale_nm_per_mm"]
     e0, e1 = (r["entity"] for r in summary.ladder)
     f1 = expected_field_nm(df, ladder[1]).to_numpy()
-    _, after = static_arrows(rrd, f"/world/step/{e1}/after")
+    _, after = static_arrows(rrd, f"/world/step/{e1}/after/arrows")
     assert np.all(np.abs(after * scale0 - f1) <= F32_REL * np.linalg.norm(f1, axis=1,
                                                                             keepdims=True))
     layout = Layout(summary.path)
@@ -308,27 +454,82 @@ def test_residual_before_and_after_a_step_shown_the_same_way(written):
     step = layout.named(f"before/after {label}")
     assert layout[step]["container_kind"] == Layout.VERTICAL
     before, after_view = layout.children(step)
-    assert layout.contents(before) == ["$origin/workspace/**", f"$origin/error/{e0}"]
-    assert layout.contents(after_view) == ["$origin/workspace/**", f"$origin/step/{e1}/after"]
+    assert layout.contents(before) == ["$origin/workspace/**", "$origin/axes/workspace/**",
+                                       f"$origin/error/{e0}/arrows", f"$origin/legend/{e0}/**"]
+    assert layout.contents(after_view) == ["$origin/workspace/**", "$origin/axes/workspace/**",
+                                           f"$origin/step/{e1}/after/arrows",
+                                           f"$origin/step/{e1}/legend/**"]
     assert layout[before]["display_name"].endswith(f"1 mm = {scale0:g} nm")
     assert layout[after_view]["display_name"].endswith(f"1 mm = {scale0:g} nm")
 
 
 def test_ladder_bar_chart_and_table(written):
+    """The bars and the table give what ``deltatwin compare`` and ``diagnose`` print: the 90th
+    percentile of |model - measurement| over the validation readings, pooled over the axes
+    (bars, table) and per axis (table), here computed with numpy from the dataset."""
     df, ladder, summary, rrd = written
     val = (df["split"] == "val").to_numpy()
     bars = [rows_of(rrd, f"/ladder/{r['entity']}", "BarChart:values")[1][0][0]["buffer"]
             for r in summary.ladder]
-    for k, step in enumerate(ladder):
-        r = (step.reading_m[val] * 1e9 - df.loc[val, ["x_nm", "y_nm", "z_nm"]].to_numpy())
-        r = r[np.isfinite(r)]
-        assert bars[k] == [pytest.approx(np.sqrt(np.mean(r ** 2)), rel=1e-9)]
-        assert summary.ladder[k]["rms_val_nm"] == pytest.approx(bars[k][0], rel=1e-12)
-    assert bars[1][0] < bars[0][0]
     table = rows_of(rrd, "/ladder/table", "TextDocument:text")[1][0][0]
+    for k, step in enumerate(ladder):
+        r = step.reading_m[val] * 1e9 - df.loc[val, ["x_nm", "y_nm", "z_nm"]].to_numpy()
+        pooled = np.abs(r[np.isfinite(r)])
+        assert bars[k] == [pytest.approx(np.percentile(pooled, 90), rel=1e-9)]
+        per_axis = [np.percentile(np.abs(c[np.isfinite(c)]), 90) for c in r.T]
+        row = summary.ladder[k]
+        assert row["p90_nm"] == pytest.approx({"all": bars[k][0],
+                                               **dict(zip("xyz", per_axis))}, rel=1e-9)
+        assert row["rms_val_nm"] == pytest.approx(np.sqrt(np.mean(pooled ** 2)), rel=1e-9)
+        cells = " | ".join(f"{v:.1f}" for v in (bars[k][0], *per_axis))
+        assert f"| {k} | {row['label']} | {cells} |" in table
+        assert f"{row['arrow_scale_nm_per_mm']:g} nm |" in table
+    assert bars[1][0] < bars[0][0]
+    assert "validation split" in table and "p90" in table
+
+
+def floor_recording(campaign, tmp_path, truth):
+    """The campaign's ladder recorded with ``truth`` as the metadata's truth."""
+    df, meta, models = campaign
+    meta = {**meta, "truth": truth}
+    ladder = [calibration_step(name, m, df) for name, m in models]
+    summary = write_recording(df, meta, ladder, tmp_path / "floor.rrd", max_poses=2)
+    return summary, read_rrd(summary.path)
+
+
+def test_floor_beside_each_models_figure(campaign, tmp_path):
+    """The floor of ``floor_of`` (the achievable floor where the data carry it, else the
+    noise floor, else none), in the models' statistic, beside every model's figure: in each
+    field view's caption, as the ladder table's last row, and (pooled) as a grey bar."""
+    achievable = {"x": 1.25, "y": 2.5, "z": 3.75, "all": 2.875}
+    summary, rrd = floor_recording(campaign, tmp_path, {"achievable_floor_nm": achievable,
+                                                        "noise_floor_nm": {"x": 0.5}})
+    assert (summary.floor_nm, summary.floor_kind) == (achievable, "achievable")
+    line = "achievable floor 2.9 nm (x 1.2, y 2.5, z 3.8)"     # as compare prints: .1f
     for r in summary.ladder:
-        assert f"| {r['label']} |" in table
-        assert f"{r['arrow_scale_nm_per_mm']:g} nm |" in table
+        for entity in (f"/world/legend/{r['entity']}", f"/world/step/{r['entity']}/legend"):
+            if entity in {e.rsplit("/", 1)[0] for e in rrd}:
+                caption = rows_of(rrd, f"{entity}/caption", "Points3D:labels")[1][0][0]
+                assert caption.splitlines()[1:] == [
+                    f"validation p90 {view.p90_text(r['p90_nm'])}", line]
+    table = rows_of(rrd, "/ladder/table", "TextDocument:text")[1][0][0]
+    assert "| | **achievable floor** | 2.9 | 1.2 | 2.5 | 3.8 | | | |" in table
+    (bar,) = rows_of(rrd, "/ladder/floor", "BarChart:values")[1]
+    assert bar[0]["buffer"] == [achievable["all"]]
+    noise = {"x": 4.0, "y": 3.0, "z": 5.0}
+    summary, rrd = floor_recording(campaign, tmp_path, {"noise_floor_nm": noise})
+    caption = rows_of(rrd, f"/world/legend/{summary.ladder[0]['entity']}/caption",
+                      "Points3D:labels")[1][0][0]
+    assert caption.splitlines()[-1] == "noise floor (x 4.0, y 3.0, z 5.0 nm)"
+    assert "/ladder/floor" not in rrd                          # no pooled noise floor
+    table = rows_of(rrd, "/ladder/table", "TextDocument:text")[1][0][0]
+    assert "| | **noise floor** | - | 4.0 | 3.0 | 5.0 | | | |" in table
+    assert "the noise floor (per axis only) in the table's last row" in table
+    summary, rrd = floor_recording(campaign, tmp_path, {})     # laboratory data
+    caption = rows_of(rrd, f"/world/legend/{summary.ladder[1]['entity']}/caption",
+                      "Points3D:labels")[1][0][0]
+    assert caption.splitlines()[-1] == "floor: none recorded with the data"
+    assert "/ladder/floor" not in rrd
 
 
 def test_time_series_match_the_dataset(written):
@@ -365,10 +566,11 @@ def test_layout_opens_on_the_first_field(written):
     layout = Layout(summary.path)
     root = layout.root
     assert layout[root]["container_kind"] == Layout.TABS
-    error_tab, campaign_tab = layout.children(root)
+    tabs = layout.children(root)
+    assert [layout[t]["display_name"] for t in tabs] == [
+        "error fields", "per axis", "before/after", "robot and beams", "campaign"]
+    error_tab = tabs[0]
     assert layout.active(root) == error_tab
-    assert layout[error_tab]["display_name"] == "error fields"
-    assert layout[campaign_tab]["display_name"] == "campaign"
     fields, side = layout.children(error_tab)
     assert layout[fields]["container_kind"] == Layout.TABS
     first = layout.active(fields)
@@ -377,30 +579,35 @@ def test_layout_opens_on_the_first_field(written):
     assert layout[first]["display_name"] == (f"{r0['label']}: 1 mm = "
                                              f"{r0['arrow_scale_nm_per_mm']:g} nm")
     assert layout[first]["class_identifier"] == "3D"
-    assert layout.contents(first) == ["$origin/workspace/**", f"$origin/error/{r0['entity']}"]
+    assert layout.contents(first) == ["$origin/workspace/**", "$origin/axes/workspace/**",
+                                      f"$origin/error/{r0['entity']}/arrows",
+                                      f"$origin/legend/{r0['entity']}/**"]
     robot = layout.named("robot and beams")
-    assert robot in layout.children(fields)
+    assert robot == tabs[3]
     assert "$origin/robot/**" in layout.contents(robot)
+    assert "$origin/axes/robot/**" in layout.contents(robot)
     assert layout["time_panel"]["play_state"] == 1                 # PlayState.Paused
     assert layout["time_panel"]["timeline"] == view.CAMPAIGN_TIMELINE
     for panel in ("time_panel", "blueprint_panel", "selection_panel"):
         assert layout[panel]["state"] == 2                          # PanelState.Collapsed
     # the ladder: bar chart (one entity per model: the legend names them) and table
-    bars = layout.named("RMS residual per model (nm)")
+    bars = layout.named("validation p90 |model - measurement| per model, and the floor (nm)")
     assert layout[bars]["space_origin"] == "ladder"
     assert layout[f"{bars}/PlotLegend"]["corner"] == 2              # Corner2D.RightTop
 
 
 def test_time_series_views_span_the_campaign(written):
-    """Every plot spans the whole campaign, one unit per plot, explicit and distinct colours,
-    readings as points, and x room after the last reading for the legend (top right), so the
-    legend covers no data."""
+    """Every plot spans the whole campaign, the same x range in every plot (stacked plots line
+    up in time), one unit per plot, explicit and distinct colours, readings as points, and x
+    room after the last reading for the legend (top right), so the legend covers no data."""
     df, ladder, summary, rrd = written
     layout = Layout(summary.path)
     t0, t1 = df["t_s"].min() * 1e9, df["t_s"].max() * 1e9
     plots = layout.views("TimeSeries")
     assert len(plots) == len(ladder) + 5      # residual per model; T, coils, force, std, ac
     units = re.compile(r"_(C|A|N|nm|arcsec)$")
+    ranges = {str(layout[f"{ref}/TimeAxis"]["view_range"]) for ref in plots}
+    assert len(ranges) == 1                                     # one x range for all
     for ref, p in plots.items():
         rng = layout[f"{ref}/TimeAxis"]["view_range"]
         assert rng["start"] <= t0 and rng["end"] >= t1 + 0.1 * (t1 - t0), p["display_name"]
@@ -417,6 +624,75 @@ def test_time_series_views_span_the_campaign(written):
         assert len(set(colours)) == len(colours), origin            # distinct in a plot
     origins = {p["space_origin"] for p in plots.values()}
     assert {"timeseries/coil_current_A", "timeseries/force_N"} <= origins   # A apart from N
+
+
+def planned_boxes(layout):
+    """{ref: (width, height) px} of every container and view as the default layout plans
+    them at view.SCREEN_PX: the window less the viewer's own bars, split by the containers'
+    shares; a view's box holds its title bar (or, in tabs, the tab bar)."""
+    def walk(ref, w, h):
+        boxes[ref] = (w, h)
+        if not ref.startswith("container/"):
+            return
+        part, kids = layout[ref], layout.children(ref)
+        kind = part["container_kind"]
+        if kind == Layout.TABS:
+            inner = [(w, h)] * len(kids)
+        elif kind == Layout.GRID:
+            cols = part.get("grid_columns") or 1
+            rows = -(-len(kids) // cols)
+            inner = [(w / cols, h / rows)] * len(kids)
+        else:
+            key = "col_shares" if kind == Layout.HORIZONTAL else "row_shares"
+            shares = np.asarray(part.get(key) or [1.0] * len(kids), dtype=float)
+            shares = shares / shares.sum()
+            inner = [(w * f, h) if kind == Layout.HORIZONTAL else (w, h * f) for f in shares]
+        for kid, (kw, kh) in zip(kids, inner):
+            walk(kid, kw, kh)
+    boxes = {}
+    walk(layout.root, view.SCREEN_PX[0], view.SCREEN_PX[1] - view.WINDOW_CHROME_PX)
+    return boxes
+
+
+def long_ladder(campaign):
+    """Four steps with long effect names (titles that must be cut to fit)."""
+    df, meta, models = campaign
+    steps = [calibration_step(name, m, df) for name, m in models]
+    effects = ["geometric_errors", "thermal_expansion_of_the_frame", "loop_drift_with_lag",
+               "magnetic_force_of_the_coils", "air_refraction_by_pressure_and_humidity"]
+    return [LadderStep("m", steps[k % 2].reading_m, tuple(effects[:k + 1])) for k in range(4)]
+
+
+@pytest.mark.parametrize("ladder_of", ["two", "four"])
+def test_every_tab_title_and_every_plots_tick_labels_fit(campaign, written, tmp_path,
+                                                          ladder_of):
+    """In the default layout at SCREEN_PX, every tab bar holds its tabs' titles whole
+    beside the view's buttons (measured on screenshots: at most 6.4 px a character, 41 px a
+    tab's icon and gaps, 70 px the buttons; view.TAB_CHAR_PX, TAB_CHROME_PX, TAB_BUTTONS_PX
+    add a margin), and every plot keeps the height at which
+    its y tick labels show at any data range: egui_plot labels a grid line a power of ten
+    apart only when such lines lie more than 20 px apart, which is a tenth of the plot's
+    height at worst (view.PLOT_MIN_PX)."""
+    if ladder_of == "two":
+        summary = written[2]
+    else:
+        df, meta, _ = campaign
+        summary = write_recording(df, meta, long_ladder(campaign), tmp_path / "long.rrd",
+                                  max_poses=2)
+    layout = Layout(summary.path)
+    boxes = planned_boxes(layout)
+    tab_bars = [ref for ref in boxes if ref.startswith("container/")
+                and layout[ref]["container_kind"] == Layout.TABS]
+    assert len(tab_bars) >= 5
+    for ref in tab_bars:
+        titles = [layout[kid]["display_name"] for kid in layout.children(ref)]
+        needed = sum(view.TAB_CHAR_PX * len(t) + view.TAB_CHROME_PX for t in titles)
+        assert needed + view.TAB_BUTTONS_PX <= boxes[ref][0], titles
+    plots = {**layout.views("TimeSeries"), **layout.views("BarChart")}
+    assert len(plots) >= 7
+    for ref in plots:
+        assert boxes[ref][1] >= view.PLOT_MIN_PX + view.PLOT_CHROME_PX - 1e-9, \
+            layout[ref]["display_name"]
 
 
 def test_robot_posed_along_the_campaign(written):
@@ -492,12 +768,13 @@ def test_without_models_the_workspace_and_the_campaign(campaign, tmp_path):
     df, meta, _ = campaign
     summary = write_recording(df, meta, [], tmp_path / "plain.rrd", max_poses=2)
     layout = Layout(summary.path)
-    error_tab, campaign_tab = layout.children(layout.root)
+    error_tab, robot_tab, campaign_tab = layout.children(layout.root)
+    assert layout[robot_tab]["display_name"] == "robot and beams"
     fields, side = layout.children(error_tab)
     (info,) = layout.children(side)
     first = layout.active(fields)
     assert layout[first]["display_name"] == "workspace: calibration and validation positions"
-    assert layout.contents(first) == ["$origin/workspace/**"]
+    assert layout.contents(first) == ["$origin/workspace/**", "$origin/axes/workspace/**"]
     assert layout[info]["space_origin"] == "info"
     assert len(layout.children(campaign_tab)) == 5
     assert not [e for e in read_rrd(summary.path) if e.startswith(("/world/error", "/ladder"))]
@@ -565,8 +842,9 @@ def test_fitted_toml_arrows_are_its_residuals(fitted_model, capsys):
                   out)                                     # named after its effects
     scale = float(m.group(1))
     rrd = read_rrd(d / "fit.rrd")
-    assert [e for e in rrd if e.startswith("/world/error/")] == ["/world/error/0_geometric_errors"]
-    _, vec = static_arrows(rrd, "/world/error/0_geometric_errors")
+    assert sorted(e for e in rrd if e.startswith("/world/error/") and e.endswith("/arrows")) == [
+        f"/world/error/0_geometric_errors{a}/arrows" for a in ("", "/x", "/y", "/z")]
+    _, vec = static_arrows(rrd, "/world/error/0_geometric_errors/arrows")
     res_nm = -fit.residual_ * 1e9                          # model minus measurement, nm
     exp = pd.DataFrame(res_nm, columns=list("xyz")).groupby(df["pos_id"].to_numpy()).mean()
     got = vec * scale
@@ -578,9 +856,33 @@ def test_fitted_toml_arrows_are_its_residuals(fitted_model, capsys):
         ts, vals = rows_of(rrd, f"/timeseries/residual_nm/0_geometric_errors/{axis}",
                            "Scalars:scalars", view.CAMPAIGN_TIMELINE)
         np.testing.assert_allclose(np.array(vals)[:, 0], res_nm[:, a], rtol=0, atol=1e-6)
-    assert re.search(r"ladder 0: geometric_errors: RMS residual cal [0-9.]+ nm, val "
+    assert re.search(r"ladder 0: geometric_errors: .*RMS residual cal [0-9.]+ nm, val "
                      f"{np.sqrt(np.mean(res_nm[(df['split'] == 'val').to_numpy()] ** 2)):.3g} nm",
                      out)
+
+
+def test_view_prints_the_figures_compare_prints(fitted_model, capsys):
+    """``deltatwin view`` and ``deltatwin compare`` on the same data and model give the same
+    validation p90 per axis and pooled, and the same floor (the twin's noise floor here: the
+    data carry no achievable floor)."""
+    df, fit, d = fitted_model
+    data, model = str(d / "magnetic.parquet"), str(d / "fitted.toml")
+    assert main(["compare", data, "--model", model, "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert main(["view", data, "--model", model, "-o", str(d / "p90.rrd"),
+                 "--max-poses", "2"]) == 0
+    out = capsys.readouterr().out
+    p90 = {a: rep["axes"]["val"][a]["err_p90_nm"] for a in ("all", "x", "y", "z")}
+    assert (f"ladder 0: geometric_errors: validation p90 {p90['all']:.1f} nm (x {p90['x']:.1f}, "
+            f"y {p90['y']:.1f}, z {p90['z']:.1f});") in out
+    noise = rep["noise_floor_nm"]
+    assert f"  noise floor (x {noise['x']:.1f}, y {noise['y']:.1f}, z {noise['z']:.1f} nm)" in out
+    df, meta = read_dataset(data)                     # the unrounded figures
+    summary = write_recording(df, meta, [view.model_file_step(model, df, meta)],
+                              d / "p90.rrd", max_poses=2)
+    # the same residuals, reached through other m <-> nm conversions: equal to ~1e-11
+    assert summary.ladder[0]["p90_nm"] == pytest.approx(p90, rel=1e-9)
+    assert summary.floor_nm == pytest.approx(noise, rel=1e-12)
 
 
 def test_spawn_is_used_nowhere_in_tests_or_ci():
