@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from deltatwin.calibration.tables import Table, number
+
 Z95 = 1.959963984540054        # the normal distribution's two-sided 95 % quantile
 IDENTIFIED = 0.5               # identified_fraction at or above: the data determine it
 COLUMNS = ("parameter", "value", "unit", "uncertainty", "ci95_low", "ci95_high", "prior",
@@ -30,13 +32,6 @@ HEADER_NAMES = {"n_parameters": "free parameters", "n_identified_directions":
                 "identified directions", "n_evaluations": "model evaluations",
                 "cal": "calibration error 90 % (nm)", "val": "validation error 90 % (nm)",
                 "val_err90_nm": "validation error 90 %, all axes (nm)"}
-
-
-def _number(x: float) -> str:
-    """A value in a table: 4 significant digits, exponent form outside 1e-3 .. 1e4."""
-    if x is None or not math.isfinite(x):
-        return "-"
-    return f"{x:.4g}"
 
 
 def parameter_rows(parameters: list[dict], prior_sigma) -> list[dict]:
@@ -55,69 +50,23 @@ def parameter_rows(parameters: list[dict], prior_sigma) -> list[dict]:
     return rows
 
 
-class ParameterTable:
-    """The fitted parameters, one row each (``rows``: dicts with the keys of ``COLUMNS`` and
-    ``identified_fraction``), in SI units (the ``unit`` column)."""
+def parameter_cells(row: dict) -> list[str]:
+    """One row of the parameter table as the text of its cells, in ``HEADINGS`` order."""
+    return [row["parameter"], number(row["value"]), row["unit"], number(row["uncertainty"]),
+            f"{number(row['ci95_low'])} .. {number(row['ci95_high'])}",
+            f"{number(row['prior'])} +- {number(row['prior_uncertainty'])}",
+            "yes" if row["identified"] else "undetermined"]
+
+
+class ParameterTable(Table):
+    """The fitted parameters, one row each (``records``: dicts with the keys of ``COLUMNS``
+    and ``identified_fraction``), in SI units (the ``unit`` column)."""
 
     def __init__(self, rows: list[dict], title: str = "fitted parameters"):
-        self.rows = rows
-        self.title = title
+        super().__init__(title, HEADINGS, rows, parameter_cells)
 
-    def __len__(self) -> int:
-        return len(self.rows)
-
-    def cells(self, row: dict) -> list[str]:
-        """One row as the text of its cells, in ``HEADINGS`` order."""
-        return [row["parameter"], _number(row["value"]), row["unit"],
-                _number(row["uncertainty"]),
-                f"{_number(row['ci95_low'])} .. {_number(row['ci95_high'])}",
-                f"{_number(row['prior'])} +- {_number(row['prior_uncertainty'])}",
-                "yes" if row["identified"] else "undetermined"]
-
-    def __str__(self) -> str:
-        return text_table(self.title, HEADINGS, [self.cells(r) for r in self.rows])
-
-    def _repr_html_(self) -> str:
-        return html_table(self.title, HEADINGS, [self.cells(r) for r in self.rows])
-
-    def markdown(self) -> str:
-        """The table in Markdown (a report's)."""
-        lines = ["| " + " | ".join(HEADINGS) + " |", "|" + "---|" * len(HEADINGS)]
-        lines += ["| " + " | ".join(c.replace("|", "\\|") for c in self.cells(r)) + " |"
-                  for r in self.rows]
-        return "\n".join(lines)
-
-    def as_dict(self) -> list[dict]:
-        """JSON-ready: one dict per parameter."""
-        return [dict(r) for r in self.rows]
-
-    def to_frame(self):
-        """A pandas DataFrame indexed by parameter."""
-        import pandas as pd
-
-        return pd.DataFrame(self.rows).set_index("parameter")
-
-
-def text_table(title: str, headings, rows: list[list[str]]) -> str:
-    """A plain-text table: a title, headings, a rule, one line per row; the first column
-    left-aligned, the others right-aligned."""
-    widths = [max([len(h)] + [len(r[k]) for r in rows]) for k, h in enumerate(headings)]
-
-    def line(cells):
-        return "  ".join(c.ljust(w) if k == 0 else c.rjust(w)
-                         for k, (c, w) in enumerate(zip(cells, widths))).rstrip()
-
-    rule = "-" * len(line(["-" * w for w in widths]))
-    return "\n".join([title, rule, line(headings), rule, *map(line, rows), rule])
-
-
-def html_table(title: str, headings, rows: list[list[str]]) -> str:
-    """The same table in HTML (a caption, a header row, escaped cells)."""
-    esc = html.escape
-    head = "".join(f"<th>{esc(h)}</th>" for h in headings)
-    body = "".join("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in r) + "</tr>" for r in rows)
-    return (f"<table><caption>{esc(title)}</caption><thead><tr>{head}</tr></thead>"
-            f"<tbody>{body}</tbody></table>")
+    def to_frame(self, index: str | None = "parameter"):
+        return super().to_frame(index)
 
 
 class FitSummary:
@@ -139,9 +88,9 @@ class FitSummary:
             if value is None:
                 continue
             if isinstance(value, dict):
-                value = ", ".join(f"{k} {_number(v)}" for k, v in value.items())
+                value = ", ".join(f"{k} {number(v)}" for k, v in value.items())
             elif isinstance(value, float):
-                value = _number(value)
+                value = number(value)
             elif isinstance(value, list):
                 value = ", ".join(map(str, value)) or "none"
             out.append((HEADER_NAMES.get(key, key.replace("_", " ")), str(value)))
