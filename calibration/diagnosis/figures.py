@@ -18,7 +18,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
-from matplotlib.ticker import ScalarFormatter
+from matplotlib.ticker import NullFormatter, ScalarFormatter
 from scipy import special
 
 from deltatwin.twin.instruments.optics import AXES
@@ -154,8 +154,10 @@ def residual_time_figure(df, models: list[ModelResidual]) -> Figure:
         ax.set_ylabel(f"{AXES[k]} residual (nm)")
     axs[-1].set_xlabel(label)
     handles = _model_handles(models) + _split_handles()
-    if session_starts(df):
-        handles.append(Line2D([], [], color="k", ls="--", lw=0.8, label="a session starts"))
+    starts = session_starts(df)
+    if starts:
+        handles.append(Line2D([], [], color="k", ls="--", lw=0.8, label="session " + ", ".join(
+            name for _, name in starts) + " starts"))
     _legend_below(fig, handles)
     fig.suptitle("Residual per axis against time (model minus measurement)")
     return _plain_numbers(fig)
@@ -208,7 +210,7 @@ def _map_panel(fig, ax, model: ModelResidual, k: int, view: tuple, limit: float)
                     rasterized=True)
     ax.set_xlabel(f"{AXES[h]} (mm)")
     ax.set_ylabel(f"{AXES[v]} (mm)")
-    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_aspect("equal", adjustable="box")
     return sc
 
 
@@ -246,8 +248,7 @@ def workspace_comparison_figure(a: ModelResidual, b: ModelResidual) -> Figure:
         limit = max(_limit(a.residual_m[:, k] * NM), _limit(b.residual_m[:, k] * NM))
         for c, (model, view) in enumerate((m, v) for m in (a, b) for v in VIEWS):
             sc = _map_panel(fig, axs[r, c], model, k, view, limit)
-            if r == 0:
-                axs[r, c].set_title(f"{model.name}\n{view[0]}", fontsize=10)
+            axs[r, c].set_title(f"{model.name}\n{AXES[k]} residual, {view[0]}", fontsize=9)
         fig.colorbar(sc, ax=axs[r, :], location="right", shrink=0.9,
                      label=f"{AXES[k]} residual (nm)")
     fig.suptitle(f"Residual over the workspace: {a.name} and {b.name} side by side, on a "
@@ -327,6 +328,23 @@ def _budget_bar(ax, budget: dict, groups: list[str], x: np.ndarray, width: float
     return handles
 
 
+def _smallest_share(budget: dict | None, groups: list[str]) -> float:
+    shares = [v for g in groups for k, v in (budget or {}).get(g, {}).items()
+              if k.endswith("_nm") and v and v > 0]
+    return min(shares, default=np.inf)
+
+
+def _log_axis(ax, low: float, high: float) -> None:
+    """A logarithmic y axis from ``low`` to ``high`` with ticks at 1, 2 and 5 times the powers
+    of ten between, labelled as plain numbers."""
+    ax.set_yscale("log")
+    ax.set_ylim(low, high)
+    decades = range(int(np.floor(np.log10(low))), int(np.ceil(np.log10(high))) + 1)
+    ticks = [m * 10.0 ** d for d in decades for m in (1, 2, 5) if low <= m * 10.0 ** d <= high]
+    ax.set_yticks(ticks, [f"{t:g}" for t in ticks])
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
 def ladder_figure(models: list[ModelResidual], floor: dict | None, floor_kind: str,
                   budget: dict | None) -> Figure:
     """Each model's error 90 % per axis and over all axes (grouped bars; validation rows, all
@@ -341,10 +359,16 @@ def ladder_figure(models: list[ModelResidual], floor: dict | None, floor_kind: s
     ax = fig.subplots()
     left = np.arange(len(groups)) - width / 2
     handles = _budget_bar(ax, budget, groups, left + step / 2, step * 0.9) if budget else []
+    heights = []
     for i, m in enumerate(models):
         vals = [_p90_nm(m, rows, None if g == "all" else AXES.index(g)) for g in groups]
         ax.bar(left + step * (i + (1 if budget else 0) + 0.5), vals, step * 0.9,
                color=COLOURS[i % len(COLOURS)], zorder=2)
+        heights += vals
+    heights = np.array([h for h in heights + list((floor or {}).values()) if h and h > 0])
+    if heights.size and heights.max() > 8 * heights.min():
+        _log_axis(ax, 0.5 * min(heights.min(), _smallest_share(budget, groups)),
+                  1.3 * heights.max())  # a model 20x its floor and one at it, both readable
     for g, name in enumerate(groups):
         if floor and floor.get(name) is not None:
             ax.hlines(floor[name], g - width / 2 - 0.04, g + width / 2 + 0.04, color="k",

@@ -156,8 +156,8 @@ def error_table(models: list[ReportModel]) -> Table:
 
 
 # ---------------------------------------------------------------------------------------------
-# the document: blocks ("h1"/"h2"/"p", text), ("table", Table), ("img", file, alt), written as
-# Markdown and as HTML
+# the document: blocks ("h1"/"h2"/"p", text), ("table", Table), ("img", file, alt), ("md",
+# Markdown text written elsewhere), written as Markdown and as HTML
 
 SECTIONS = {   # figure: (heading, caption)
     "ladder": ("Error per axis and the floor",
@@ -238,7 +238,9 @@ def report_blocks(df, meta: dict | None, models: list[ReportModel], data_name: s
 def markdown_of(blocks: list[tuple]) -> str:
     out = []
     for kind, *rest in blocks:
-        if kind == "table":
+        if kind == "md":
+            out.append(rest[0])
+        elif kind == "table":
             out += [f"**{rest[0].title}**", "", rest[0].markdown()]
         elif kind == "img":
             out.append(f"![{rest[1]}]({rest[0]})")
@@ -252,7 +254,9 @@ def html_of(blocks: list[tuple], title: str) -> str:
     esc = html.escape
     body = []
     for kind, *rest in blocks:
-        if kind == "table":
+        if kind == "md":                 # another document's Markdown, shown as written
+            body.append(f"<pre>{esc(rest[0])}</pre>")
+        elif kind == "table":
             body.append(rest[0]._repr_html_())
         elif kind == "img":
             body.append(f'<figure><img src="{esc(rest[0])}" alt="{esc(rest[1])}">'

@@ -60,7 +60,10 @@ def layout_problems(fig: Figure) -> list[str]:
                                 f"{axis.get_offset_text().get_text()!r}")
     boxes = _text_boxes(fig)
     frame = fig.bbox
-    for what, box in boxes:
+    ticks = [(f"tick label {t.get_text()!r}", t.get_window_extent())
+             for ax in fig.axes for axis in (ax.xaxis, ax.yaxis)
+             for t in axis.get_ticklabels() if t.get_visible() and t.get_text()]
+    for what, box in boxes + ticks:
         if (box.x0 < frame.x0 - 1 or box.y0 < frame.y0 - 1 or box.x1 > frame.x1 + 1
                 or box.y1 > frame.y1 + 1):
             problems.append(f"{what} outside the figure")
