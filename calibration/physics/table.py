@@ -159,5 +159,8 @@ def summary_of(fit) -> FitSummary:
                               zip(meas.groups, fit.offsets_)} if meas is not None else None,
                "identifiability": ident, "parameters": fit.parameters_,
                "values": fit.model_.values()}
-    rows = parameter_rows(fit.parameters_, fit.model_.scales)
-    return FitSummary(header, ParameterTable(rows), details)
+    if fit.parameters_ is None:          # a file written before the uncertainties were saved
+        table = ParameterTable([], "fitted parameters: their file holds no uncertainties")
+    else:
+        table = ParameterTable(parameter_rows(fit.parameters_, fit.model_.scales))
+    return FitSummary(header, table, details)

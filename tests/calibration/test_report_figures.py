@@ -28,6 +28,15 @@ def _numeric(text: str) -> bool:
         return False
 
 
+def _shown_ticklabels(axis) -> list:
+    """The tick labels drawn: visible, with text, at a location inside the axis's view (the
+    locator's ticks beyond it are not drawn)."""
+    low, high = sorted(axis.get_view_interval())
+    span = (high - low) * 1e-9
+    return [t for loc, t in zip(axis.get_majorticklocs(), axis.get_majorticklabels())
+            if t.get_visible() and t.get_text() and low - span <= loc <= high + span]
+
+
 def _text_boxes(fig: Figure) -> list[tuple[str, object]]:
     """(what, window extent) of the figure's words: its titles, every axis's title and
     labels, the legends."""
@@ -51,8 +60,7 @@ def layout_problems(fig: Figure) -> list[str]:
     problems = []
     for ax in fig.axes:
         for name, axis in (("x", ax.xaxis), ("y", ax.yaxis)):
-            ticks = [t.get_text() for t in axis.get_ticklabels() if t.get_visible()
-                     and t.get_text()]
+            ticks = [t.get_text() for t in _shown_ticklabels(axis)]
             if ticks and all(map(_numeric, ticks)) and not UNIT.search(axis.label.get_text()):
                 problems.append(f"{name} axis labelled {axis.label.get_text()!r}: no unit")
             if axis.get_offset_text().get_text():        # "+2e1": the ticks are not the values
@@ -61,8 +69,7 @@ def layout_problems(fig: Figure) -> list[str]:
     boxes = _text_boxes(fig)
     frame = fig.bbox
     ticks = [(f"tick label {t.get_text()!r}", t.get_window_extent())
-             for ax in fig.axes for axis in (ax.xaxis, ax.yaxis)
-             for t in axis.get_ticklabels() if t.get_visible() and t.get_text()]
+             for ax in fig.axes for axis in (ax.xaxis, ax.yaxis) for t in _shown_ticklabels(axis)]
     for what, box in boxes + ticks:
         if (box.x0 < frame.x0 - 1 or box.y0 < frame.y0 - 1 or box.x1 > frame.x1 + 1
                 or box.y1 > frame.y1 + 1):
