@@ -72,5 +72,6 @@ def run(args) -> int:
     df, meta = read_dataset(args.data)
     path = write_report_folder(args.out, args.data, df, meta, args.model, trust_of(args),
                                args.params)
-    print(f"report: {path} (and report.html, figures: {', '.join(sorted(p.name for p in path.parent.glob('*.png')))})")
+    figures = ", ".join(sorted(p.name for p in path.parent.glob("*.png")))
+    print(f"report: {path} (and report.html; figures: {figures})")
     return 0

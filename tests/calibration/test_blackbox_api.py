@@ -81,3 +81,17 @@ def test_a_coefficients_unit_is_the_outputs_over_the_terms():
     assert coefficient_unit("rad", Term((("X", 1),))) == "rad/m"
     assert coefficient_unit("rad", Term((("X", 1), ("Y", 2), ("F", 1)))) == "rad/(m^3*N)"
     assert coefficient_unit("m", Term((("dT_base", 2),))) == "m/(K/s)^2"
+
+
+def test_an_igm_says_which_dgm_it_inverts():
+    from deltatwin.calibration.blackbox.dgm import DGM
+    from deltatwin.calibration.blackbox.estimator import OutputModel
+    from deltatwin.calibration.blackbox.features import FeatureSet, geometric
+    from deltatwin.calibration.blackbox.igm import IGM
+
+    outputs = [OutputModel(a, "m", f"{a}_nm", 1e-9, [Term(((q, 1),))], np.array([0.1]), 0.0,
+                           np.zeros(1), np.ones(1), 0.0, 1.0)
+               for a, q in zip("xyz", ("q1", "q2", "q3"))]
+    text = repr(IGM(DGM.from_outputs(FeatureSet([geometric()]), outputs)))
+    assert text.startswith("IGM(DGM(features=") and "terms kept x 1, y 1, z 1" in text
+    assert "tol_m=1e-12, max_iter=30" in text
