@@ -183,7 +183,7 @@ def correlation_rows(x: np.ndarray) -> float:
 
 
 def sandwich_covariance(J: np.ndarray, r: np.ndarray, row: np.ndarray,
-                        t_s: np.ndarray) -> np.ndarray:
+                        t_s: np.ndarray, information: np.ndarray | None = None) -> np.ndarray:
     """(k, k) covariance of least-squares coefficients whose residuals are serially
     correlated: (J^T J)^-1 S (J^T J)^-1 (the sandwich), S the long-run covariance of the
     scores summed per data row (``row`` (n,) of each reading of ``J`` (n, k) and ``r`` (n,);
@@ -191,7 +191,9 @@ def sandwich_covariance(J: np.ndarray, r: np.ndarray, row: np.ndarray,
     ``t_s`` (N,), by overlapping batch means (Meketon & Schmeiser 1984: the Bartlett-kernel
     estimator of Newey and West to O(L / n), in O(n k^2) from cumulative sums). The batches
     are twice the scores' integrated correlation time (``correlation_rows``), at least Newey
-    and West's 4 (rows / 100)^(2/9), at most a quarter of the rows."""
+    and West's 4 (rows / 100)^(2/9), at most a quarter of the rows. ``information`` (k, k):
+    the estimating equations' derivative when it is not J^T J (a corrected score: the fit's
+    J^T J less the thermometers' share), the bread its inverse."""
     k = J.shape[1]
     if k == 0 or r.size == 0:
         return np.zeros((k, k))
@@ -202,7 +204,7 @@ def sandwich_covariance(J: np.ndarray, r: np.ndarray, row: np.ndarray,
     n = scores.shape[0]
     tau = max(correlation_rows(scores[:, j]) for j in range(k))
     batch = int(min(max(n // 4, 1), max(np.floor(4 * (n / 100.0) ** (2 / 9)), np.ceil(2 * tau))))
-    bread = np.linalg.pinv(J.T @ J)
+    bread = np.linalg.pinv(J.T @ J if information is None else information)
     return bread @ overlapping_batch_means(scores, batch) @ bread
 
 

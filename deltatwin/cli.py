@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "deltatwin.commands.demo",
     "deltatwin.commands.model",
     "deltatwin.commands.simulate",
+    "deltatwin.commands.setup",
     "deltatwin.commands.calibrate",
     "deltatwin.commands.fit",
     "deltatwin.commands.effect",

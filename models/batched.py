@@ -54,26 +54,56 @@ def map_chunks(fun, n_points: int, chunk: int | None = None) -> list:
         return list(pool.map(fun, chunks))
 
 
+def _on_one_blas_thread(fun, *args, **kwargs):
+    """``fun(*args, **kwargs)`` with BLAS on one thread: a threaded BLAS sums in another order,
+    so the result would otherwise depend on where it ran (forked child or caller)."""
+    from threadpoolctl import threadpool_limits
+    with threadpool_limits(limits=1, user_api="blas"):
+        return fun(*args, **kwargs)
+
+
+def _computed_now(fun, *args, **kwargs):
+    """``fun(*args, **kwargs)`` computed at once, as a forked child would compute it (on the
+    arguments as they are now, BLAS on one thread) and as it would send it: through pickle,
+    which makes arrays C-ordered (a strided array multiplies in another order, to the last
+    bit); returns the function that gives its result or raises its exception, once."""
+    try:
+        value = pickle.loads(pickle.dumps(_on_one_blas_thread(fun, *args, **kwargs),
+                                          pickle.HIGHEST_PROTOCOL))
+        raised = None
+    except Exception as exc:
+        value, raised = None, exc
+    taken = []
+
+    def result():
+        if taken:
+            raise RuntimeError(f"the result of {fun.__name__} was already taken")
+        taken.append(True)
+        if raised is not None:
+            raise raised
+        return value
+    return result
+
+
 def in_background(fun, *args, **kwargs):
     """Start ``fun(*args, **kwargs)``; returns a function that waits for its result (or raises
     its exception).  With BACKGROUND on Linux (where a fork is safe) it runs in a forked
     child process, beside what the caller computes meanwhile: a second core for a whole
     independent task of a second or so (a thread would hold the GIL for its Python between the
     numpy calls; the child shares the caller's arrays copy-on-write and sends back only its
-    result, pickled; its BLAS limited to one thread, the caller's own pool not doubled).  Else
-    it runs when its result is asked for.  The result is the same provided the caller does not
+    result, pickled; its BLAS on one thread, here as there, the caller's own pool not doubled).  Else
+    it runs at once, on the arguments as they are (as the child would).  The result is the same provided the caller does not
     change the arguments meanwhile (the child computes on them as they were at the start)."""
     if not BACKGROUND or not sys.platform.startswith("linux"):
-        return lambda: fun(*args, **kwargs)
+        return _computed_now(fun, *args, **kwargs)
     read, write = os.pipe()
     pid = os.fork()
     if pid == 0:                                 # the child: compute, send, leave at once
         try:
             os.close(read)
             try:
-                from threadpoolctl import threadpool_limits
-                threadpool_limits(limits=1, user_api="blas")
-                done = pickle.dumps((True, fun(*args, **kwargs)), pickle.HIGHEST_PROTOCOL)
+                done = pickle.dumps((True, _on_one_blas_thread(fun, *args, **kwargs)),
+                                    pickle.HIGHEST_PROTOCOL)
             except BaseException as exc:
                 # the exception itself where it pickles (the caller handles its type as it
                 # would here), and its text and the child's traceback (it arrives without one)

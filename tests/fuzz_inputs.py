@@ -1,5 +1,5 @@
 """Fuzzing the files a laboratory hands to deltatwin: scenarios, datasets (CSV, its JSON sidecar,
-Parquet), model files (the fitted physics TOML, the stepwise JSON) and ports files.
+Parquet), model files (the fitted physics TOML, the stepwise JSON), ports files and setup files.
 
 Each target starts from a valid file written by the project's own writers (or shipped with it);
 a seeded ``numpy.random.Generator`` draws mutations of it: keys dropped, duplicated, retyped or
@@ -592,7 +592,7 @@ def targets(folder: Path) -> list[Target]:
     """The valid base files, written by the project's own writers into ``folder``: the shipped
     paper-force scenario; a reduced simulated paper-force campaign (CSV + sidecar, Parquet, and
     a laboratory CSV without sidecar); the physics model and the stepwise direct IGM fitted to
-    it by the commands; a ports file."""
+    it by the commands; a ports file; the documented laboratory setup file."""
     from deltatwin.calibration.blackbox.direct_igm import DirectIGM
     from deltatwin.calibration.physics.fit import PhysicsFit
     from deltatwin.calibration.physics.model_file import fitted_toml
@@ -602,7 +602,8 @@ def targets(folder: Path) -> list[Target]:
 
     folder = Path(folder)
     dirs = {n: folder / n for n in ("scenario", "sidecar", "csv", "lab_csv", "parquet",
-                                    "physics", "edited", "stepwise", "ports")}
+                                    "physics", "edited", "stepwise", "ports", "setup",
+                                    "with_setup")}
     for d in dirs.values():
         d.mkdir(parents=True, exist_ok=True)
     shutil.copy(SCENARIO_DIR / "paper-force.toml", dirs["scenario"] / "paper-force.toml")
@@ -619,6 +620,11 @@ def targets(folder: Path) -> list[Target]:
     fitted = (dirs["physics"] / "fitted.toml").read_text()
     (dirs["edited"] / "fitted.toml").write_text(re.sub(r"(?m)^content_sha256 = .*\n", "", fitted))
     write_ports(dirs["ports"] / "ports.toml", _example_ports())
+    # the documented laboratory setup file, its sensor map the campaign's thermometers
+    setup = tomllib.loads((Path(__file__).resolve().parents[1] / "docs" / "lab-setup.toml")
+                          .read_text())
+    (dirs["setup"] / "lab-setup.toml").write_text(tomli_w.dumps({**setup,
+                                                                 "sensors": meta["sensors"]}))
 
     sidecar_keys = ("format_version", "units", "sensors", "cosine_dead_path_m", "csv_sha256")
 
@@ -661,4 +667,8 @@ def targets(folder: Path) -> list[Target]:
         Target("stepwise_model", dirs["stepwise"] / "igm.json", "json", _reader_of_model(data),
                checksummed_rule, names_keys=False),
         Target("ports", dirs["ports"] / "ports.toml", "toml", _read_ports, ports_rule),
+        # put into the campaign's dataset as `deltatwin setup DATA FILE -o OUT` does
+        Target("lab_setup", dirs["setup"] / "lab-setup.toml", "toml",
+               cli_reader(["setup", str(dirs["parquet"] / "force.parquet"), "{model}", "-o",
+                           str(dirs["with_setup"] / "force.parquet")])),
     ]

@@ -1,7 +1,8 @@
 """The docs' examples run as written: the README's bash blocks (but the two set-up commands, which
 CI runs itself), every Python block of README.md and docs/*.md (small scale, in an empty folder, with
-the installed package), every ``deltatwin`` command they show is accepted by the parser, and every
-file and module path they name exists."""
+the installed package), every bash and Python block of the how-to pages (docs/how-to/), every
+``deltatwin`` command they show is accepted by the parser, every file and module path and every
+relative link they name exists, and the reference pages' generated parts match the code."""
 import re
 import subprocess
 import sys
@@ -50,7 +51,8 @@ def test_readme_python_block_runs(tmp_path):
     assert first.split()[0] == "magnetic_force", r.stdout    # the hidden effect ranks first
 
 
-DOCS = sorted((README.parent / "docs").glob("*.md")) + [README]
+DOCS = sorted((README.parent / "docs").rglob("*.md")) + [README]
+HOWTO = README.parent / "docs" / "how-to"
 # a command up to a comment, a chain, a pipe or a redirection (> file: shell, not an option)
 COMMAND = re.compile(r"^\s*(deltatwin (?!\w+: )[^#&|>\n`]*?)\s*(?:#.*|&.*|\|.*|>.*)?$", re.M)
 
@@ -204,7 +206,7 @@ def _python_blocks(path: Path) -> list[dict]:
     return blocks
 
 
-PY_PAGES = [p for p in DOCS if _python_blocks(p)]
+PY_PAGES = [p for p in DOCS if p.parent != HOWTO and _python_blocks(p)]   # how-tos: below
 
 
 def test_python_blocks_are_counted_and_every_skip_says_why():
@@ -261,3 +263,121 @@ def test_the_walkthrough_check_allows_a_figure_one_printed_digit_off():
     assert walkthrough.moved_figures(block("x 3.9 nm"), block("x 3.8 nm"), 0.02) == []
     assert walkthrough.moved_figures(block("x 3.9 nm"), block("x 3.7 nm"), 0.02)
     assert walkthrough.moved_figures(block("1705 rows"), block("1707 rows"), 0.0)
+
+
+# -- every block of a how-to page runs ------------------------------------------------------------
+# A how-to is a task done at small scale: its bash and Python blocks run in order in one fresh
+# folder, as a reader pastes them (markers as above; a no-run block still counts as shown).
+HOWTO_BLOCK = re.compile(r"```(bash|python)\n(.*?)```", re.S)
+
+
+def _howto_blocks(path: Path) -> list[dict]:
+    text = path.read_text()
+    blocks = []
+    for m in HOWTO_BLOCK.finditer(text):
+        before = text[:m.start()].rstrip().splitlines()
+        label = FILE_LABEL.search(before[-1]) if before and m.group(1) == "python" else None
+        if label:
+            before = before[:-1]
+        skip = None
+        while before and MARKER.fullmatch(before[-1].strip()):
+            kind, why = MARKER.fullmatch(before[-1].strip()).groups()
+            skip = why if kind == "no-run" else skip
+            before = before[:-1]
+        blocks.append({"lang": m.group(1), "code": m.group(2), "skip": skip,
+                       "file": label.group(1) if label else None,
+                       "line": text[:m.start()].count("\n") + 1})
+    return blocks
+
+
+HOWTOS = sorted(HOWTO.glob("*.md"))
+
+
+def test_every_task_has_a_how_to_indexed():
+    tasks = {"simulate.md", "fit.md", "diagnose.md", "add-an-effect.md", "hardware-campaign.md",
+             "compensate.md", "plan-a-campaign.md", "sweep.md"}
+    assert tasks <= {p.name for p in HOWTOS}
+    index = (README.parent / "docs" / "README.md").read_text()
+    for p in HOWTOS + sorted((README.parent / "docs" / "reference").glob("*.md")):
+        assert f"{p.parent.name}/{p.name}" in index, f"docs/README.md does not link {p.name}"
+    for p in HOWTOS:
+        blocks = _howto_blocks(p)
+        assert blocks, f"{p.name}: no bash or Python block"
+        assert all(b["skip"].strip() for b in blocks if b["skip"] is not None), p.name
+
+
+@pytest.mark.slow            # every how-to simulates and fits: 15-60 s each on 2 shared cores
+@pytest.mark.parametrize("path", HOWTOS, ids=[p.name for p in HOWTOS])
+def test_how_to_runs_as_written(path, tmp_path):
+    """Each block runs in its own process group; what a block leaves running in the background
+    (an emulator the page stops in a later block) is stopped when the page ends, pass or fail."""
+    import os
+    import signal
+
+    bin_dir = Path(sys.executable).parent
+    env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "HOME": str(tmp_path), "OPENBLAS_NUM_THREADS": "1",
+           "DELTATWIN_THREADS": "1", "TQDM_DISABLE": "1", "MPLBACKEND": "Agg"}
+    blocks = _howto_blocks(path)
+    for b in blocks:                     # files the page's commands run are written first
+        if b["file"]:
+            (tmp_path / b["file"]).write_text(b["code"])
+    groups = []
+    try:
+        for k, b in enumerate(blocks):
+            if b["skip"] is not None or b["file"]:
+                continue
+            if b["lang"] == "bash":
+                argv = ["bash", "-euo", "pipefail", "-c", b["code"]]
+            else:
+                (tmp_path / f"block_{k}.py").write_text(b["code"])
+                argv = [sys.executable, f"block_{k}.py"]
+            proc = subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True, start_new_session=True)
+            groups.append(proc.pid)
+            out, err = proc.communicate(timeout=280)
+            assert proc.returncode == 0, (f"{path.name}:{b['line']} failed:\n{b['code']}\n"
+                                          f"--- stdout:\n{out[-2000:]}\n--- stderr:\n{err[-3000:]}")
+    finally:
+        for group in groups:
+            try:
+                os.killpg(group, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+
+
+# -- relative links and the generated reference ---------------------------------------------------
+LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+
+
+def test_every_relative_link_resolves():
+    broken = [f"{p.relative_to(ROOT)}: {m.group(1)}" for p in DOCS
+              for m in LINK.finditer(p.read_text())
+              if "://" not in m.group(1) and not (p.parent / m.group(1)).exists()]
+    assert not broken, "\n".join(broken)
+
+
+def _generate_reference():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "generate_reference", README.parent / "docs" / "generate_reference.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_reference_pages_match_the_code():
+    """Each command's usage and options (docs/reference/COMMAND.md) are those `deltatwin COMMAND
+    --help` prints, and each library effect's parameters (docs/effects.md) those of its class:
+    `python docs/generate_reference.py` rewrites them."""
+    problems = _generate_reference().stale_pages(write=False)
+    assert not problems, "\n".join(problems) + "\n(run python docs/generate_reference.py)"
+
+
+def test_the_reference_check_catches_a_stale_page():
+    gen = _generate_reference()
+    source, block, _ = gen.command_blocks()["sweep"]
+    page = f"# sweep\n\n{gen.begin_marker(source)}{block.replace('--resume', '--restart')}{gen.END}\n"
+    fresh, missing = gen.refresh(page, {source: block})
+    assert fresh != page and "--resume" in fresh and not missing
+    assert gen.refresh("# sweep\n", {source: block})[1] == [source]

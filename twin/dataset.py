@@ -20,6 +20,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from deltatwin.files import atomic_write, unique_keys
+from deltatwin.twin.lab_setup import SETUP_KEY, setup_problem
 
 FORMAT_VERSION = 1
 METADATA_KEY = b"deltatwin"
@@ -70,6 +71,7 @@ _META_CHECKS = {
                           is not None, "a SHA-256 in hex"),
     "seed": _scalar(lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
                     "an integer >= 0"),
+    SETUP_KEY: setup_problem,
     "scale": _scalar(lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)
                      and 0 < v <= 1, "a number in (0, 1]"),
 }

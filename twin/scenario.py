@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import hashlib
-import re
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -28,6 +27,7 @@ from deltatwin.twin.campaign import Plan, force_plan, run_campaign, simulate_cam
 from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, make_effect
 from deltatwin.twin.instruments.optics import nominal_dead_path, saturation_vapour_pressure
 from deltatwin.twin.instruments.simulated import InstrumentSettings, SimulatedLab
+from deltatwin.twin.lab_setup import SENSOR_NAME, scenario_setup
 from deltatwin.twin.noise import quantised_u
 from deltatwin.twin.thermal import PART_NODES
 from deltatwin.twin.world import Twin, random_streams
@@ -135,7 +135,6 @@ def _number(where, value, minimum=None, integer=False, maximum=None, above=False
     return int(value) if integer else float(value)
 
 
-SENSOR_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")   # it becomes a column name, T_<name>_C
 MAX_DAYS = 60.0                 # the longest campaign the twin simulates (its environment is
                                 # integrated over the whole campaign before it starts)
 
@@ -170,15 +169,19 @@ class Scenario:
     campaign: dict
     reduced_scale: float
     hidden: dict | None = None     # [hidden] effects the data holds and the baseline lacks
+    scale: float | None = None     # the campaign's scale when a method is given none (None: full)
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
     def load(cls, path, seed: int | None = None, scale: float | None = None,
              trust_effects=False) -> Scenario:
-        """Read and validate a scenario (a path, or a name in scenarios/). A user effect its
-        [effects] on names (``file.py:Class``) is code: it runs only with ``trust_effects``
-        True (or a list of the specs whose code may run), else ScenarioError naming the file and
-        the code (twin/effects: ``trust``)."""
+        """Read and validate a scenario (a path, or a name in scenarios/). ``seed`` replaces its
+        [scenario] seed. ``scale`` (a fraction of the campaign's points in (0, 1]) is the scale
+        ``simulate``, ``run``, ``build`` and ``plan`` use when they are given none (None: the
+        full campaign); the plan is checked at it now. A user effect its [effects] on names
+        (``file.py:Class``) is code: it runs only with ``trust_effects`` True (or a list of the
+        specs whose code may run), else ScenarioError naming the file and the code
+        (twin/effects: ``trust``)."""
         path = Path(path)
         if not path.exists() and (SCENARIO_DIR / f"{path}.toml").exists():
             path = SCENARIO_DIR / f"{path}.toml"
@@ -199,6 +202,7 @@ class Scenario:
         """Validate a scenario's TOML ``text`` as the file ``path`` (relative paths in it are
         from that file's folder; ``trust_effects``: ``load``'s)."""
         path = Path(path)
+        scale = check_scale(scale)
         try:
             doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
@@ -329,8 +333,8 @@ class Scenario:
                     raise ScenarioError(str(exc)) from exc
         sc = cls(path=path, text=text, name=name, seed=seed, params=params, effects=effects,
                  sensors=sensors, settings=settings, cosine=cosine, campaign=camp,
-                 reduced_scale=red, hidden=hidden)
-        sc._timeline(sc.plan(random_streams(0)["campaign"], scale))   # validate the plan now
+                 reduced_scale=red, hidden=hidden, scale=scale)
+        sc._timeline(sc.plan(random_streams(0)["campaign"]))   # validate the plan now
         if not sensors:
             raise ScenarioError(f"{f} [sensors]: no sensor; every campaign scans its "
                                 "thermometers: name at least one (sensor = \"part\")")
@@ -357,7 +361,7 @@ class Scenario:
         doc["campaign"] = campaign
         if instruments:
             doc["instruments"] = {**doc.get("instruments", {}), **instruments}
-        return Scenario.from_text(tomli_w.dumps(doc), path or self.path, self.seed,
+        return Scenario.from_text(tomli_w.dumps(doc), path or self.path, self.seed, self.scale,
                                   trust_effects=trust_effects)
 
     # -- the laboratory's error sources -------------------------------------------------------
@@ -416,11 +420,12 @@ class Scenario:
 
     # -- the campaign -------------------------------------------------------------------------
     def plan(self, rng, scale: float | None = None) -> Plan:
-        """The campaign plan, at full scale or scaled (number of points times ``scale``)."""
+        """The campaign plan, at full scale or scaled (number of points times ``scale``; None:
+        the scenario's own scale, given to ``load``)."""
         c, f = self.campaign, f"{self.path} [campaign]"
         if c["kind"] in STANDARD_TESTS:
             return self.standard_test(rng, scale).plan
-        scale = 1.0 if scale is None else check_scale(scale)
+        scale = self._scale(scale)
         stroke = self.params.stroke_rad
         if c["kind"] == "thermal":
             sessions = []
@@ -471,7 +476,7 @@ class Scenario:
         from deltatwin.twin import standard_tests as st
 
         c, f = self.campaign, f"{self.path} [campaign]"
-        scale = 1.0 if scale is None else check_scale(scale)
+        scale = self._scale(scale)
         num = lambda k, d, lo, integer=False, hi=None: _number(f"{f} {k}", c.get(k, d), lo,
                                                                 integer, hi)
         shrink = lambda n, low: max(low, int(round(n * scale)))
@@ -503,6 +508,11 @@ class Scenario:
             if isinstance(exc, ScenarioError):
                 raise
             raise ScenarioError(f"{f}: {exc}") from exc
+
+    def _scale(self, scale: float | None) -> float:
+        """The scale a method uses: the one given, else the scenario's own, else 1 (checked)."""
+        scale = self.scale if scale is None else check_scale(scale)
+        return 1.0 if scale is None else scale
 
     def dead_path(self) -> dict:
         """Nominal beam path head -> cube face (m) per axis, for the cosine correction."""
@@ -540,12 +550,12 @@ class Scenario:
         TOML text, the seed and the scale (1.0 for the full campaign)."""
         return {"scenario": self.name,
                 "scenario_sha256": hashlib.sha256(self.text.encode()).hexdigest(),
-                "seed": self.seed, "scale": 1.0 if scale is None else float(scale)}
+                "seed": self.seed, "scale": self._scale(scale)}
 
     def metadata(self, twin: Twin, scale, noise_floor_nm: dict | None = None) -> dict:
         from deltatwin import __version__
         return {"source": "twin", "scenario": self.name, "scenario_toml": self.text,
-                "seed": self.seed, "scale": 1.0 if scale is None else scale,
+                "seed": self.seed, "scale": self._scale(scale),
                 "deltatwin_version": __version__, "sensors": dict(self.sensors),
                 # the laboratory's instrument specifications, which a fit's noise model uses
                 "instruments": {"T_noise_C": self.settings.T_noise_C,
@@ -557,7 +567,10 @@ class Scenario:
                           "reading_noise_std_nm": self.settings.noise_floor_m * 1e9,
                           "noise_floor_nm": noise_floor_nm,
                           "cosine_correction": self.cosine},
-                "cosine_dead_path_m": self.dead_path()}
+                "cosine_dead_path_m": self.dead_path(),
+                # what the laboratory states about itself: its [hidden] known constants and
+                # baseline (twin/lab_setup.py; the instruments and sensors above)
+                "setup": scenario_setup(self.hidden, f"scenario {self.file_name()}")}
 
     def simulate(self, scale: float | None = None) -> tuple[pd.DataFrame, dict]:
         """The campaign's dataset through the vectorised fast path."""

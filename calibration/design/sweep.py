@@ -20,6 +20,11 @@ replicates::
     scale = 0.3                          # fraction of the campaign's points
     campaign = { forces_N = [0.0, 2.0] } # keys of the scenario's [campaign] replaced
 
+A scenario or a baseline that names a user effect (``file.py:Class``, a relative path from the
+file that names it) runs that code only with the user's consent, as every reader of files does
+(``trust_effects``; ``deltatwin sweep --trust-effects``): the specification is refused at load
+otherwise, before any case runs.
+
 A case is a scenario TOML with the parameter scaled and the design applied, and a seed. The
 seed of replicate ``i`` is child ``i`` of ``SeedSequence(seed)`` (the same for every magnitude
 and design: common random numbers make the differences between magnitudes sharper), so a
@@ -50,7 +55,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from deltatwin.files import atomic_write, toml_text
-from deltatwin.twin.effects import LIBRARY
+from deltatwin.twin.effects import LIBRARY, EffectError, effect_class, effect_spec
 from deltatwin.twin.scenario import FORMAT_VERSION as SCENARIO_FORMAT_VERSION
 from deltatwin.twin.scenario import SCENARIO_DIR, shipped_scenarios
 
@@ -69,7 +74,9 @@ class SweepError(ValueError):
 @dataclass(frozen=True)
 class Case:
     """One simulated campaign. ``scenario`` is a resolved path; ``campaign`` the design's
-    [campaign] replacements as sorted JSON; ``threads`` is how it runs, not what it is."""
+    [campaign] replacements as sorted JSON; ``threads`` is how it runs, not what it is, and so
+    is ``trust_effects`` (the user's consent to the user effects its scenario names, given when
+    the specification was loaded)."""
     scenario: str
     effect: str
     parameter: str
@@ -81,6 +88,7 @@ class Case:
     replicate: int
     seed: int
     threads: int = 1
+    trust_effects: bool = False
 
     @property
     def case_id(self) -> str:
@@ -88,6 +96,7 @@ class Case:
         parameter and magnitude, the baseline, the design, the seed."""
         what = dataclasses.asdict(self)
         what.pop("threads")
+        what.pop("trust_effects")
         what["scenario"] = hashlib.sha256(Path(self.scenario).read_bytes()).hexdigest()
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -101,8 +110,10 @@ class SweepSpec:
     cases: list
 
     @classmethod
-    def load(cls, path) -> SweepSpec:
-        """Read and check a sweep specification (see the module docstring)."""
+    def load(cls, path, trust_effects=False) -> SweepSpec:
+        """Read and check a sweep specification (see the module docstring). ``trust_effects``:
+        the consent to run the user effects its scenarios and baselines name, as
+        ``Scenario.load``'s (True, or the specs whose code may run)."""
         path = Path(path)
         f = str(path)
         if not path.is_file():
@@ -144,6 +155,7 @@ class SweepSpec:
             w = f"{f} [[study]] #{i + 1}"
             _keys(w, st, STUDY_KEYS)
             scenario = _scenario_path(w, st.get("scenario"), path.parent)
+            trusted = _consent(w, scenario, trust_effects)
             effect, parameter = st.get("effect"), st.get("parameter")
             if effect not in LIBRARY:
                 raise SweepError(f"{w} effect = {effect!r}: not a library effect "
@@ -157,21 +169,23 @@ class SweepSpec:
                     isinstance(m, (int, float)) and not isinstance(m, bool)
                     and math.isfinite(m) and m >= 0 for m in mags):
                 raise SweepError(f"{w} magnitudes = {mags!r}: expected a list of factors >= 0")
-            baseline = st.get("baseline")
+            baseline, named_in = st.get("baseline"), path.parent
             if baseline is None:
                 hidden = tomllib.loads(Path(scenario).read_text(encoding="utf-8")).get("hidden")
                 if not hidden:
                     raise SweepError(f"{w}: no baseline given and the scenario has no [hidden] "
                                      "baseline")
-                baseline = hidden["baseline"]
+                baseline, named_in = hidden["baseline"], Path(scenario).parent
             if not isinstance(baseline, list) or effect in baseline:
                 raise SweepError(f"{w} baseline = {baseline!r}: expected a list of effects "
                                  f"without the swept {effect!r}")
+            baseline = _baseline_specs(w, baseline, named_in, trust_effects)
             for dname, (scale, camp) in checked.items():
                 for m in mags:
                     for r, s in enumerate(seeds):
                         cases.append(Case(str(scenario), effect, parameter, float(m),
-                                          tuple(baseline), dname, scale, camp, r, s, threads))
+                                          tuple(baseline), dname, scale, camp, r, s, threads,
+                                          trusted))
         ids = [c.case_id for c in cases]
         if len(set(ids)) != len(ids):
             raise SweepError(f"{f}: some cases appear twice (the same scenario, magnitude, "
@@ -196,6 +210,35 @@ def _integer(where, value, minimum) -> int:
 def _seed(child: np.random.SeedSequence) -> int:
     """The scenario seed (a non-negative int64) of a spawned SeedSequence."""
     return int(child.generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def _consent(where, scenario: Path, trust_effects) -> bool:
+    """Whether the cases of ``scenario`` may run the user effects it names: the scenario is read
+    with the user's consent now, so a refusal comes before any case runs."""
+    from deltatwin.twin.scenario import Scenario, ScenarioError
+
+    try:
+        Scenario.load(scenario, trust_effects=trust_effects)
+    except ScenarioError as exc:
+        raise SweepError(f"{where}: {exc}") from exc
+    return bool(trust_effects)
+
+
+def _baseline_specs(where, baseline: list, folder: Path, trust_effects) -> list[str]:
+    """The baseline's effects as the cases name them: a library name, or the absolute spec of a
+    user effect (a relative path from ``folder``, that of the file naming it), whose code runs
+    only with the user's consent."""
+    specs = []
+    for name in baseline:
+        if isinstance(name, str) and name in LIBRARY:
+            specs.append(name)
+            continue
+        try:
+            specs.append(effect_spec(effect_class(name, folder, f"{where} baseline",
+                                                  trust_effects)))
+        except EffectError as exc:
+            raise SweepError(str(exc)) from exc
+    return specs
 
 
 def _scenario_path(where, name, folder: Path) -> Path:
@@ -237,7 +280,17 @@ def case_scenario_text(case: Case) -> str:
     robot = doc.get("robot", {}).get("file")
     if robot:
         doc["robot"]["file"] = str((src.parent / robot).resolve())
+    # the case's TOML lies in another folder: a user effect's relative path made absolute
+    effects["on"] = [_absolute_effect(e, src.parent) for e in effects["on"]]
     return toml_text(doc)
+
+
+def _absolute_effect(spec, folder: Path):
+    """``spec`` with a relative ``file.py:Class`` path taken from ``folder``."""
+    target, sep, cls_name = spec.rpartition(":") if isinstance(spec, str) else ("", "", "")
+    if sep and (target.endswith(".py") or "/" in target) and not Path(target).is_absolute():
+        return f"{(folder / Path(target).expanduser()).resolve()}:{cls_name}"
+    return spec
 
 
 def case_scenario(case: Case):
@@ -247,7 +300,7 @@ def case_scenario(case: Case):
     with tempfile.TemporaryDirectory(prefix="deltatwin-case-") as tmp:
         path = Path(tmp) / Path(case.scenario).name
         path.write_text(case_scenario_text(case), encoding="utf-8")
-        return Scenario.load(path, seed=case.seed)
+        return Scenario.load(path, seed=case.seed, trust_effects=case.trust_effects)
 
 
 def run_case(case: Case) -> dict:

@@ -89,6 +89,7 @@ from deltatwin.models.batched import in_background
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.effects import LIBRARY, EffectError
 from deltatwin.twin.instruments.optics import AXES
+from deltatwin.twin.lab_setup import beyond_setup, known_constants, set_options, used_constants
 
 # what a candidate the model cannot take on raises (a pose out of reach, an impossible value):
 # its row of the ranking says so, the others are still ranked
@@ -920,27 +921,16 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     return ladder, diagnoses, fits
 
 
-def _constants(fit: PhysicsFit) -> dict:
-    """{effect: {parameter: value}}: the laboratory's constants the fit was given: those of
-    effects outside its model (``known_``) and the parameters it does not fit whose values
-    are not the library's defaults (e.g. a frame arm)."""
-    out = {e: dict(v) for e, v in fit.known_.items()}
-    for effect in fit.model_.effects:
-        for p in type(effect).parameters:
-            value = np.asarray(effect.values[p.name], dtype=float)
-            if p.fit_scale is None and not np.array_equal(value, np.asarray(p.default, float)):
-                out.setdefault(effect.name, {})[p.name] = value.tolist()
-    return out
-
-
 def _next_step(fit: PhysicsFit, added: list, data: str) -> dict:
-    """A diagnosis' ``next_command`` (complete: the laboratory's constants given with
-    ``--set``) and ``scenario_change`` for the ``added`` effects."""
+    """A diagnosis' ``next_command`` (complete: the laboratory's constants the fit used that
+    the data's setup does not give, twin/lab_setup.py, with ``--set``; followed literally it
+    fits the same problem) and ``scenario_change`` for the ``added`` effects."""
     effects = ",".join(fit.model_.specs + added)
-    known = "".join(f" --set {e}.{k}={','.join(str(x) for x in np.ravel(v))}"
-                    for e, values in _constants(fit).items() for k, v in values.items())
+    setup = known_constants(fit.meta_)
+    given = beyond_setup(used_constants(fit.model_.effects, fit.known_, setup), setup)
     names = " and ".join(f'"{e}"' for e in added)
-    return {"next_command": f"deltatwin fit {data} --effects {effects}{known} -o fitted.toml",
+    return {"next_command": f"deltatwin fit {data} --effects {effects}{set_options(given)} "
+                           "-o fitted.toml",
             "scenario_change": (f"add {names} to the model's effects (a scenario's [hidden] "
                                 "baseline, or --effects)")}
 

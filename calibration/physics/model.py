@@ -524,7 +524,8 @@ class PhysicsModel:
         loads_optics = np.flatnonzero(wanted & by["load_optics"])
         optics = np.array([j for j in loads_optics
                            if "optics" in self.classes[owner[j].name].model_stages()], int)
-        if not batched.BACKGROUND or few or optics.size * A.shape[0] < BESIDE_ROW_COLUMNS:
+        # (in this process when there is no second core, the same way: batched.in_background)
+        if few or optics.size * A.shape[0] < BESIDE_ROW_COLUMNS:
             optics = optics[:0]
         # the optics a step re-uses, for the optics columns wanted (a load's wrench needs none)
         optics_at = (self._optics_at(meas, stage, truth) if any(

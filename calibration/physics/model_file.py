@@ -14,6 +14,7 @@ from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.calibration.physics.table import correlation_matrix
 from deltatwin.files import CONTENT_SHA256, content_damage, content_sha256, toml_text
 from deltatwin.twin.effects import EffectError, code_sha256, effect_class
+from deltatwin.twin.lab_setup import known_constants, used_constants
 
 FORMAT = "deltatwin-physics-model"
 # 2: a fitted file carries content_sha256 (deltatwin.files), checked on reading; 1 is still read.
@@ -52,10 +53,12 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
         del doc["identification"]
     if fit.parameters_ is not None:
         doc["uncertainty"] = uncertainty_table(fit)
-    if fit.known_:
-        # the laboratory's known constants of effects outside the model (--set): a diagnosis
-        # gives them to the candidates it adds
-        doc["known"] = fit.known_
+    known = used_constants(fit.model_.effects, fit.known_, known_constants(fit.meta_))
+    if known:
+        # the laboratory's constants the fit used (the data's setup, --set): those of effects
+        # outside the model a diagnosis gives to the candidates it adds; those of the model's
+        # effects are also in [effects], and `diagnose` compares them with the data's setup
+        doc["known"] = known
     doc = {"format": FORMAT, "format_version": FORMAT_VERSION, CONTENT_SHA256: content_sha256(doc),
            **doc}
     return toml_text(doc, "deltatwin physics model; load with "

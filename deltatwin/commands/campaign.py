@@ -39,6 +39,11 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the campaign of the existing journal")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    p.add_argument("--setup", type=Path, default=None, metavar="FILE",
+                   help="the laboratory's setup file (TOML, docs/lab-setup.toml): its known "
+                        "constants, baseline, instrument specifications and sensor map go into "
+                        "the dataset, for fit, diagnose and compensate (default: the "
+                        "scenario's)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--reduced", action="store_true", help="the scenario's reduced scale")
     g.add_argument("--scale", type=float, default=None, help="fraction of the campaign's points, "
@@ -102,6 +107,7 @@ def run(args) -> int:
     from deltatwin.twin.instruments.interface import InstrumentError
     from deltatwin.twin.instruments.simulated import SimulatedLab
     from deltatwin.twin.journal import Journal
+    from deltatwin.twin.lab_setup import describe, load_setup, with_setup
     from deltatwin.twin.scenario import Scenario, check_scale
 
     if args.instruments == "serial" and args.ports is None:
@@ -116,6 +122,11 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     sc = Scenario.load(args.scenario, seed=args.seed, trust_effects=trust_of(args))
+    # the setup file is checked before anything is measured (its sensors: the scenario's)
+    setup = load_setup(args.setup) if args.setup is not None else None
+    sensor_columns = [f"T_{s}_C" for s in sc.sensors]
+    if setup is not None:
+        with_setup({}, setup, str(args.setup), sensor_columns)
     scale = sc.reduced_scale if args.reduced else args.scale
     output = args.output or Path(f"{sc.name}.parquet")
     journal_path = journal_file(output, args.journal, args.resume)
@@ -184,7 +195,11 @@ def run(args) -> int:
     zeros = zeros_taken(plan, points)
     meta = sc.metadata(twin, scale)
     meta["source"] = "twin" if args.instruments == "sim" else "lab"
-    meta["instruments"] = described
+    # the instruments' specifications stay (a fit's noise model reads them), with how they
+    # were reached
+    meta["instruments"] = {**meta["instruments"], **described}
+    if setup is not None:
+        meta = with_setup(meta, setup, str(args.setup), sensor_columns)
     meta["campaign"] = {"points": len(plan), "journal": str(journal_path),
                         "taken_before_resume": before, "zeros": zeros}
     write_dataset(df, meta, output)
@@ -193,7 +208,8 @@ def run(args) -> int:
                "journal": str(journal_path) + " (kept)",
                "zeros_after_resume": sum(z["after_resume"] for z in zeros),
                "seconds": round(time.perf_counter() - t0, 2),
-               "campaign_time_h": round(float(df["t_s"].max()) / 3600.0, 3)}
+               "campaign_time_h": round(float(df["t_s"].max()) / 3600.0, 3),
+               "setup": meta["setup"] if args.json else describe(meta)}
     print(strict_json(summary) if args.json else
           "\n".join(f"{k:>20}: {v}" for k, v in summary.items()))
     return 0

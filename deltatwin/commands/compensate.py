@@ -189,6 +189,7 @@ def run(args) -> int:
     from deltatwin.twin.instruments.interface import InstrumentError
     from deltatwin.twin.instruments.optics import AXES
     from deltatwin.twin.journal import Journal
+    from deltatwin.twin.lab_setup import model_overrides
     from deltatwin.twin.scenario import Scenario, check_scale
 
     if args.targets < 1:
@@ -227,6 +228,11 @@ def run(args) -> int:
             raise FileNotFoundError(f"--data {data}: no such dataset")
         data = None
     cal_df, cal_meta = read_dataset(data) if data is not None else (None, None)
+    if comp.kind == "physics" and cal_meta is not None:
+        # the model commands with the constants it was fitted with: said where they are not
+        # the calibration data's setup
+        for line in model_overrides(comp.model.effects, {}, cal_meta, str(data)):
+            print(f"{args.model}: {line}", file=sys.stderr)
     output = args.output or Path(f"{sc.name}-compensated.parquet")
     journal_path = journal_file(output, args.journal, args.resume)
     if args.instruments == "serial":
@@ -344,7 +350,7 @@ def run(args) -> int:
     meta = sc.metadata(twin, scale) if args.instruments == "sim" else {"source": "lab",
                                                                         "scenario": sc.name}
     meta["source"] = "twin" if args.instruments == "sim" else "lab"
-    meta["instruments"] = described
+    meta["instruments"] = {**meta.get("instruments", {}), **described}
     meta["compensation"] = {k: v for k, v in report.items() if k not in ("output", "seconds")}
     write_dataset(df, meta, output)
     if args.view is not None:

@@ -12,16 +12,19 @@ from deltatwin.commands.trust import add_trust_option, trust_of
 def register(sub) -> None:
     p = sub.add_parser("fit", help="fit a physics model (library effects) to a dataset")
     p.add_argument("data", help="dataset (.parquet, or .csv with its .meta.json)")
-    p.add_argument("--effects", required=True,
+    p.add_argument("--effects",
                    help="comma-separated library effects, e.g. geometric_errors,thermal_expansion "
-                        "('none' for the nominal robot); `deltatwin effects` lists them")
+                        "('none' for the nominal robot); `deltatwin effects` lists them "
+                        "(default: the baseline the data's setup declares)")
     p.add_argument("--noise-nm", type=float, default=5.0,
                    help="the readings' noise (nm): directions the data determine to better than "
                         "a third of their parameters' typical size are fitted (default 5)")
     p.add_argument("--set", action="append", default=[], metavar="EFFECT.PARAM=VALUE",
                    help="a known constant of the laboratory, SI units, comma-separated for a "
                         "vector, e.g. loop_drift.frame_arm_m=-0.6,0 (repeatable; a free "
-                        "parameter set this way is the fit's start)")
+                        "parameter set this way is the fit's start). The data's setup gives "
+                        "its constants already (`deltatwin setup DATA` shows them): --set "
+                        "overrides one, and says so")
     p.add_argument("--max-evaluations", type=int, default=80, metavar="N",
                    help="the trial points the solver may evaluate, the start included (a "
                         "Jacobian is not counted; default 80, as the diagnosis's own fits)")
@@ -91,13 +94,42 @@ def _check_setting(item: str, effect: str, param: str, value) -> None:
         raise FitError(f"--set {item}: {str(exc).split(': ', 1)[-1]}") from None
 
 
+def _model_effects(args, meta: dict) -> list[str]:
+    """``--effects``, else the baseline the data's setup declares."""
+    from deltatwin.twin.lab_setup import baseline_of
+
+    if args.effects is not None:
+        return _effects(args.effects)
+    baseline = baseline_of(meta)
+    if baseline is None:
+        raise ValueError(f"{args.data}: its setup declares no baseline: name the model's "
+                         "effects with --effects (`deltatwin effects` lists them)")
+    return baseline
+
+
+def _constants_used(fit, known: dict, setup: dict) -> dict:
+    """The laboratory's constants the model used and where each came from (``known``: --set,
+    else the data's ``setup``)."""
+    from deltatwin.twin.lab_setup import used_constants
+
+    constants = used_constants(fit.model_.effects, fit.known_, setup)
+    return {"constants": constants,
+            "constants_from": {f"{e}.{p}": "--set" if p in known.get(e, {}) else
+                               "the data's setup" for e, values in constants.items()
+                               for p in values}}
+
+
 def run_fit(args) -> int:
     from deltatwin.calibration.physics.fit import PhysicsFit
     from deltatwin.twin.dataset import read_dataset
+    from deltatwin.twin.lab_setup import known_constants, overridden
 
     known = _known_values(args.set)
     df, meta = read_dataset(args.data)
-    fit = PhysicsFit(_effects(args.effects), start=known or None, noise_nm=args.noise_nm,
+    setup = known_constants(meta, str(args.data))
+    for key, _, value in overridden(known, setup):
+        print(f"--set {key} overrides the data's setup value {value}", file=sys.stderr)
+    fit = PhysicsFit(_model_effects(args, meta), start=known or None, noise_nm=args.noise_nm,
                      max_evaluations=args.max_evaluations,
                      progress=not args.json).fit(df, meta, where=str(args.data))
     if args.output:
@@ -106,6 +138,7 @@ def run_fit(args) -> int:
     s = summary.as_dict()
     band = fit.validation_band()
     s["val_band_95_nm"] = {a: list(v) for a, v in band.items()}
+    s.update(_constants_used(fit, known, setup))
     if args.json:
         print(strict_json(s))
         return 0
@@ -113,6 +146,10 @@ def run_fit(args) -> int:
     print(f"fitted {', '.join(fit.effects) or 'the nominal robot'} to {args.data}: "
           f"{ident['n_parameters']} parameters, {ident['n_identified_directions']} directions "
           f"identified (condition {ident['condition_number_identified'] or 0:.3g})")
+    if s["constants"]:
+        print("  the laboratory's constants: " + "; ".join(
+            f"{e}.{p} = {v} ({s['constants_from'][f'{e}.{p}']})"
+            for e, values in s["constants"].items() for p, v in values.items()))
     print(f"  {'axis':>4} {'cal err90 nm':>13} {'val err90 nm':>13} {'if the model is right':>22}")
     for a in ("x", "y", "z", "all"):
         if a in s["val"]:
@@ -151,18 +188,24 @@ def run_diagnose(args) -> int:
     from deltatwin.calibration.physics.model_file import fitted_on, load_fitted, saved_directions
     from deltatwin.models.batched import in_background
     from deltatwin.twin.dataset import read_dataset
+    from deltatwin.twin.lab_setup import model_overrides
 
     df, meta = read_dataset(args.data)
     if str(args.model).lower().endswith(".json"):
         return _diagnose_stepwise(args, df, meta)
     model, doc = load_fitted(args.model, trust_of(args))
+    # the constants the model was fitted with (the file's [known], its [effects]) stand over
+    # the data's setup: said where they differ
+    outside = {e: v for e, v in doc.get("known", {}).items() if e not in model.names}
+    for line in model_overrides(model.effects, outside, meta, str(args.data)):
+        print(f"{args.model}: {line}", file=sys.stderr)
     # the laboratory variables the diagnosis scans depend on the data alone: made beside the
     # model's Jacobian on a second core where the command has one (docs/performance.md)
     variables = in_background(laboratory_variables, df)
     # the file's values on this dataset (its zeros are new): kept as fitted when these are the
     # data it was fitted on by this code (its status says how converged), or when they are converged here in
     # the directions the fit determined (one Jacobian); else refined on its calibration rows
-    fit = PhysicsFit(model.names, start={**doc.get("known", {}), **model.values()},
+    fit = PhysicsFit(model.names, start={**outside, **model.values()},
                      noise_nm=float(doc["model"].get("noise_nm", 5.0)),
                      progress=not args.json).fit(df, meta, where=str(args.data),
                                                  keep_converged_start=True,

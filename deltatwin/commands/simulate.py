@@ -12,6 +12,7 @@ def run_simulate(args) -> int:
 
     from deltatwin.progress import progress_bar
     from deltatwin.twin.dataset import check_dataset_path, write_dataset
+    from deltatwin.twin.lab_setup import describe
     from deltatwin.twin.scenario import Scenario, check_scale
 
     check_scale(args.scale, "--scale")
@@ -51,6 +52,8 @@ def run_simulate(args) -> int:
                                       for a in ("x", "y", "z", "all") if a in budget}
     T = df[[c for c in df.columns if c.startswith("T_")]].to_numpy()
     summary["temperature_range_C"] = [round(float(np.nanmin(T)), 3), round(float(np.nanmax(T)), 3)]
+    # what fit, diagnose and compensate will take as given (twin/lab_setup.py)
+    summary["setup"] = meta["setup"] if args.json else describe(meta)
     print(strict_json(summary) if args.json else
           "\n".join(f"{k:>20}: {v}" for k, v in summary.items()))
     return 0

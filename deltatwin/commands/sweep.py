@@ -4,6 +4,7 @@ Parquet record per case, on a local process pool or a dask.distributed cluster
 from __future__ import annotations
 
 from deltatwin.commands.output import strict_json
+from deltatwin.commands.trust import add_trust_option, trust_of
 
 
 def register(sub) -> None:
@@ -21,6 +22,7 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue a sweep in the results folder: finished cases are skipped")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_trust_option(p)
     p.set_defaults(func=run_sweep)
 
 
@@ -31,7 +33,7 @@ def run_sweep(args) -> int:
 
     if args.workers < 1:
         raise SweepError(f"--workers {args.workers}: expected at least 1")
-    spec = SweepSpec.load(args.spec)
+    spec = SweepSpec.load(args.spec, trust_of(args))
     with progress_bar(total=len(spec.cases), desc=f"sweep {spec.name}", unit="case",
                       disable=args.quiet or args.json) as bar:
         def progress(i, n):

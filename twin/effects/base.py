@@ -64,6 +64,10 @@ class Parameter:
     minimum: float | None = None   # inclusive bound checked on every element
     fit_scale: float | None = None  # typical size (unit as above) when a fit adjusts it
     fit_start: float | tuple | None = None  # a fit's starting value (default: ``default``)
+    # the prediction is linear in it, a coefficient of a measured temperature (an expansion
+    # coefficient): its Jacobian column is made of the thermometers' readings, so a fit
+    # corrects its estimate for their noise (calibration/physics/thermometers.py)
+    per_kelvin: bool = False
 
     @property
     def shape(self) -> tuple:

@@ -17,7 +17,7 @@ class ThermalExpansion(Effect):
     parameters = (
         Parameter("cte_factor", "-", (1.0,) * 4,
                   "CTE of base, arms, rods, platform relative to their material's", 0.0,
-                  fit_scale=0.05),
+                  fit_scale=0.05, per_kelvin=True),
     )
 
     def part_temperatures(self, points):

@@ -1,6 +1,7 @@
 """Sweeps: the same records on the local process pool and on a dask.distributed cluster, a
 resume after a kill that recomputes nothing finished, and specifications refused with file and
 key."""
+import dataclasses
 import json
 import os
 import signal
@@ -151,3 +152,77 @@ def test_a_case_runs_on_its_threads_and_restores_the_callers(tmp_path, monkeypat
     assert seen == {"chunk": 1, "blas": {1}} and batched.THREADS == 3 and after == {2}
     assert rec["cpu_s"] > 0 and rec["wall_s"] > 0
     assert deterministic_columns(pd.DataFrame([rec])) == ["case_id"]
+
+
+USER_EFFECT = '''
+import pathlib
+pathlib.Path(__file__).with_name("ran.txt").write_text("the file's code ran")
+
+from deltatwin.twin.effects import Effect, Parameter, shift_reading
+
+
+class Ripple(Effect):
+    name = "sweep_{tag}"
+    summary = "a constant offset on x"
+    parameters = (Parameter("offset_m", "m", 1e-8, "offset"),)
+
+    def optics(self, points, optics):
+        shift_reading(optics, "x", self.offset_m + 0 * points.q[:, 0])
+'''
+
+
+def _lab_spec(tmp_path, tag, baseline=None) -> tuple[Path, Path]:
+    """A scenario naming a user effect (relative to its own folder, not the working directory),
+    and a one-case sweep of it; the effect's code writes ran.txt when imported."""
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    (lab / "fx.py").write_text(USER_EFFECT.format(tag=tag))   # effect names are per process
+    text = (Path(__file__).parents[3] / "scenarios" / "quiet" / "gravity-sag.toml").read_text()
+    (lab / "scenario.toml").write_text(text.replace('on = ["gravity_sag"]',
+                                                    'on = ["gravity_sag", "./fx.py:Ripple"]'))
+    spec = TINY.replace("quiet/gravity-sag", "lab/scenario.toml").replace(
+        "replicates = 2", "replicates = 1").replace("[0.0, 0.5]", "[0.5]")
+    if baseline:
+        spec = spec.replace("magnitudes = [0.5]", f"magnitudes = [0.5]\nbaseline = {baseline}")
+    return _spec(tmp_path, spec), (lab / "fx.py").resolve()
+
+
+def test_a_sweep_runs_a_files_user_effect_only_with_consent(tmp_path, capsys, monkeypatch):
+    spec, code = _lab_spec(tmp_path, "consent")
+    monkeypatch.chdir(tmp_path / "lab")             # the effect's path is the scenario's, not cwd's
+    out = tmp_path / "out"
+    assert main(["sweep", str(spec), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if ": error: " in x]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert "spec.toml" in lines[0] and str(code) in lines[0] and "--trust-effects" in lines[0]
+    assert not (tmp_path / "lab" / "ran.txt").exists() and not list(out.glob("*/*/*.parquet"))
+    # consent to another file is no consent to this one
+    (tmp_path / "lab" / "other.py").write_text("")
+    assert main(["sweep", str(spec), "-o", str(out), "-q", "--trust-effects", "other.py"]) == 2
+    assert not (tmp_path / "lab" / "ran.txt").exists()
+    # consent to this file (as the user names it, from the working directory): the case runs it
+    assert main(["sweep", str(spec), "-o", str(out), "-q", "--trust-effects", "fx.py",
+                 "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["ran"] == 1
+    assert (tmp_path / "lab" / "ran.txt").exists()
+    rec = read_records(out)
+    assert len(rec) == 1 and rec.status[0] == "ok"
+
+
+def test_a_sweep_baseline_naming_a_user_effect_needs_consent(tmp_path):
+    """The specification is a file too: a user effect its baseline names (relative to its
+    folder) needs consent; the cases name it by its absolute path."""
+    spec, scenario_code = _lab_spec(tmp_path, "lab", '["geometric_errors", "./base.py:Base"]')
+    (tmp_path / "base.py").write_text(USER_EFFECT.format(tag="base").replace(
+        "Ripple", "Base").replace("ran.txt", "base-ran.txt"))
+    code = (tmp_path / "base.py").resolve()
+    with pytest.raises(SweepError, match="would run the Python code") as exc:
+        SweepSpec.load(spec, trust_effects=[str(scenario_code)])
+    assert str(code) in str(exc.value) and "spec.toml" in str(exc.value) \
+        and "baseline" in str(exc.value)
+    assert not (tmp_path / "base-ran.txt").exists()
+    case = SweepSpec.load(spec, trust_effects=[str(scenario_code), str(code)]).cases[0]
+    assert case.baseline == ("geometric_errors", f"{code}:Base") and case.trust_effects
+    # the consent is how a case runs, not what it is
+    assert case.case_id == dataclasses.replace(case, trust_effects=False).case_id

@@ -1,0 +1,77 @@
+"""The correction for the thermometers' noise in the variables (calibration/physics/fit.py
+``_corrected_for_thermometers``, calibration/physics/thermometers.py), checked against the
+textbook case it generalises: a straight line through the origin whose regressor is read with
+noise, where least squares is attenuated by the reliability ratio var(x) / (var(x) + u^2) and
+the method-of-moments estimator x^T y / (x^T x - n u^2) is not (Fuller 1987, section 1.1)."""
+import numpy as np
+
+from deltatwin.calibration.physics.fit import _corrected_for_thermometers
+from deltatwin.calibration.physics.thermometers import ThermometerNoise
+
+SLOPE, N, SPREAD, U, E = 2.0, 400, 1.0, 0.7, 0.05
+
+
+def _line(rng):
+    """(fun, jac, z, A, J, terms_at, y, dof) of one draw: readings y = SLOPE x + e, the model
+    z * x_read with x read with noise U (reliability 1 / (1 + 0.49) = 0.67); z at least
+    squares."""
+    x = rng.normal(0.0, SPREAD, N)
+    x_read = x + rng.normal(0.0, U, N)
+    y = SLOPE * x + rng.normal(0.0, E, N)
+
+    def fun(z):
+        return y - z[0] * x_read, z[0] * x_read
+
+    def jac(z):
+        return -x_read[:, None], x_read[:, None]
+    z_ls = np.array([x_read @ y / (x_read @ x_read)])
+    noise = ThermometerNoise(np.array([[N * U * U]]), np.zeros(1), np.zeros(1),
+                             np.ones(1, bool))
+    return (fun, jac, z_ls, z_ls[0] * x_read, x_read[:, None],
+            lambda z: noise.terms(np.eye(1), z), y, N - 1)
+
+
+def test_the_corrected_slope_is_unbiased_where_least_squares_is_attenuated():
+    rng = np.random.default_rng(20261128)
+    ls, corrected = [], []
+    for _ in range(300):
+        fun, jac, z, A, J, terms_at, y, dof = _line(rng)
+        z_c, _, _, done = _corrected_for_thermometers(
+            fun, jac, z, A, J, lambda J: -J, terms_at, y, lambda a: a, 0.0, dof)
+        assert done
+        ls.append(z[0])
+        corrected.append(z_c[0])
+    reliability = SPREAD ** 2 / (SPREAD ** 2 + U ** 2)
+    se = np.std(corrected) / np.sqrt(len(corrected))
+    assert abs(np.mean(ls) - SLOPE * reliability) < 0.02          # attenuated, as theory says
+    assert abs(np.mean(corrected) - SLOPE) < 4 * se                # the truth, within 4 s.e.
+    # the closed form: x^T y / (x^T x - n u^2), the root of the corrected score
+    fun, jac, z, A, J, terms_at, y, dof = _line(np.random.default_rng(5))
+    z_c = _corrected_for_thermometers(fun, jac, z, A, J, lambda J: -J, terms_at, y,
+                                      lambda a: a, 0.0, dof)[0]
+    x_read = J[:, 0]
+    np.testing.assert_allclose(z_c[0], x_read @ y / (x_read @ x_read - N * U * U), rtol=1e-12)
+
+
+def test_no_correction_where_the_noise_leaves_too_little_information():
+    """Where J^T J - C is below the fit's threshold the corrected estimate is not defined: the
+    least-squares one is returned, marked not corrected."""
+    fun, jac, z, A, J, terms_at, y, dof = _line(np.random.default_rng(6))
+    least = float(J[:, 0] @ J[:, 0]) - N * U * U + 1.0
+    z_c, A_c, _, done = _corrected_for_thermometers(fun, jac, z, A, J, lambda J: -J, terms_at,
+                                                    y, lambda a: a, least, dof)
+    assert not done and z_c is z and A_c is A
+
+
+def test_restricted_keeps_only_the_coefficients_of_temperatures_and_reliable_directions():
+    """ThermometerNoise.restricted: a parameter that is not a coefficient of a temperature (a
+    sensor's contact) gets no correction; a direction where the noise gives more than
+    MAX_NOISE_SHARE of the information gets none either."""
+    info = np.array([[4.0, 1.0], [1.0, 9.0]])
+    noise = ThermometerNoise(info, np.array([1.0, 2.0]), np.zeros(2), np.array([True, False]))
+    Jz = np.diag([10.0, 10.0])                           # information 100 in each direction
+    kept = noise.restricted(np.eye(2), Jz)
+    np.testing.assert_allclose(kept.information, [[4.0, 0.0], [0.0, 0.0]])
+    np.testing.assert_allclose(kept.score, [1.0, 0.0])
+    weak = noise.restricted(np.eye(2), np.diag([2.5, 10.0]))      # share 4 / 6.25 > 0.5
+    assert not np.any(weak.information) and not np.any(weak.score)
