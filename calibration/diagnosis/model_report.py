@@ -10,6 +10,7 @@ is (the twin's floors and budget); nothing needs it.
 from __future__ import annotations
 
 import html
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,6 +41,7 @@ from deltatwin.calibration.tables import Table
 from deltatwin.files import atomic_write, atomic_write_text
 from deltatwin.twin.instruments.optics import AXES
 
+log = logging.getLogger(__name__)
 MAX_VARIABLES = 4        # residual-against-variable columns, at most
 MAIN_VARIABLES = 2       # ... at least (the data's main variables fill up to it)
 DPI = 110
@@ -123,6 +125,7 @@ def report_figures(df, meta: dict | None, models: list[ReportModel]) -> dict:
     floor, kind = floor_of(meta)
     budget = ((meta or {}).get("truth") or {}).get("floor_budget_nm") if kind == "achievable" \
         else None
+    log.info("report: the variables the residuals depend on", extra={"progress": "report"})
     variables, named = report_variables(df, models)
     figures = {"ladder": ladder_figure(residuals, floor, kind if floor else "", budget),
                "residual_time": residual_time_figure(df, residuals),
@@ -282,7 +285,9 @@ def write_model_report(out, df, meta: dict | None, models: list[ReportModel], da
     the report's own (the demo's ladder and diagnoses). Returns report.md's path."""
     out = Path(out)
     figures = report_figures(df, meta, models)
-    for stem, fig in figures.items():
+    for k, (stem, fig) in enumerate(figures.items()):
+        log.info("report: drawing %s.png (%d of %d)", stem, k + 1, len(figures),
+                 extra={"progress": "report"})
         save_figure(fig, out / f"{stem}.png")
     blocks = [*head, *report_blocks(df, meta, models, data_name, figures, title,
                                     "h2" if head else "h1")]
