@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "deltatwin.commands.fit",
     "deltatwin.commands.effect",
     "deltatwin.commands.compare",
+    "deltatwin.commands.report",
     "deltatwin.commands.view",
     "deltatwin.commands.emulate",
     "deltatwin.commands.campaign",

@@ -56,6 +56,11 @@ class DirectIGM(_StepwiseModel):
         out[ok] = np.linalg.solve(J[ok], dq[ok][:, :, None])[:, :, 0]
         return out
 
+    def errors_m(self, df: pd.DataFrame) -> np.ndarray:
+        """(n, 3) each motor's error expressed at the end-effector, m
+        (``motor_error_at_effector``): what ``score`` takes the 90th percentile of."""
+        return self.motor_error_at_effector(df)
+
     def motor_error_at_effector(self, df: pd.DataFrame) -> np.ndarray:
         """Each motor model's error expressed at the end-effector: dq_i * ||(J^-1)[:, i]||
         (signed like dq_i), (n, 3) in m: the displacement that motor's error alone causes, a

@@ -103,6 +103,11 @@ class OutputModel:
     rmse: float = math.nan
     n_candidates: int = 0
     steps: list = field(default_factory=list)   # [(action, term name), ...]
+    # the kept terms' standard errors (SI, as coef) and p-values (t test, dfe degrees of
+    # freedom), as stepwisefit reports them; None for a model saved before they were kept
+    se: np.ndarray | None = None
+    p_value: np.ndarray | None = None
+    dfe: int = 0
 
     @property
     def terms_kept(self) -> int:
@@ -124,7 +129,25 @@ class OutputModel:
                 "terms_kept": self.terms_kept, "n_cal": int(self.n_cal),
                 "rmse": float(self.rmse) if math.isfinite(self.rmse) else None,
                 "n_candidates": int(self.n_candidates),
-                "steps": [[a, n] for a, n in self.steps]}
+                "steps": [[a, n] for a, n in self.steps],
+                **({} if self.se is None else
+                   {"se": _finite_or_none(self.se), "p_value": _finite_or_none(self.p_value),
+                    "dfe": int(self.dfe)})}
+
+    def coefficient_rows(self) -> list[dict]:
+        """The kept terms as stepwisefit lists them: term, coefficient, its unit (SI), standard
+        error, t statistic and p-value (None where the model file has none)."""
+        se = self.se if self.se is not None else np.full(len(self.terms), np.nan)
+        p = self.p_value if self.p_value is not None else np.full(len(self.terms), np.nan)
+        rows = []
+        for k, t in enumerate(self.terms):
+            rows.append({"term": t.name, "coefficient": float(self.coef[k]),
+                         "unit": coefficient_unit(self.unit, t),
+                         "se": _finite_or_none([se[k]])[0],
+                         "t": _finite_or_none([self.coef[k] / se[k] if se[k] > 0
+                                               else np.nan])[0],
+                         "p_value": _finite_or_none([p[k]])[0]})
+        return rows
 
     @staticmethod
     def from_dict(d: dict) -> OutputModel:
@@ -145,7 +168,9 @@ class OutputModel:
                 n_cal=int(d.get("n_cal", 0)),
                 rmse=math.nan if d.get("rmse") is None else float(d["rmse"]),
                 n_candidates=int(d.get("n_candidates", 0)),
-                steps=[tuple(s) for s in d.get("steps", [])])
+                steps=[tuple(s) for s in d.get("steps", [])],
+                se=_optional_array(d.get("se")), p_value=_optional_array(d.get("p_value")),
+                dfe=int(d.get("dfe", 0)))
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, ModelFileError):
                 raise
@@ -157,7 +182,43 @@ class OutputModel:
                                  f"coefficients / {om.term_mean.size} scalings")
         if not (np.all(np.isfinite(om.coef)) and math.isfinite(om.intercept)):
             raise ModelFileError(f"output {om.output!r}: non-finite coefficient")
+        for name in ("se", "p_value"):
+            v = getattr(om, name)
+            if v is not None and v.shape != (n,):
+                raise ModelFileError(f"output {om.output!r}: {n} terms but {v.size} {name} "
+                                     "values")
         return om
+
+
+def p_value_text(p: float | None) -> str:
+    """A p-value as a table shows it: 3 significant digits, below double precision's
+    smallest number as such."""
+    if p is None:
+        return "-"
+    return "< 1e-300" if p == 0 else f"{p:.3g}"
+
+
+def _finite_or_none(values) -> list:
+    """Numbers as JSON takes them: NaN and infinities as None."""
+    return [float(v) if v is not None and math.isfinite(v) else None for v in values]
+
+
+def _optional_array(values) -> np.ndarray | None:
+    """A saved list of numbers (None entries: NaN) as an array; None stays None."""
+    if values is None:
+        return None
+    return np.array([math.nan if v is None else v for v in values], dtype=float)
+
+
+def coefficient_unit(output_unit: str, term: Term) -> str:
+    """The SI unit of a term's coefficient: the output's unit over the term's
+    (``m/(rad^2*K)``)."""
+    powers: dict[str, int] = {}
+    for v, p in term.factors:
+        powers[variable_unit(v)] = powers.get(variable_unit(v), 0) + p
+    parts = [u if p == 1 else f"({u})^{p}" if "/" in u else f"{u}^{p}" for u, p in powers.items()]
+    unit = "*".join(parts)
+    return f"{output_unit}/({unit})" if len(parts) > 1 else f"{output_unit}/{unit}"
 
 
 # ----- evaluator ---------------------------------------------------------------------
@@ -439,7 +500,8 @@ class _StepwiseModel:
                 intercept=res.intercept, term_mean=res.x_mean[sel].copy(),
                 term_std=res.x_std[sel].copy(), y_mean=res.y_mean, y_std=res.y_std,
                 n_cal=n, rmse=res.rmse, n_candidates=len(fs),
-                steps=[(h.action, h.name) for h in res.history]))
+                steps=[(h.action, h.name) for h in res.history],
+                se=res.se[sel].copy(), p_value=res.pval[sel].copy(), dfe=res.dfe))
             setattr(self, f"_stepwise_{name}", res)
         self.features_ = fs
         self.sensors_ = sens
@@ -528,6 +590,56 @@ class _StepwiseModel:
                                           f"{o.output!r} is not in the data")
             cols.append(df[o.column].to_numpy(dtype=float) * o.column_to_si)
         return np.column_stack(cols)
+
+    def errors_m(self, df: pd.DataFrame) -> np.ndarray:
+        """(n, n_outputs) the model's error on every row in metres: prediction minus
+        reading (NaN where either is missing)."""
+        return self.predict(df) - self.targets(df)
+
+    def score(self, df: pd.DataFrame) -> float:
+        """Minus the validation error 90 % in metres (higher is better, as scikit-learn's
+        ``score``): the 90th percentile of |error| (``errors_m``) pooled over the outputs on
+        the rows of ``df`` whose ``split`` is ``val`` (every row when there are none)."""
+        e = self.errors_m(df)
+        split = (df["split"].astype(str).to_numpy() if "split" in df.columns
+                 else np.full(len(df), ""))
+        rows = split == "val" if (split == "val").any() else np.ones(len(df), bool)
+        e = np.abs(e[rows])
+        e = e[np.isfinite(e)]
+        if not e.size:
+            raise CalibrationInputError(f"{self.kind}.score: no row with both a reading and a "
+                                        "prediction")
+        return -float(np.percentile(e, 90))
+
+    def coefficient_table(self, output: str):
+        """The kept terms of ``output`` as stepwisefit shows them (term, coefficient, unit,
+        standard error, t, p-value): a table with text, HTML and ``as_dict`` forms."""
+        from deltatwin.calibration.tables import Table, number
+        o = self.output(output)
+        title = (f"{self.kind} output {o.output} ({o.unit}): {o.terms_kept} of "
+                 f"{o.n_candidates} candidate terms, intercept {number(o.intercept)} {o.unit}, "
+                 f"RMSE {number(o.rmse)} {o.unit}, {o.n_cal} calibration rows")
+        return Table(title, ("term", "coefficient", "unit", "std. error", "t", "p-value"),
+                     o.coefficient_rows(),
+                     lambda r: [r["term"], number(r["coefficient"]), r["unit"], number(r["se"]),
+                                number(r["t"]), p_value_text(r["p_value"])])
+
+    @classmethod
+    def load(cls, path):
+        """A model written by ``save`` (``deltatwin calibrate -o``), checked to be of this
+        kind (calibration/blackbox/model_file.py ``load_model``)."""
+        from deltatwin.calibration.blackbox.model_file import load_model
+        return load_model(path, expect_kind=cls.kind)
+
+    def __repr__(self) -> str:
+        features = (self.features if isinstance(self.features, str)
+                    else self.features.preset or self.features.name)
+        if not hasattr(self, "outputs_"):
+            return (f"{self.kind}(features={features!r}, penter={self.penter:g}, "
+                    f"premove={self.premove:g}) (not fitted)")
+        kept = ", ".join(f"{o.output} {o.terms_kept}" for o in self.outputs_)
+        return (f"{self.kind}(features={features!r}, sensors={list(self.sensors_)}: "
+                f"{len(self.features_)} candidate terms; terms kept {kept})")
 
     # -- export
     def to_dict(self) -> dict:

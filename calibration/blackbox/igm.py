@@ -92,6 +92,10 @@ class IGM:
         order = [dgm.output_names_.index(a) for a in AXIS_COLUMNS]
         self._order = np.array(order)
 
+    def __repr__(self) -> str:
+        return (f"IGM({self.dgm!r}, tol_m={self.tol_m:g}, max_iter={self.max_iter}, "
+                f"stroke_rad=({self.stroke_rad[0]:g}, {self.stroke_rad[1]:g}))")
+
     @property
     def aux_variables(self) -> tuple[str, ...]:
         """Non-geometric variables the IGM needs (temperatures, rates), SI."""

@@ -3,8 +3,8 @@
 The model is a physics model (``calibration.physics.model.PhysicsModel``, e.g. from a fitted-model
 TOML via ``load_fitted``) or a stepwise DGM (``calibration.blackbox.dgm.DGM``, a ``model.json``).
 Readings are relative to each session's zero and a new campaign has new zeros, so every
-(session, axis) zero is re-estimated on the dataset's calibration rows (``physics.
-group_offsets``); a session without calibration readings takes its zero from its own
+(session, axis) zero is re-estimated on the dataset's calibration rows (``physics.readings.
+session_zeros``); a session without calibration readings takes its zero from its own
 (validation) rows, and the output says so.
 
 Sign convention (as ``deltatwin view``'s arrows): **residual = model minus measurement**, the
@@ -37,8 +37,9 @@ from deltatwin.calibration.diagnosis.conditions import (
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
 from deltatwin.calibration.errors import CalibrationInputError
 from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
-from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
+from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, residuals
 from deltatwin.calibration.physics.model_file import load_fitted
+from deltatwin.calibration.physics.readings import session_zeros
 from deltatwin.calibration.streams import DEFAULT_WINDOW_S
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import forward
@@ -145,19 +146,14 @@ def evaluate(df: pd.DataFrame, meta: dict | None, model, params=None) -> ModelEv
     else:
         raise CalibrationInputError(f"compare: a {type(model).__name__} is not a model to "
                                     "compare (a PhysicsModel or a DGM)")
-    predicted = np.isfinite(pred).any(axis=1)
     # every (session, axis) zero on the calibration rows; a group without any there, on its own
-    cal_readings = np.bincount(meas.group[(meas.group >= 0) & (meas.cal & predicted)[:, None]],
-                               minlength=len(meas.groups))
-    on_cal = group_offsets(meas, pred, meas.cal & predicted)
-    on_own = group_offsets(meas, pred, predicted)
-    offsets = np.where(cal_readings > 0, on_cal, on_own)
+    offsets, on_cal = session_zeros(meas, pred)
     residual = -residuals(meas, pred, offsets)              # model minus measurement
     reading = meas.y + residual
     position = forward(build_geometry(robot), meas.points.q[:meas.n]).p
     return ModelEvaluation(description=desc, meas=meas, reading_m=reading,
                            residual_m=residual, offsets_m=offsets,
-                           zero_rows=["cal" if c else "own rows" for c in cal_readings],
+                           zero_rows=["cal" if c else "own rows" for c in on_cal],
                            position_m=position)
 
 

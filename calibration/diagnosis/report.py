@@ -1,34 +1,11 @@
-"""The diagnosis loop's report: Markdown with PNG figures (matplotlib, no display needed).
-
-Figures: the ladder (validation error 90 % per model, with the noise floor), residual maps over
-the workspace (baseline and final model), and the residual against time, force and the
-temperature it correlates with most. Files are written to temporary names and renamed."""
+"""The diagnosis loop's report (``deltatwin demo``): the ladder and each diagnosis in
+Markdown, then the figures and tables of the ladder's models on the data
+(model_report.py: ``deltatwin report``'s), in report.md and report.html."""
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
-# Figures are drawn on matplotlib's object API (Figure + its own Agg canvas), not pyplot:
-# writing a report neither needs a display nor switches the backend of a user's notebook.
-from matplotlib.figure import Figure
-
-from deltatwin.files import atomic_write, atomic_write_text
-from deltatwin.models.geometry import build_geometry
-from deltatwin.models.kinematics import forward
-from deltatwin.models.params import load_params
-
-NM = 1e9
-
-
-def _save(fig, path: Path) -> None:
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight"))
-
-
-def _magnitude_nm(res: np.ndarray) -> np.ndarray:
-    """Per row: rms over the measured axes of the residual (nm)."""
-    r = res * NM
-    return np.sqrt(np.nanmean(r ** 2, axis=1))
+from deltatwin.calibration.diagnosis.model_report import report_model, write_model_report
 
 
 def tried_instead_line(tried: dict, markdown: bool = False) -> str:
@@ -44,73 +21,12 @@ def tried_instead_line(tried: dict, markdown: bool = False) -> str:
     return f"{line[:1].upper()}{line[1:]}." if markdown else line
 
 
-def ladder_figure(ladder: list[dict], path: Path) -> None:
-    fig = Figure(figsize=(6, 3.2))
-    ax = fig.subplots()
-    names = [row["model"] for row in ladder]
-    vals = [row["val_err90_nm"] for row in ladder]
-    ax.bar(range(len(vals)), vals, color="#3070c0")
-    floor = ladder[0].get("noise_floor_nm")
-    if floor:
-        f = float(np.max(list(floor.values())))
-        ax.axhline(f, color="k", ls="--", lw=1, label=f"noise floor {f:.1f} nm")
-        ax.legend()
-    ax.set_xticks(range(len(vals)), names, rotation=15)
-    ax.set_yscale("log")
-    ax.set_ylabel("validation error 90 % (nm)")
-    ax.set_title("error falls as the missing effects are added")
-    _save(fig, path)
-
-
-def residual_maps(df, fits, path: Path) -> None:
-    params = load_params(None)
-    p = forward(build_geometry(params), df[["q1_rad", "q2_rad", "q3_rad"]].to_numpy()).p * 1e3
-    ends = [fits[0], fits[-1]]
-    mags = [_magnitude_nm(f.residual_) for f in ends]
-    vmax = float(np.nanpercentile(mags[0], 99))
-    fig = Figure(figsize=(9, 4))
-    axes = fig.subplots(1, 2, sharex=True, sharey=True)
-    for ax, f, m in zip(axes, ends, mags):
-        sc = ax.scatter(p[:, 0], p[:, 1], c=m, s=8, cmap="viridis", vmin=0, vmax=vmax)
-        ax.set_title(f"{'+'.join(f.effects) or 'nominal'}", fontsize=8)
-        ax.set_xlabel("x (mm)")
-        ax.set_aspect("equal")
-    axes[0].set_ylabel("y (mm)")
-    fig.colorbar(sc, ax=axes, label="|residual| rms over axes (nm)")
-    fig.suptitle("residual over the workspace (top view): baseline vs final model")
-    _save(fig, path)
-
-
-def error_vs_figure(df, fits, variables: list[str], path: Path) -> None:
-    variables = [v for v in variables if v in df.columns and np.nanstd(df[v]) > 0]
-    if not variables:
-        variables = ["t_s"]
-    fig = Figure(figsize=(4 * len(variables), 3.4))
-    axes = fig.subplots(1, len(variables), squeeze=False)
-    for ax, v in zip(axes[0], variables):
-        x = df[v].to_numpy(dtype=float)
-        for f, colour in ((fits[0], "#c04030"), (fits[-1], "#3070c0")):
-            ax.scatter(x, _magnitude_nm(f.residual_), s=4, alpha=0.5, color=colour,
-                       label="+".join(f.effects) or "nominal")
-        ax.set_xlabel(v)
-        ax.set_yscale("log")
-    axes[0][0].set_ylabel("|residual| (nm)")
-    axes[0][0].legend(fontsize=7)
-    _save(fig, path)
-
-
 def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
                  recording: Path | None = None) -> Path:
-    """Write ``report.md`` and its figures into ``out``; returns the report's path."""
+    """Write ``report.md``, ``report.html`` and the figures into ``out``; returns the
+    report's path."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    ladder_figure(ladder, out / "ladder.png")
-    residual_maps(df, fits, out / "residual_map.png")
-    first = diagnoses[0]
-    temps = [d["variable"] for d in first.get("unexplained", {}).get("depends_on", [])
-             if d["variable"].startswith("T_")]
-    variables = ["t_s"] + (["F_N"] if "F_N" in df else []) + temps[:1]
-    error_vs_figure(df, fits, variables, out / "error_vs.png")
     floor = (meta.get("truth") or {}).get("noise_floor_nm")
     lines = ["# deltatwin: where the model fails and which effect is missing", ""]
     if hidden:
@@ -155,12 +71,14 @@ def write_report(out: Path, df, meta, ladder, diagnoses, fits, hidden=None,
                       "the others): " + "; ".join(f"{x['variable']} ({x['explained_nm']:.1f} nm)"
                                                   for x in dep) + "."]
         lines.append("")
-    lines += ["## Where it fails", "", "![residual map](residual_map.png)", "",
-              "![error vs variables](error_vs.png)", ""]
     if floor:
         lines += ["Noise floor (the twin's truth: validation error 90 % of the readings against "
                   "a perfect instrument): " + ", ".join(f"{k} {v:.1f} nm" for k, v in floor.items())
                   + ".", ""]
     if recording:
         lines += [f"Rerun recording: `{recording.name}` (`rerun {recording.name}`).", ""]
-    return atomic_write_text(out / "report.md", "\n".join(lines))
+    models = [report_model(f"model {k}", fit, df, meta, f"model{k}.toml")
+              for k, fit in enumerate(fits)]
+    return write_model_report(out, df, meta, models, "data.parquet",
+                              title="Where the models fail: figures and tables",
+                              head=[("md", "\n".join(lines))])

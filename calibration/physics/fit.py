@@ -83,7 +83,12 @@ class PhysicsFit:
     and ``thermometer_correction_`` (the share of ``thermometer_noise_`` it corrected for),
     ``least_squares_residual_`` ((N,3) m: the residual where least squares ended, before that
     correction: what tests of nested models compare), ``fitted_again_`` (whether
-    ``fitted_again_where_it_ended`` replaced it by its refit).
+    ``fitted_again_where_it_ended`` replaced it by its refit), ``covariance_`` ((p, p), SI: the
+    parameters' covariance, whose diagonal gives ``parameters_``' uncertainties).
+
+    Use: ``summary()`` (a table object: text, HTML, ``as_dict``), ``predict(df)`` (the model's
+    readings, m), ``score(df)`` (minus the validation error 90 %, m: higher is better),
+    ``save(path)`` and ``PhysicsFit.load(path)`` (the file ``deltatwin fit -o`` writes).
     """
 
     def __init__(self, effects, params: RobotParams | None = None, start: dict | None = None,
@@ -334,6 +339,7 @@ class PhysicsFit:
         held = np.eye(p) - V @ V.T if k else np.eye(p)
         cov = (S[:, None] * V) @ cov_z @ (S[:, None] * V).T if k else np.zeros((p, p))
         cov += (S[:, None] * held) @ (S[:, None] * held).T
+        self.covariance_ = cov
         frac = np.sum(V ** 2, axis=1) if k else np.zeros(p)
         units = [f.unit for f in model.free for _ in range(f.sl.stop - f.sl.start)]
         self.parameters_ = [
@@ -364,17 +370,58 @@ class PhysicsFit:
         }
 
     # -- use ----------------------------------------------------------------------------------
-    def summary(self) -> dict:
-        """JSON-ready result."""
-        return {"effects": self.effects, "n_parameters": self.model_.n_free,
-                "converged": bool(self.converged_), "status": self.status_,
-                "n_evaluations": self.n_evaluations_,
-                "cal": _axis_p90(self.cal_), "val": _axis_p90(self.val_),
-                "val_err90_nm": self.val_["all"]["err_p90"],
-                "offsets_nm": {f"{s}.{a}": o * 1e9 for (s, a), o in
-                               zip(self.measurements_.groups, self.offsets_)},
-                "identifiability": self.identifiability_, "parameters": self.parameters_,
-                "values": self.model_.values()}
+    def summary(self):
+        """The fit's summary (calibration/physics/table.py ``FitSummary``): ``str()`` prints
+        the figures and the parameter table, ``_repr_html_`` shows it in a notebook,
+        ``as_dict()`` is the JSON-ready result."""
+        from deltatwin.calibration.physics.table import summary_of
+        return summary_of(self)
+
+    def predict(self, df: pd.DataFrame, meta: dict | None = None) -> pd.DataFrame:
+        """The model's readings (m) of every row of ``df``: columns ``x_m``, ``y_m``, ``z_m``
+        for the axes the data read, indexed like ``df``; each (session, axis) zero re-estimated
+        on ``df``'s calibration rows (readings are relative to a session's zero, so ``df``
+        needs its readings). ``meta``: the data's metadata (default: the fit's sensor map)."""
+        from deltatwin.calibration.physics.readings import predicted_readings
+        return predicted_readings(self.model_, df, self._meta_for(meta))
+
+    def score(self, df: pd.DataFrame, meta: dict | None = None) -> float:
+        """Minus the validation error 90 % in metres (higher is better, as scikit-learn's
+        ``score``): the 90th percentile of |reading - model's reading| over every axis's
+        validation rows of ``df`` (all rows without a validation split), the zeros
+        re-estimated on its calibration rows (``predict``)."""
+        from deltatwin.calibration.physics.readings import validation_error_p90
+        return -validation_error_p90(self.model_, df, self._meta_for(meta))
+
+    def _meta_for(self, meta: dict | None) -> dict:
+        return meta if meta is not None else {"sensors": dict(self.meta_.get("sensors") or {})}
+
+    def save(self, path, data: str | None = None):
+        """Write the fitted model as the TOML file ``deltatwin fit -o`` writes (atomically);
+        ``data``: the fitted data's name recorded in it (default: the name a file this fit was
+        read from recorded, else empty). Returns the path."""
+        from deltatwin.calibration.physics.model_file import fitted_toml
+        from deltatwin.files import atomic_write_text
+        data = getattr(self, "data_", "") if data is None else data
+        return atomic_write_text(path, fitted_toml(self, str(data)))
+
+    @classmethod
+    def load(cls, path, trust_effects=False) -> PhysicsFit:
+        """A fitted model read back from its file (``save``, ``deltatwin fit -o``):
+        calibration/physics/model_file.py ``load_fit``."""
+        from deltatwin.calibration.physics.model_file import load_fit
+        return load_fit(path, trust_effects)
+
+    def __repr__(self) -> str:
+        effects = ", ".join(self.effects) or "the nominal robot"
+        if not hasattr(self, "model_"):
+            return (f"PhysicsFit([{effects}], noise_nm={self.noise_nm:g}, "
+                    f"identifiable_ratio={self.identifiable_ratio:g}) (not fitted)")
+        val = self.val_.get("all", {}).get("err_p90")
+        return (f"PhysicsFit([{effects}]: {self.model_.n_free} parameters, "
+                f"{self.identifiability_.get('n_identified_directions')} directions identified, "
+                f"validation error 90 % {'-' if val is None else f'{val:.1f}'} nm, "
+                f"{self.status_})")
 
     # -- tables (pandas) ----------------------------------------------------------------------
     def validation_band(self, rng: np.random.Generator | None = None) -> dict:
@@ -830,10 +877,6 @@ def _same_problem(a: PhysicsFit, b: PhysicsFit) -> bool:
             == (b.noise_nm, b.identifiable_ratio, b.max_evaluations)
             and values(a, a.start) == values(b, b.start)
             and values(a, a.prior) == values(b, b.prior))
-
-
-def _axis_p90(fig: dict) -> dict:
-    return {k: v["err_p90"] for k, v in fig.items()}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import numpy as np
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, _checked_directions, _or_nan
 from deltatwin.calibration.physics.model import PhysicsModel
+from deltatwin.calibration.physics.table import correlation_matrix
 from deltatwin.files import CONTENT_SHA256, content_damage, content_sha256, toml_text
 from deltatwin.twin.effects import EffectError, code_sha256, effect_class
 from deltatwin.twin.lab_setup import known_constants, used_constants
@@ -34,7 +35,8 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
                      "noise_nm": fit.noise_nm,
                      "identifiable_ratio": fit.identifiable_ratio,
                      # the sensor -> part map the temperatures were taken from (the data's metadata)
-                     "sensors": dict(fit.measurements_.sensors)},
+                     "sensors": dict(fit.measurements_.sensors if fit.measurements_ is not None
+                                     else fit.meta_.get("sensors") or {})},
            "fit": {"val_err90_nm": _or_nan(fit.val_["all"]["err_p90"]),
                    "cal_err90_nm": _or_nan(fit.cal_["all"]["err_p90"]),
                    "n_parameters": fit.model_.n_free,
@@ -45,7 +47,12 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
            # a diagnosis judges on them whether the values are converged on the data, as the
            # fit judged it (the directions identified at the fitted values are not the same)
            "identification": {"parameters": fit.model_.labels,
-                              "directions": fit.identified_directions_.T.tolist()}}
+                              "directions": [] if fit.identified_directions_ is None
+                              else fit.identified_directions_.T.tolist()}}
+    if fit.identified_directions_ is None:          # read from a file that had none
+        del doc["identification"]
+    if fit.parameters_ is not None:
+        doc["uncertainty"] = uncertainty_table(fit)
     known = used_constants(fit.model_.effects, fit.known_, known_constants(fit.meta_))
     if known:
         # the laboratory's constants the fit used (the data's setup, --set): those of effects
@@ -56,6 +63,69 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
            **doc}
     return toml_text(doc, "deltatwin physics model; load with "
                           "`deltatwin compare DATA --model THIS`")
+
+
+CORRELATION_DECIMALS = 4     # a file's correlations: enough for any use, a third of the size
+
+
+def uncertainty_table(fit: PhysicsFit) -> dict:
+    """[uncertainty]: per parameter (the model's order, its units) the standard uncertainty,
+    the prior the fit held undetermined directions at, the share of it the data determine;
+    and the parameters' correlation matrix (to CORRELATION_DECIMALS decimals)."""
+    return {"standard_uncertainty": [p["uncertainty"] for p in fit.parameters_],
+            "prior": [p["start"] for p in fit.parameters_],
+            "identified_fraction": [p["identified_fraction"] for p in fit.parameters_],
+            "correlation": np.round(correlation_matrix(fit.covariance_),
+                                    CORRELATION_DECIMALS).tolist()}
+
+
+def load_fit(path, trust_effects=False) -> PhysicsFit:
+    """A fitted model read back from its file as a PhysicsFit (``PhysicsFit.load``): its
+    model, values, identified directions, parameter table and covariance (files written
+    before they were saved have no table: ``parameters_`` and ``covariance_`` None) and
+    figures as the file recorded them; no data (``measurements_`` None). It predicts and
+    scores other data, writes the same file again, and starts a refit with ``fit``."""
+    model, doc = load_fitted(path, trust_effects)
+    fit = PhysicsFit(model.names, start={**doc.get("known", {}), **model.values()},
+                     noise_nm=float(doc["model"].get("noise_nm", 5.0)),
+                     identifiable_ratio=float(doc["model"].get("identifiable_ratio", 0.3)))
+    figures = doc.get("fit", {})
+    ident = {"n_parameters": model.n_free,
+             "n_identified_directions": figures.get("n_identified_directions"),
+             "not_identifiable": figures.get("not_identifiable", [])}
+    fit.model_, fit.theta_, fit.measurements_ = model, model.theta(), None
+    fit.meta_ = {"sensors": dict(doc["model"].get("sensors", {}))}
+    fit.data_ = doc["model"].get("data", "")
+    fit.data_sha256_ = doc["model"].get("data_sha256")
+    fit.identified_directions_ = saved_directions(doc)
+    fit.identifiability_ = ident
+    fit.cal_ = {"all": {"err_p90": _or_none(figures.get("cal_err90_nm"))}}
+    fit.val_ = {"all": {"err_p90": _or_none(figures.get("val_err90_nm"))}}
+    fit.converged_, fit.n_evaluations_ = None, None
+    fit.status_ = f"read from {path}"
+    fit.parameters_, fit.covariance_ = saved_uncertainty(doc, model)
+    return fit
+
+
+def _or_none(x):
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def saved_uncertainty(doc: dict, model: PhysicsModel) -> tuple[list | None, np.ndarray | None]:
+    """(parameters_, covariance_) as the fit that wrote ``doc`` had them (SI), from its
+    [uncertainty] table; (None, None) for a file without one."""
+    table = doc.get("uncertainty")
+    if table is None:
+        return None, None
+    sigma = np.array(table["standard_uncertainty"], dtype=float)
+    theta = model.theta()
+    units = [f.unit for f in model.free for _ in range(f.sl.stop - f.sl.start)]
+    parameters = [{"label": label, "value": float(theta[j]), "start": float(table["prior"][j]),
+                   "unit": units[j], "uncertainty": float(sigma[j]),
+                   "identified_fraction": float(table["identified_fraction"][j])}
+                  for j, label in enumerate(model.labels)]
+    correlation = np.array(table["correlation"], dtype=float).reshape(len(sigma), len(sigma))
+    return parameters, correlation * np.outer(sigma, sigma)
 
 
 def load_fitted(path, trust_effects=False) -> tuple[PhysicsModel, dict]:
@@ -106,6 +176,7 @@ def load_fitted(path, trust_effects=False) -> tuple[PhysicsModel, dict]:
     except EffectError as exc:
         raise FitError(str(exc)) from exc
     _check_identification(path, doc, model)
+    _check_uncertainty(path, doc, model)
     return model, doc
 
 
@@ -151,9 +222,43 @@ def _check_identification(path: Path, doc: dict, model: PhysicsModel) -> None:
                        "wrote them)") from None
 
 
+def _check_uncertainty(path: Path, doc: dict, model: PhysicsModel) -> None:
+    """[uncertainty]: one finite number per parameter in each list (uncertainties >= 0,
+    fractions in 0..1), a symmetric correlation matrix of them in -1..1."""
+    table = doc.get("uncertainty")
+    if table is None:
+        return
+    p = model.n_free
+    _check_keys(path, "[uncertainty] ", table, UNCERTAINTY_KEYS)
+    missing = [k for k in UNCERTAINTY_KEYS if k not in table]
+    if missing:
+        raise FitError(f"{path}: [uncertainty] has no {missing[0]!r}: the file is incomplete "
+                       "(cut short?); refit or restore it")
+    ranges = {"standard_uncertainty": (0.0, math.inf), "prior": (-math.inf, math.inf),
+              "identified_fraction": (0.0, 1.0 + 1e-9)}
+    for key, (low, high) in ranges.items():
+        if not _numbers(table[key], p) or not all(low <= x <= high for x in table[key]):
+            raise FitError(f"{path}: [uncertainty] {key} must be {p} finite numbers (one per "
+                           f"parameter) in {low:g} .. {high:.3g}")
+    rows = table["correlation"]
+    if not (isinstance(rows, list) and len(rows) == p and all(_numbers(r, p) for r in rows)):
+        raise FitError(f"{path}: [uncertainty] correlation must be {p} rows of {p} finite "
+                       "numbers (one per parameter)")
+    c = np.array(rows, dtype=float).reshape(p, p)
+    if np.any(np.abs(c) > 1.0) or np.any(c != c.T):
+        raise FitError(f"{path}: [uncertainty] correlation must be symmetric, each entry in -1 .. 1")
+
+
+def _numbers(values, n: int) -> bool:
+    return (isinstance(values, list) and len(values) == n
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                    for x in values))
+
+
 # what a fitted file may hold: a key outside these is a typo, refused rather than ignored
 TOP_KEYS = ("format", "format_version", CONTENT_SHA256, "model", "fit", "effects",
-            "identification", "known")
+            "identification", "known", "uncertainty")
+UNCERTAINTY_KEYS = ("standard_uncertainty", "prior", "identified_fraction", "correlation")
 MODEL_KEYS = ("effects", "data", "data_sha256", "code_sha256", "noise_nm", "identifiable_ratio",
               "sensors")
 
@@ -180,7 +285,7 @@ def _check_layout(path: Path, doc: dict) -> None:
     effects = doc["model"]["effects"]
     if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
         fail("[model] effects", "a list of effect names")
-    for key in ("effects", "fit", "known", "identification"):
+    for key in ("effects", "fit", "known", "identification", "uncertainty"):
         if key in doc and not isinstance(doc[key], dict):
             fail(f"[{key}]", "a table")
     for name, table in doc.get("effects", {}).items():

@@ -94,6 +94,8 @@ def build_report(df, meta, args) -> tuple[dict, object]:
               "model_file": args.model, "axes": {}}
     for name, rec in ev["outputs"].items():
         report["axes"][name] = _axis_record(rec)
+        # the kept terms as stepwisefit lists them (coefficients and standard errors in SI)
+        report["axes"][name]["terms"] = model.output(name).coefficient_rows()
     if "position" in ev:
         report["position"] = {ax: {"cal_err90_nm": r["cal"]["err_p90"],
                                    "val_err90_nm": r["val"]["err_p90"],
@@ -178,6 +180,9 @@ def run(args) -> int:
         print(strict_json(report, indent=1))
     else:
         print(format_report(report))
+        for name in report["axes"]:
+            print()
+            print(model.coefficient_table(name))
         if args.output:
             print(f"model written to {args.output}")
     if msgs and args.json:

@@ -2,10 +2,12 @@
 
     deltatwin compare DATA --model fitted.toml|model.json [--json] [--split val|cal|all]
                       [--windows N] [--bins N] [--worst N] [--params PARAMS.toml]
+                      [--report FOLDER]
 
 The residual is model minus measurement, with each (session, axis) zero re-estimated on
 DATA's calibration rows.  Human output: a table per axis, the force levels, the worst regions,
-time windows and variables; ``--json`` prints the whole result as one JSON object.
+time windows and variables; ``--json`` prints the whole result as one JSON object;
+``--report FOLDER`` also writes the report of ``deltatwin report`` for the model.
 """
 from __future__ import annotations
 
@@ -38,6 +40,9 @@ def register(sub) -> None:
                    help="length of the worst regions / windows / variables lists (3)")
     p.add_argument("--params", metavar="PARAMS.toml",
                    help="robot parameters placing a DGM's positions (default: nominal)")
+    p.add_argument("--report", metavar="FOLDER",
+                   help="also write the report of the model on the data (figures, tables: "
+                        "`deltatwin report`) into this folder")
     add_trust_option(p)
     p.set_defaults(func=run)
 
@@ -103,8 +108,13 @@ def format_report(rep: dict) -> str:
 def run(args) -> int:
     from deltatwin.calibration.diagnosis.compare import compare, load_model_file
     from deltatwin.calibration.errors import CalibrationInputError
+    from deltatwin.commands.report import check_report_folder, write_report_folder
+    from deltatwin.files import check_writable
     from deltatwin.twin.dataset import read_dataset
 
+    if args.report:                      # refused before computing, as -o is
+        check_writable(args.report, folder=True)
+        check_report_folder(args.report)
     df, meta = read_dataset(args.data)
     model = load_model_file(args.model, trust_of(args))
     try:
@@ -115,8 +125,13 @@ def run(args) -> int:
     rep = {"data": str(args.data), "model_file": str(args.model), **rep}
     if rep["extrapolation"]["message"]:
         print(f"warning: {rep['extrapolation']['message']}", file=sys.stderr)
+    if args.report:
+        rep["report"] = str(write_report_folder(args.report, args.data, df, meta, [args.model],
+                                                trust_of(args), args.params))
     if args.json:
         print(strict_json(rep, indent=1))
     else:
         print(format_report(rep))
+        if args.report:
+            print(f"report: {rep['report']}")
     return 0

@@ -119,6 +119,7 @@ def run(args) -> int:
                      for row, fit in zip(ladder, fits)]
             recording = final / "recording.rrd"
             write_recording(df, meta, steps, out / recording.name)
+        say("writing the report: figures and tables of the ladder's models")
         report = final / write_report(out, df, meta, ladder, diagnoses, fits, sc.hidden,
                                       recording).name
         diagnosed = next((d["missing_effect"] for d in diagnoses if d["missing_effect"]), None)

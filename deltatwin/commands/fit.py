@@ -7,7 +7,6 @@ import sys
 
 from deltatwin.commands.output import strict_json
 from deltatwin.commands.trust import add_trust_option, trust_of
-from deltatwin.files import atomic_write_text
 
 
 def register(sub) -> None:
@@ -122,7 +121,6 @@ def _constants_used(fit, known: dict, setup: dict) -> dict:
 
 def run_fit(args) -> int:
     from deltatwin.calibration.physics.fit import PhysicsFit
-    from deltatwin.calibration.physics.model_file import fitted_toml
     from deltatwin.twin.dataset import read_dataset
     from deltatwin.twin.lab_setup import known_constants, overridden
 
@@ -135,8 +133,9 @@ def run_fit(args) -> int:
                      max_evaluations=args.max_evaluations,
                      progress=not args.json).fit(df, meta, where=str(args.data))
     if args.output:
-        atomic_write_text(args.output, fitted_toml(fit, str(args.data)))
-    s = fit.summary()
+        fit.save(args.output, data=str(args.data))
+    summary = fit.summary()
+    s = summary.as_dict()
     band = fit.validation_band()
     s["val_band_95_nm"] = {a: list(v) for a, v in band.items()}
     s.update(_constants_used(fit, known, setup))
@@ -175,6 +174,8 @@ def run_fit(args) -> int:
     if ident["outside_physical_range"]:
         print("  fitted outside their physical range (standing in for a missing effect?): "
               + ", ".join(ident["outside_physical_range"]))
+    print()
+    print(summary.table)
     if args.output:
         print(f"  model written to {args.output}")
     return 0

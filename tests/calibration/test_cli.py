@@ -82,6 +82,19 @@ def test_force_json(files, capsys):
         assert r["val_err90_nm"] > 0 and r["val_err90_urad"] > 0
         assert [x["name"] for x in r["ladder"]] == ["geometric only", "with force terms"]
     assert set(rep["position"]) == {"x", "y", "z"}
+    for r in rep["axes"].values():       # the kept terms as stepwisefit lists them
+        assert len(r["terms"]) == r["terms_kept"]
+        assert all(t["se"] > 0 and 0 <= t["p_value"] <= 1 and t["unit"].startswith("rad/")
+                   for t in r["terms"])
+
+
+def test_the_text_lists_each_outputs_terms_with_standard_errors_and_p_values(files, capsys):
+    d, _, _ = files
+    code, out, err = run(capsys, "calibrate", d / "force.parquet", "--features", "force")
+    assert code == 0, err
+    for motor in ("q1", "q2", "q3"):
+        assert f"DirectIGM output {motor} (rad): " in out
+    assert out.count("coefficient") == 3 and "std. error" in out and "p-value" in out
 
 
 def test_bad_inputs_exit_2_with_a_clear_message(files, capsys, tmp_path):

@@ -1,5 +1,6 @@
 """``deltatwin demo``: the hidden-effect story end to end (reduced scale), and its bad input."""
 import json
+import re
 import subprocess
 import sys
 
@@ -22,11 +23,16 @@ def test_demo_finds_the_hidden_effect_and_writes_report_and_recording(tmp_path):
     floor = max(out["noise_floor_nm"].values())
     assert len(ladder) == 2 and ladder[0] >= 3 * ladder[1] and ladder[1] <= 1.5 * floor
     run = tmp_path / "run"
-    for name in ("data.parquet", "model0.toml", "model1.toml", "report.md", "ladder.png",
-                 "residual_map.png", "error_vs.png", "recording.rrd"):
+    for name in ("data.parquet", "model0.toml", "model1.toml", "report.md", "report.html",
+                 "ladder.png", "residual_time.png", "residual_vs.png", "distribution.png",
+                 "workspace_1.png", "workspace_2.png", "workspace_compare.png",
+                 "recording.rrd"):
         assert (run / name).stat().st_size > 0, name
     report = (run / "report.md").read_text()
-    assert "magnetic_force" in report and "![ladder](ladder.png)" in report
+    assert "magnetic_force" in report
+    # every figure the report shows was written, and every figure written is shown
+    shown = set(re.findall(r"!\[[^]]*\]\(([^)]+\.png)\)", report))
+    assert shown == {p.name for p in run.glob("*.png")} and "ladder.png" in shown
 
 
 def test_demo_bad_input_is_named_and_writes_nothing(tmp_path):

@@ -1,0 +1,97 @@
+"""The black-box estimators in scikit-learn's conventions (``score``, ``load``, a useful
+``repr``) and their coefficient table as MATLAB's stepwisefit shows it: coefficients, standard
+errors and p-values, checked against statsmodels' OLS on the kept terms, kept in the saved
+model."""
+import json
+
+import numpy as np
+import pytest
+import statsmodels.api as sm
+
+from deltatwin.calibration.blackbox.direct_igm import DirectIGM
+from deltatwin.calibration.blackbox.estimator import base_variables, coefficient_unit
+from deltatwin.calibration.blackbox.features import Term
+from deltatwin.calibration.blackbox.model_file import load_model
+from deltatwin.calibration.errors import ModelMismatchError
+
+
+def test_standard_errors_and_p_values_are_statsmodels_ols_on_the_kept_terms(force_igm,
+                                                                              force_data):
+    df, _ = force_data
+    values = base_variables(df, force_igm.features_.variables, [], force_igm.T_ref_K,
+                            force_igm.window_s)
+    cal = (df["split"] == "cal").to_numpy()
+    for o in force_igm.outputs_:
+        names = [t.name for t in o.terms]
+        X = force_igm.features_.matrix(values)[:, [force_igm.features_.names.index(n)
+                                                   for n in names]]
+        y = df[o.column].to_numpy(dtype=float)
+        rows = cal & np.isfinite(y) & np.all(np.isfinite(X), axis=1)
+        # standardised columns: OLS's own solve is then well conditioned; se scale back
+        scale = X[rows].std(axis=0)
+        ols = sm.OLS(y[rows], sm.add_constant(X[rows] / scale)).fit()
+        np.testing.assert_allclose(o.coef, ols.params[1:] / scale, rtol=1e-6)
+        np.testing.assert_allclose(o.se, ols.bse[1:] / scale, rtol=1e-6)
+        big = ols.pvalues[1:] > 1e-250          # below, both are round-off of zero
+        np.testing.assert_allclose(o.p_value[big], ols.pvalues[1:][big], rtol=1e-5)
+        assert o.dfe == int(ols.df_resid)
+
+
+def test_the_saved_model_keeps_the_uncertainties_and_loads_by_kind(force_igm, tmp_path):
+    force_igm.save(tmp_path / "igm.json")
+    doc = json.loads((tmp_path / "igm.json").read_text())
+    assert len(doc["outputs"][0]["se"]) == force_igm.outputs_[0].terms_kept
+    loaded = DirectIGM.load(tmp_path / "igm.json")
+    for a, b in zip(loaded.outputs_, force_igm.outputs_):
+        np.testing.assert_array_equal(a.se, b.se)
+        np.testing.assert_array_equal(a.p_value, b.p_value)
+    assert loaded.coefficient_table("q1").as_dict() == force_igm.coefficient_table("q1").as_dict()
+    from deltatwin.calibration.blackbox.dgm import DGM
+    with pytest.raises(ModelMismatchError, match="holds a DirectIGM model, a DGM was expected"):
+        DGM.load(tmp_path / "igm.json")
+    # a model saved before the uncertainties were kept still loads; its table shows '-'
+    for o in doc["outputs"]:
+        del o["se"], o["p_value"], o["dfe"]
+    doc.pop("content_sha256")
+    doc["format_version"] = 1                   # files without a checksum: version 1
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    old = load_model(tmp_path / "old.json")
+    assert old.outputs_[0].se is None
+    row = old.coefficient_table("q1").rows()[0]
+    assert row[3:] == ["-", "-", "-"]
+
+
+def test_score_is_minus_the_validation_error_90_at_the_end_effector(force_igm, force_data):
+    df, _ = force_data
+    at_effector = force_igm.motor_error_at_effector(df)
+    val = (df["split"] == "val").to_numpy()
+    e = np.abs(at_effector[val])
+    assert force_igm.score(df) == pytest.approx(-np.percentile(e[np.isfinite(e)], 90), rel=1e-12)
+    assert -force_igm.score(df) < 1e-6                      # metres: well under a micrometre
+
+
+def test_the_repr_says_what_the_estimator_is(force_igm):
+    assert repr(DirectIGM()) == "DirectIGM(features='force', penter=0.05, premove=0.1) (not fitted)"
+    kept = ", ".join(f"{o.output} {o.terms_kept}" for o in force_igm.outputs_)
+    assert repr(force_igm) == (f"DirectIGM(features='force', sensors=[]: 79 candidate terms; "
+                               f"terms kept {kept})")
+
+
+def test_a_coefficients_unit_is_the_outputs_over_the_terms():
+    assert coefficient_unit("rad", Term((("X", 1),))) == "rad/m"
+    assert coefficient_unit("rad", Term((("X", 1), ("Y", 2), ("F", 1)))) == "rad/(m^3*N)"
+    assert coefficient_unit("m", Term((("dT_base", 2),))) == "m/(K/s)^2"
+
+
+def test_an_igm_says_which_dgm_it_inverts():
+    from deltatwin.calibration.blackbox.dgm import DGM
+    from deltatwin.calibration.blackbox.estimator import OutputModel
+    from deltatwin.calibration.blackbox.features import FeatureSet, geometric
+    from deltatwin.calibration.blackbox.igm import IGM
+
+    outputs = [OutputModel(a, "m", f"{a}_nm", 1e-9, [Term(((q, 1),))], np.array([0.1]), 0.0,
+                           np.zeros(1), np.ones(1), 0.0, 1.0)
+               for a, q in zip("xyz", ("q1", "q2", "q3"))]
+    text = repr(IGM(DGM.from_outputs(FeatureSet([geometric()]), outputs)))
+    assert text.startswith("IGM(DGM(features=") and "terms kept x 1, y 1, z 1" in text
+    assert "tol_m=1e-12, max_iter=30" in text
