@@ -5,7 +5,27 @@ black-box and the physics paths."""
 from __future__ import annotations
 
 import html
+import json
 import math
+
+
+def plain(obj):
+    """``obj`` JSON-ready: dicts, lists and tuples walked, numpy values as plain numbers and
+    lists, non-finite floats as None (a figure that does not exist)."""
+    if isinstance(obj, dict):
+        return {str(k): plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain(v) for v in obj]
+    if hasattr(obj, "tolist") and not isinstance(obj, (str, bytes)):   # numpy scalar or array
+        return plain(obj.tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def strict_json(obj, indent: int | None = None, **kwargs) -> str:
+    """``obj`` as strict JSON text (RFC 8259: no NaN or Infinity; ``plain``)."""
+    return json.dumps(plain(obj), indent=indent, allow_nan=False, **kwargs)
 
 
 def number(x) -> str:

@@ -61,6 +61,7 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolation_message,
 )
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, LADDER_EVALUATIONS, floor_of
+from deltatwin.calibration.diagnosis.results import Diagnosis
 from deltatwin.calibration.diagnosis.model_form import (
     JointFrame,
     ModelSpan,
@@ -620,8 +621,9 @@ def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val:
 
 
 def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
-             variables: list | None = None) -> dict:
-    """Rank the library effects the fitted model lacks (see the module docstring).
+             variables: list | None = None) -> Diagnosis:
+    """Rank the library effects the fitted model lacks (see the module docstring): a
+    Diagnosis (calibration/diagnosis/results.py), its ranking Candidates.
     ``variables``: ``laboratory_variables`` of the fit's data when already made (they depend
     on the data alone: `deltatwin diagnose` makes them beside the fit it keeps)."""
     meas = fit.measurements_
@@ -764,7 +766,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
         out["unexplained"] = {"claimed": False, **dependence,
                               "message": ("no library effect explains the residual "
                                           "significantly; " + dependence["message"])}
-    return out
+    return Diagnosis(out)
 
 
 def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DATA",

@@ -12,12 +12,10 @@ effect library's ``fit_scale``): its interval says what the data did not tell.
 from __future__ import annotations
 
 import html
-import json
-import math
 
 import numpy as np
 
-from deltatwin.calibration.tables import Table, number
+from deltatwin.calibration.tables import Table, number, strict_json
 
 Z95 = 1.959963984540054        # the normal distribution's two-sided 95 % quantile
 IDENTIFIED = 0.5               # identified_fraction at or above: the data determine it
@@ -112,24 +110,11 @@ class FitSummary:
 
     def to_json(self, **kwargs) -> str:
         """Strict JSON (a figure that does not exist is null)."""
-        return json.dumps(_strict(self.as_dict()), allow_nan=False, **kwargs)
+        return strict_json(self.as_dict(), **kwargs)
 
     def __getitem__(self, key):
         """``summary()[key]``: the dict form's entries."""
         return self.as_dict()[key]
-
-
-def _strict(value):
-    """NaN and infinities as None, numpy scalars as Python numbers (strict JSON)."""
-    if isinstance(value, dict):
-        return {k: _strict(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_strict(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def correlation_matrix(covariance: np.ndarray) -> np.ndarray:

@@ -473,3 +473,23 @@ def test_at_the_floor_nothing_is_proposed():
     assert d["missing_effect"] is None and d["at_floor"]
     assert d["unexplained"]["depends_on"] == [] and "form" not in d["unexplained"]
     assert d["unexplained"]["message"].endswith("nothing is proposed")
+
+
+def test_the_diagnosis_is_a_typed_result_with_json():
+    """diagnose returns a Diagnosis: attributes for what a researcher reads, its rows
+    Candidates, strict JSON equal to the mapping (NaN as null), and a repr that says what was
+    found."""
+    from deltatwin.calibration.diagnosis.results import Candidate, Diagnosis
+
+    sc = Scenario.load("quiet/gravity-sag")
+    df, meta = sc.simulate(sc.reduced_scale)
+    d = diagnose(PhysicsFit(["geometric_errors"]).fit(df, meta))
+    assert isinstance(d, Diagnosis) and all(isinstance(c, Candidate) for c in d.ranking)
+    assert d.missing_effect == d["missing_effect"] and d.effects == ["geometric_errors"]
+    assert json.loads(d.to_json())["val_err90_nm"] == pytest.approx(d.val_err90_nm)
+    assert "NaN" not in d.to_json()
+    top = d.ranking[0]
+    assert top.significant == bool(top["significant"]) and top.effect in repr(top)
+    assert repr(d).startswith("Diagnosis(geometric_errors: validation error 90 %")
+    assert (f"missing {d.missing_effect}" in repr(d)) if d.missing_effect else \
+        "no library effect" in repr(d)
