@@ -90,7 +90,13 @@ from deltatwin.models.batched import in_background
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.effects import LIBRARY, EffectError
 from deltatwin.twin.instruments.optics import AXES
-from deltatwin.twin.lab_setup import beyond_setup, known_constants, set_options, used_constants
+from deltatwin.twin.lab_setup import (
+    beyond_setup,
+    known_constants,
+    merged,
+    set_options,
+    used_constants,
+)
 
 # what a candidate the model cannot take on raises (a pose out of reach, an impossible value):
 # its row of the ranking says so, the others are still ranked
@@ -379,7 +385,7 @@ def _refit(fit: PhysicsFit, effects: list) -> PhysicsFit:
     """``effects`` fitted from ``fit``'s values and the laboratory's constants with the ladder's
     budget, on ``fit``'s data."""
     meas = fit.measurements_
-    return PhysicsFit(effects, fit.params, start=_with_known(fit.model_.values(), fit.known_),
+    return PhysicsFit(effects, fit.params, start=merged(fit.model_.values(), fit.known_),
                       noise_nm=fit.noise_nm, identifiable_ratio=fit.identifiable_ratio,
                       max_evaluations=LADDER_EVALUATIONS).fit(meas.df, fit.meta_, meas=meas)
 
@@ -840,7 +846,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             starts = {f"previous fit, {effects[-1]} held off": _held_off(
                 fits[-1].model_.values(), effects[-1], known)}
         elif fits:
-            starts["previous fit"] = {"start": _with_known(fits[-1].model_.values(), known)}
+            starts["previous fit"] = {"start": merged(fits[-1].model_.values(), known)}
             # a candidate named through directions determined at their estimated size
             # (``_determined``): from the calibration rows' estimate, held there along what
             # the fit does not determine (at the library's start its fit holds them where the
@@ -851,7 +857,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
             if estimate:
                 at = {effects[-1]: estimate}
                 starts[f"previous fit, {effects[-1]} at the calibration rows' estimate"] = {
-                    "start": _with_known({**fits[-1].model_.values(), **at}, known),
+                    "start": merged({**fits[-1].model_.values(), **at}, known),
                     "prior": at}
         else:
             # the baseline has no previous model: the baseline without each of its effects
@@ -864,7 +870,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                 rung = fit_from_starts([e for e in effects if e != dropped],
                                        {"priors": {"start": known}}, df, meta, made=made,
                                        **fit_options)
-                starts[f"without {dropped}"] = {"start": _with_known(rung.model_.values(),
+                starts[f"without {dropped}"] = {"start": merged(rung.model_.values(),
                                                                      known)}
         fit = fit_from_starts(effects, starts, df, meta, made=made, chance_alpha=ALPHA,
                               **fit_options)
@@ -985,7 +991,7 @@ def _pair(fit: PhysicsFit, diagnosis: dict, df: pd.DataFrame, meta: dict | None,
               if c["effect"] != first and c.get("signature_nm", 0.0) > 0]
     if not others:
         return None
-    starts = {**starts, "previous fit": {"start": _with_known(fit.model_.values(), fit.known_)}}
+    starts = {**starts, "previous fit": {"start": merged(fit.model_.values(), fit.known_)}}
     tried = []
     for other in others:
         pair = fitted_again_where_it_ended(fit_from_starts(
@@ -1051,15 +1057,6 @@ def _tried(effect: str, fit: PhysicsFit, kept: bool, held_off: bool) -> dict:
             **({"held": "off"} if held_off else {})}
 
 
-def _with_known(values: dict, known: dict | None) -> dict:
-    """A fit's values ({effect: {parameter: value}}) with the laboratory's known constants put
-    over them parameter by parameter: a known frame arm replaces the arm, not the loop drift's
-    fitted expansion coefficients beside it (replaced whole, they restarted from the library's
-    values)."""
-    known = known or {}
-    return {e: {**values.get(e, {}), **known.get(e, {})} for e in {**values, **known}}
-
-
 def _off(effect: str) -> dict:
     """``effect``'s free parameters at zero ({parameter: value})."""
     return {p.name: np.zeros(p.shape).tolist() for p in LIBRARY[effect].free_parameters()}
@@ -1082,7 +1079,7 @@ def _held_off(values: dict, effect: str, known: dict | None) -> dict:
     effect off where ``_switches_off`` says so), started so and held so along what the data
     do not determine (the prior), the laboratory's ``known`` constants put over."""
     off = _off(effect)
-    return {"start": _with_known({**values, effect: {**values.get(effect, {}), **off}}, known),
+    return {"start": merged({**values, effect: {**values.get(effect, {}), **off}}, known),
             "prior": {effect: off}}
 
 
