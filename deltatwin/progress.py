@@ -5,15 +5,23 @@ so a redirected log holds no carriage-return runs and no repeated line.
 
 ``progress_bar(...)`` takes tqdm's arguments. Library code that reports a changing status logs
 it with ``extra={"progress": TASK}``; the command line's ``ProgressHandler`` shows such records
-as described (other records as plain lines). The ground floor: every layer may import this
-module; it imports nothing of the project."""
+as described (other records as plain lines). ``TQDM_DISABLE`` (tqdm's own switch, set to
+anything but "" or "0") silences both the bars and these status lines: for output that must
+not depend on the machine's speed (docs/walkthrough.md is generated so). The ground floor:
+every layer may import this module; it imports nothing of the project."""
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 
 PLAIN_INTERVAL_S = 5.0     # off a terminal: at most one progress line per task this often
+
+
+def silenced() -> bool:
+    """Whether progress is switched off (``TQDM_DISABLE``, as tqdm reads it)."""
+    return os.environ.get("TQDM_DISABLE", "") not in ("", "0")
 
 
 def is_terminal(stream) -> bool:
@@ -71,6 +79,8 @@ class ProgressHandler(logging.StreamHandler):
         try:
             text = self.format(record)
             task = getattr(record, "progress", None)
+            if task is not None and silenced():
+                return
             terminal = is_terminal(self.stream)
             if task is None:
                 self._end_line()

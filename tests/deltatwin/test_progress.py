@@ -33,6 +33,20 @@ def test_progress_records_off_a_terminal_are_plain_spaced_lines_never_repeated()
     assert out.getvalue() == "rms 10\nrms 9\nrms 7\ndone\n"
 
 
+def test_tqdm_disable_silences_the_status_lines_not_the_results(monkeypatch):
+    """TQDM_DISABLE (tqdm's switch) silences our status lines too, so output that must not
+    depend on the machine's speed (the generated walkthrough) has none; other records stay."""
+    monkeypatch.setenv("TQDM_DISABLE", "1")
+    out = io.StringIO()
+    h = ProgressHandler(out, clock=lambda: 0.0)
+    h.emit(_record("rms 10", "fit"))
+    h.emit(_record("done"))
+    assert out.getvalue() == "done\n"
+    monkeypatch.setenv("TQDM_DISABLE", "0")
+    h.emit(_record("rms 9", "fit"))
+    assert out.getvalue() == "done\nrms 9\n"
+
+
 def test_progress_records_on_a_terminal_update_one_line():
     out = Terminal()
     h = ProgressHandler(out)
