@@ -19,6 +19,7 @@ from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.cases import KNOWN, MODEL, Case, generate_cases
 from deltatwin.twin.scenario import Scenario
+from deltatwin.twin.lab_setup import merged
 from tests.calibration.series import ar1
 
 BASELINE = ["geometric_errors", "thermal_expansion", "sensor_contact"]
@@ -183,12 +184,12 @@ def test_known_constants_replace_only_their_own_parameters_of_a_previous_fit():
     # fitted expansion coefficients beside it (a whole-effect merge did)
     values = {"loop_drift": {"table_cte_per_K": 4.1e-6, "frame_arm_m": [0.0, 0.0]},
               "sensor_contact": {"leak_W_per_K": 0.0021}}
-    start = diagnosis._with_known(values, {"loop_drift": {"frame_arm_m": [-0.6, 0.0]},
-                                           "gravity_sag": {"load_factor": 1.0}})
+    start = merged(values, {"loop_drift": {"frame_arm_m": [-0.6, 0.0]},
+                            "gravity_sag": {"load_factor": 1.0}})
     assert start == {"loop_drift": {"table_cte_per_K": 4.1e-6, "frame_arm_m": [-0.6, 0.0]},
                      "sensor_contact": {"leak_W_per_K": 0.0021},
                      "gravity_sag": {"load_factor": 1.0}}
-    assert diagnosis._with_known(values, None) == values
+    assert merged(values, None) == values
 
 
 @pytest.mark.xfail(strict=True, reason=(
