@@ -18,8 +18,8 @@ from deltatwin.calibration.physics.measurements import Measurements
 from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.cases import KNOWN, MODEL, Case, generate_cases
-from deltatwin.twin.scenario import Scenario
 from deltatwin.twin.lab_setup import merged
+from deltatwin.twin.scenario import Scenario
 from tests.calibration.series import ar1
 
 BASELINE = ["geometric_errors", "thermal_expansion", "sensor_contact"]
