@@ -23,7 +23,7 @@ import numpy as np
 DOCS = Path(__file__).resolve().parent
 REFERENCE = DOCS / "reference"
 EFFECTS_PAGE = DOCS / "effects.md"
-WIDTH = "100"                      # the terminal width the usage lines are wrapped at
+WIDTH = 100                        # the width the usage lines are wrapped at
 END = "<!-- end of generated block -->"
 BLOCK = re.compile(r"<!-- generated from (.+?) by docs/generate_reference\.py: do not edit -->\n"
                    r"(.*?)" + re.escape(END), re.S)
@@ -77,12 +77,41 @@ def option_table(parser: argparse.ArgumentParser) -> str:
     return "\n".join(rows)
 
 
+def _usage_items(usage: str) -> list[str]:
+    """The usage line's words, an option group in brackets or braces kept as one item."""
+    items, depth = [""], 0
+    for ch in usage:
+        if ch == " " and depth == 0:
+            items.append("")
+            continue
+        depth += (ch in "[{(") - (ch in "]})")
+        items[-1] += ch
+    return [item for item in items if item]
+
+
+def usage(parser: argparse.ArgumentParser) -> str:
+    """The usage line wrapped at WIDTH between whole option groups, as argparse wraps it up to
+    Python 3.12 (3.13 breaks inside a group): the page is the same whichever Python writes it."""
+    one_line = " ".join(parser.format_usage().split())          # the COLUMNS set by the caller
+    head, *items = _usage_items(one_line)
+    prog = f"{head} {items.pop(0)}"                              # 'usage:' and the program
+    for word in parser.prog.split()[1:]:
+        prog += f" {items.pop(0)}"
+    lines, indent = [prog], " " * (len(prog) + 1)
+    for item in items:
+        if len(lines[-1]) + 1 + len(item) > WIDTH and lines[-1].strip() != "":
+            lines.append(indent + item)
+        else:
+            lines[-1] += " " + item
+    return "\n".join(lines)
+
+
 def command_block(parser: argparse.ArgumentParser) -> str:
     """The usage and options of one command (and of each of its actions)."""
-    parts = [f"```text\n{parser.format_usage().strip()}\n```", "", option_table(parser)]
+    parts = [f"```text\n{usage(parser)}\n```", "", option_table(parser)]
     for sub in _subcommands(parser).values():
         parts += ["", f"#### `{sub.prog}`", "", _cell(sub.description or ""), "",
-                  f"```text\n{sub.format_usage().strip()}\n```", "", option_table(sub)]
+                  f"```text\n{usage(sub)}\n```", "", option_table(sub)]
     if parser.epilog:
         parts += ["", _cell(parser.epilog[:1].upper() + parser.epilog[1:]) + "."]
     return "\n".join(parts) + "\n"
@@ -93,7 +122,7 @@ def command_blocks() -> dict[str, tuple[str, str, str]]:
     from deltatwin.cli import build_parser
 
     columns = os.environ.get("COLUMNS")
-    os.environ["COLUMNS"] = WIDTH          # argparse wraps usage lines at the terminal's width
+    os.environ["COLUMNS"] = "100000"       # argparse's usage on one line: usage() wraps it
     try:
         return {name: (f"`deltatwin {name} --help`", command_block(p),
                        _cell(p.description or ""))
