@@ -122,7 +122,8 @@ class PhysicsFit:
 
     def fit(self, df: pd.DataFrame, meta: dict | None = None, meas: Measurements | None = None,
             where: str = "data", keep_converged_start: bool = False,
-            start_directions: np.ndarray | None = None, fitted_on: str | None = None):
+            start_directions: np.ndarray | None = None, fitted_on: str | None = None,
+            start_corrected: bool = True):
         """Fit to the calibration rows of ``df`` (``where`` names the data in errors).
         ``keep_converged_start``: a start that is already converged on these data (a fitted
         model diagnosed on its own data: the Gauss-Newton step left from it moves the
@@ -141,14 +142,15 @@ class PhysicsFit:
         on those very data the start is kept as it is, converged or not (with
         ``start_directions``): refining it would diagnose another model than the file's, and
         the diagnosis takes the model's own remaining linear step as its reference anyway;
-        its status says how far from converged it is."""
+        its status says how far from converged it is; ``start_corrected``: whether that start
+        was corrected for the thermometers' noise (its file's ``thermometer_corrected``): kept,
+        it is judged as it was fitted."""
         # the laboratory's constants the data's setup gives, where the start does not
         setup = known_constants(meta, where)
         self.known_ = merged({e: v for e, v in setup.items() if e not in self.effects},
                              self.known)
-        model = PhysicsModel(self.effects, self.params,
-                             merged({e: v for e, v in setup.items() if e in self.effects},
-                                    self.start) or None)
+        stated = {e: v for e, v in setup.items() if e in self.effects}
+        model = PhysicsModel(self.effects, self.params, merged(stated, self.start) or None)
         meas = meas or measurements(df, meta, model.params, where)
         check_sensors(model.names, meas, where)
         self.data_sha256_ = data_sha256(meas)
@@ -162,10 +164,12 @@ class PhysicsFit:
                                     f"parameters and {len(meas.groups)} zero offsets: take "
                                     "more points or fit fewer effects")
         theta0 = model.theta()
-        # directions the data cannot determine are held at the prior (the effects' starting
-        # values), not at a warm start's values: a previous fit may have pushed them anywhere
-        # while standing in for an effect it lacked
-        prior_theta = PhysicsModel(self.effects, self.params, self.prior).theta()
+        # directions the data cannot determine are held at the prior: the values the
+        # laboratory's setup states (an aluminium frame's expansion coefficient), else the
+        # effects' starting values; never at a warm start's values: a previous fit may have
+        # pushed them anywhere while standing in for an effect it lacked
+        prior_theta = PhysicsModel(self.effects, self.params,
+                                   merged(stated, self.prior) or None).theta()
         S = model.scales
         A0, J0 = model.jacobian(meas, theta0)
         Js = projected(meas, cal, J0, scale=S)
@@ -173,15 +177,14 @@ class PhysicsFit:
         # (below): no SVD chooses directions here, V's report is made from Js alone
         same_data = (fitted_on is not None and fitted_on == self.data_sha256_
                      and start_directions is not None)
+        # estimated at the prior: the same for every start of these effects on these data,
+        # and for the fit that made a kept start
+        noise = thermometer_noise(model, meas, meta, prior_theta, self.seed,
+                                  (A0, J0) if np.array_equal(prior_theta, theta0) else None)
         if same_data:
-            # for the start's status and covariance only, estimated there
-            noise = thermometer_noise(model, meas, meta, theta0, self.seed, (A0, J0))
             V = _checked_directions(start_directions, p)
             s, Vt, keep = _directions_report(Js, V)
         else:
-            # estimated at the prior: the same for every start of these effects on these data
-            noise = thermometer_noise(model, meas, meta, prior_theta, self.seed,
-                                      (A0, J0) if np.array_equal(prior_theta, theta0) else None)
             s, Vt, keep, V = _determined_directions(Js, noise.information, self.noise_nm,
                                                     self.identifiable_ratio)
         self.n_evaluations_, self.n_jacobians_ = p + 1, 1
@@ -233,7 +236,8 @@ class PhysicsFit:
         theta, J, A = theta0, J0, A0
         A_least_squares = None
         # a kept start was fitted with it (or is judged so)
-        used = noise.restricted(V, Js @ V)
+        used = (noise.restricted(V, Js @ V) if start_corrected or not same_data
+                else ThermometerNoise.none(p))
         if keep_start:
             self.solver_message_ = ("the start was fitted on these data: kept as fitted"
                                     if same_data else
@@ -262,8 +266,9 @@ class PhysicsFit:
                     (self.noise_nm / self.identifiable_ratio) ** 2, dof)
                 self.solver_message_ += (
                     "; corrected for the thermometers' noise in the variables" if corrected
-                    else "; not corrected for the thermometers' noise: the information "
-                         "beyond it is below the threshold in a direction where it ended")
+                    else "; not corrected for the thermometers' noise: the corrected "
+                         "estimating equation is not defined, or has no root, near where "
+                         "least squares ended")
                 if not corrected:
                     used = ThermometerNoise.none(p)
             theta = theta_of(z)
@@ -767,34 +772,40 @@ def _corrected_for_thermometers(fun, jac, z, A, J, jz_of, terms_at, y, projected
     J^T J - C_z, the information beyond the thermometers', exceeds ``least_nm2`` (the fit's
     threshold of a determined direction, squared) in every direction: a model that moved
     far from where its directions were chosen (a misspecified one standing in for a missing
-    effect) may have left that; then the least-squares solution stays (``corrected``
-    False).
+    effect) may have left that, at the start or on the way; then the least-squares solution
+    stays (``corrected`` False).
 
     Newton steps with the exact Jacobian (``jac``; the score is the gradient, so a Jacobian
     carried over from the least-squares solution or Broyden-updated finds another root, by
     2.5-6 uncertainties on reduced paper-thermal), until the step left is below STEP_SIGMA
-    (the converged fit's test), at most CORRECTION_STEPS of them. A trial point the model
-    cannot evaluate ends the correction where it stands."""
+    (the converged fit's test), at most CORRECTION_STEPS of them. Where they find no root
+    (the steps stop shrinking, or a trial point the model cannot evaluate), the corrected
+    score has none near the least-squares solution (the correction's moment equation need not
+    have one where the noise's share is large: Fuller 1987, 2.5.1), and the least-squares
+    solution stays (``corrected`` False)."""
     Jz = jz_of(J)
-    C_z = terms_at(z)[0]
-    if not _correction_defined(Jz.T @ Jz - C_z, least_nm2):
-        return z, A, J, False
-    r = projected_nm(y - A)
-    for _ in range(CORRECTION_STEPS):
-        step = np.linalg.solve(Jz.T @ Jz - C_z, -Jz.T @ r + terms_at(z)[1])
+    least_squares = z, A, J
+    r, previous = projected_nm(y - A), math.inf
+    for _ in range(CORRECTION_STEPS + 1):
+        C_z, g = terms_at(z)
+        if not _correction_defined(Jz.T @ Jz - C_z, least_nm2):
+            break
+        step = np.linalg.solve(Jz.T @ Jz - C_z, -Jz.T @ r + g)
         sigma = float(np.linalg.norm(r)) / np.sqrt(dof)
         moved = float(np.linalg.norm(Jz @ step)) / sigma if sigma > 0 else 0.0
         log.debug("thermometer correction: a step of %.3g uncertainties", moved)
         if moved < STEP_SIGMA:
+            return z, A, J, True
+        if moved >= previous:
             break
         try:
             r, A = fun(z + step)
         except (KinematicsError, ParameterError) as exc:
-            log.warning("the correction for the thermometers' noise stopped: %s", exc)
+            log.debug("the correction for the thermometers' noise stopped: %s", exc)
             break
-        z = z + step
+        z, previous = z + step, moved
         Jz, J = jac(z)
-    return z, A, J, True
+    return (*least_squares, False)
 
 
 def _correction_defined(H: np.ndarray, least: float) -> bool:

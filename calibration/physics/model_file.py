@@ -33,6 +33,9 @@ def fitted_toml(fit: PhysicsFit, data: str) -> str:
                      # ... by this code (an effect edited since is refined, not kept)
                      **({"code_sha256": code} if code else {}),
                      "noise_nm": fit.noise_nm,
+                     # whether the values are corrected for the thermometers' noise: a
+                     # diagnosis on the same data judges them as they were fitted
+                     "thermometer_corrected": bool(getattr(fit, "thermometer_corrected_", False)),
                      "identifiable_ratio": fit.identifiable_ratio,
                      # the sensor -> part map the temperatures were taken from (the data's metadata)
                      "sensors": dict(fit.measurements_.sensors if fit.measurements_ is not None
@@ -260,7 +263,7 @@ TOP_KEYS = ("format", "format_version", CONTENT_SHA256, "model", "fit", "effects
             "identification", "known", "uncertainty")
 UNCERTAINTY_KEYS = ("standard_uncertainty", "prior", "identified_fraction", "correlation")
 MODEL_KEYS = ("effects", "data", "data_sha256", "code_sha256", "noise_nm", "identifiable_ratio",
-              "sensors")
+              "sensors", "thermometer_corrected")
 
 
 def _check_keys(path: Path, where: str, table: dict, allowed) -> None:
@@ -306,6 +309,9 @@ def _check_layout(path: Path, doc: dict) -> None:
                 fail(f"[fit] {key}", f"an integer >= 0, got {value!r}")
         elif isinstance(value, bool) or not isinstance(value, (int, float)):
             fail(f"[fit] {key}", f"a number (nan: not evaluated), got {value!r}")
+    if not isinstance(doc["model"].get("thermometer_corrected", False), bool):
+        fail("[model] thermometer_corrected", "true or false, got "
+             f"{doc['model']['thermometer_corrected']!r}")
     if not isinstance(doc["model"].get("data", ""), str):
         fail("[model] data", f"the path of the fitted data, got {doc['model']['data']!r}")
     for key, what in (("data_sha256", "the fitted data's"), ("code_sha256", "the effects' code's")):

@@ -210,7 +210,9 @@ def run_diagnose(args) -> int:
                      progress=not args.json).fit(df, meta, where=str(args.data),
                                                  keep_converged_start=True,
                                                  start_directions=saved_directions(doc),
-                                                 fitted_on=fitted_on(doc, model))
+                                                 fitted_on=fitted_on(doc, model),
+                                                 start_corrected=doc["model"].get(
+                                                     "thermometer_corrected", True))
     d = diagnose(fit, str(args.data), variables=variables())
     if args.json:
         print(strict_json(d))

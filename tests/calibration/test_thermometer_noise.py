@@ -75,3 +75,33 @@ def test_restricted_keeps_only_the_coefficients_of_temperatures_and_reliable_dir
     np.testing.assert_allclose(kept.score, [1.0, 0.0])
     weak = noise.restricted(np.eye(2), np.diag([2.5, 10.0]))      # share 4 / 6.25 > 0.5
     assert not np.any(weak.information) and not np.any(weak.score)
+
+
+def test_no_correction_where_the_corrected_score_has_no_root():
+    """A saturating model, readings y = tanh(z) + e: the corrected score n sech^2(z) (mean(y) -
+    tanh z) + g has no root when the noise's share g exceeds what the model can take up
+    (n sech^2 tanh <= 0.385 n); Newton's steps then grow, and the least-squares solution is
+    returned, marked not corrected (not the point where the steps were stopped)."""
+    rng = np.random.default_rng(11)
+    n = 10
+    y = rng.normal(0.0, 0.1, n)
+    z = np.array([np.arctanh(y.mean())])                       # least squares
+
+    def fun(z):
+        return y - np.tanh(z[0]) * np.ones(n), np.tanh(z[0]) * np.ones(n)
+
+    def jac(z):
+        return -np.ones((n, 1)) / np.cosh(z[0]) ** 2, np.ones((n, 1)) / np.cosh(z[0]) ** 2
+
+    r, A = fun(z)
+    Jz, J = jac(z)
+    terms = (np.array([[0.1]]), np.array([1.0 * n]))            # g = n > 0.385 n: no root
+    z_c, A_c, _, done = _corrected_for_thermometers(
+        fun, jac, z, A, J, lambda J: -J, lambda z: terms, y, lambda a: a, 0.0, n - 1)
+    assert not done and z_c is z and A_c is A
+    # where the share is small enough a root exists and is found
+    small = (np.array([[0.1]]), np.array([0.1 * n]))
+    z_c, A_c, _, done = _corrected_for_thermometers(
+        fun, jac, z, A, J, lambda J: -J, lambda z: small, y, lambda a: a, 0.0, n - 1)
+    score = n / np.cosh(z_c[0]) ** 2 * (y.mean() - np.tanh(z_c[0])) + 0.1 * n
+    assert done and abs(score) < 1e-3 * n
