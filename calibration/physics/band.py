@@ -3,8 +3,9 @@ model were right, from its parameters' uncertainty and the calibration residual'
 
 A model whose validation error lies above its band is misspecified (an effect missing, or
 conditions it extrapolates to wrongly); one inside it is as good as these data can tell.
-``validation_band`` draws the fitted parameters from their covariance along the identified
-directions (``PhysicsFit.covariance_z_``, the sandwich of calibration/stats.py) and the
+``validation_band`` draws the fitted parameters' error from their covariance along the
+identified directions (``PhysicsFit.covariance_z_``, the sandwich of calibration/stats.py) and
+from the held directions' deviation from the prior (``PhysicsFit.consider_``) and the
 readings' noise as a first-order autoregressive series per (session, axis) group, with the
 standard deviation and lag-1 correlation of the calibration residual of the same axis; each
 draw's prediction change is zeroed on the calibration rows as the fit zeroes the data; the
@@ -70,16 +71,17 @@ def validation_band(fit, rng: np.random.Generator, draws: int = BAND_DRAWS,
     val = meas.val[:, None] & (meas.group >= 0) & np.isfinite(fit.residual_)
     if not val.any():
         return {}
-    cov = fit.covariance_z_
-    k = cov.shape[0]
-    JV = (fit.jacobian_ * fit.model_.scales) @ fit.identified_directions_ if k else None
-    L = _square_root(cov) if k else None
+    # the parameters' error: the identified directions' (covariance_z_) and what the held
+    # directions' deviation from the prior does (consider_, one typical size each)
+    k = fit.covariance_z_.shape[0]
+    root = np.hstack([fit.identified_directions_ @ _square_root(fit.covariance_z_)
+                      if k else np.zeros((fit.model_.n_free, 0)), fit.consider_])
+    JR = (fit.jacobian_ * fit.model_.scales) @ root                     # (N, 3, k + held)
     t = meas.df["t_s"].to_numpy()
     errors = np.full(meas.y.shape + (draws,), np.nan)
     for a in range(3):
         sigma, rho = _noise_of_axis(fit, a)
-        change = (JV[:, a, :] @ (L @ rng.standard_normal((k, draws))) if k
-                  else np.zeros((meas.n, draws)))
+        change = JR[:, a, :] @ rng.standard_normal((root.shape[1], draws))
         for g in np.unique(meas.group[:, a][meas.group[:, a] >= 0]):
             in_g = meas.group[:, a] == g
             cal = in_g & meas.cal

@@ -83,8 +83,11 @@ class PhysicsFit:
     and ``thermometer_correction_`` (the share of ``thermometer_noise_`` it corrected for),
     ``least_squares_residual_`` ((N,3) m: the residual where least squares ended, before that
     correction: what tests of nested models compare), ``fitted_again_`` (whether
-    ``fitted_again_where_it_ended`` replaced it by its refit), ``covariance_`` ((p, p), SI: the
-    parameters' covariance, whose diagonal gives ``parameters_``' uncertainties).
+    ``fitted_again_where_it_ended`` replaced it by its refit), ``consider_`` ((p, p - k), fit
+    scales: how the parameters' error depends on the held directions' deviation from the
+    prior, one typical size each: ``_considered``), ``covariance_`` ((p, p), SI: the
+    parameters' covariance, the identified directions' and the held ones' through
+    ``consider_``, whose diagonal gives ``parameters_``' uncertainties).
 
     Use: ``summary()`` (a table object: text, HTML, ``as_dict``), ``predict(df)`` (the model's
     readings, m), ``score(df)`` (minus the validation error 90 %, m: higher is better),
@@ -282,7 +285,8 @@ class PhysicsFit:
         self.thermometer_correction_ = used
         model.set_theta(theta)          # the solver's last evaluation may have been a trial
         r = projected(meas, cal, meas.y - A)
-        Jz = -(Js if J is J0 else projected(meas, cal, J, scale=S)) @ V
+        Js_end = Js if J is J0 else projected(meas, cal, J, scale=S)
+        Jz = -Js_end @ V
         dof = meas.residual_dof(n_res, V.shape[1])
         self.remaining_step_sigma_ = _remaining_step_sigma(
             Jz, r, dof, used.terms(V, theta / S))
@@ -320,20 +324,22 @@ class PhysicsFit:
         self.val_ = figures_nm(self.residual_, meas.val)
         self.jacobian_ = J
         self.identified_directions_ = V
-        self._identifiability(model, s, Vt, keep, Jz, meas, r, V, theta, prior,
+        self._identifiability(model, s, Vt, keep, Js_end, meas, r, V, theta, prior,
                               V.T @ used.information @ V)
         return self
 
-    def _identifiability(self, model, s, Vt, keep, Jz, meas, r, V, theta, theta0, noise_z):
-        """``Jz``: the projected calibration residual's Jacobian in the directions ``V``
-        (n, k; its sign does not matter here); ``noise_z`` (k, k): the thermometers' share of
-        its information (ThermometerNoise ``information`` in the directions)."""
+    def _identifiability(self, model, s, Vt, keep, Js, meas, r, V, theta, theta0, noise_z):
+        """``Js``: the projected calibration Jacobian in fit scales (n, p) where the fit
+        ended; ``noise_z`` (k, k): the thermometers' share of its information in the
+        directions ``V`` (ThermometerNoise ``information``)."""
         p, k = model.n_free, int(keep.sum())
+        Jz = Js @ V
         labels = model.labels
         dof = meas.residual_dof(r.size, k)
         sigma_r = float(np.sqrt(np.sum(r ** 2) / dof))
         # the identified directions' covariance from the residual as it is (serially
-        # correlated: the sandwich), the held directions' from the prior (one typical size)
+        # correlated: the sandwich), the held directions' from the prior (one typical size),
+        # and what the held ones' deviation from it does to the identified (consider_)
         cov_z = sandwich_covariance(Jz, r, projected_rows(meas, meas.cal),
                                     meas.df["t_s"].to_numpy(),
                                     Jz.T @ Jz - noise_z if np.any(noise_z)
@@ -341,9 +347,9 @@ class PhysicsFit:
                                     else None)
         self.covariance_z_ = cov_z
         S = model.scales
-        held = np.eye(p) - V @ V.T if k else np.eye(p)
+        self.consider_ = _considered(Js, V)
         cov = (S[:, None] * V) @ cov_z @ (S[:, None] * V).T if k else np.zeros((p, p))
-        cov += (S[:, None] * held) @ (S[:, None] * held).T
+        cov += (S[:, None] * self.consider_) @ (S[:, None] * self.consider_).T
         self.covariance_ = cov
         frac = np.sum(V ** 2, axis=1) if k else np.zeros(p)
         units = [f.unit for f in model.free for _ in range(f.sl.stop - f.sl.start)]
@@ -633,6 +639,22 @@ def _information_directions(Js: np.ndarray, noise_info: np.ndarray):
     w, U = np.linalg.eigh(Js.T @ Js - noise_info)
     order = np.argsort(-w, kind="stable")
     return np.sqrt(np.clip(w[order], 0.0, None)), U[:, order].T
+
+
+def _considered(Js: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """(p, p - k) in fit scales: how the parameters' error depends on the held directions'
+    deviation from the prior, one typical size each (the Schmidt consider covariance: Tapley,
+    Schutz & Born 2004, Statistical Orbit Determination, 6.3). A held direction H's true
+    value is not the prior's, and least squares in the identified directions ``V`` takes up
+    what its column ``Js H`` shares with theirs: the error is (V B - H) d, B the regression of
+    ``Js H`` on ``Js V`` (``Js`` (n, p) the projected calibration Jacobian), d the held
+    directions' deviation in fit scales. Returns V B - H (sign immaterial: d is symmetric)."""
+    p, k = V.shape
+    H = linalg.null_space(V.T) if k else np.eye(p)
+    if not k or not H.size:
+        return H
+    B = np.linalg.lstsq(Js @ V, Js @ H, rcond=None)[0]
+    return V @ B - H
 
 
 def _checked_directions(directions, p: int) -> np.ndarray:
