@@ -753,6 +753,16 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     dependence = residual_dependence(meas.df, fit.residual_, cal, meas.val,
                                      form=form if best is None else False,
                                      target=frame.target, attribution=attribution)
+    if best is None and out["at_floor"]:
+        # at the floor there is nothing to find: no dependence or form is proposed (what they
+        # would fit is the floor's own noise)
+        dependence = {"depends_on": [], "explained_fraction": 0.0, "at_floor": True,
+                      "val_rms_nm": dependence["val_rms_nm"],
+                      "message": (f"the model is at the {floor_kind} floor ({floor_all:.1f} "
+                                  "nm: what the twin's complete model reaches on these data)"
+                                  if floor_kind == "achievable" else
+                                  f"the model is at the noise floor ({floor_all:.1f} nm)")
+                      + ": nothing is proposed"}
     if best:
         out["missing_effect"] = best["effect"]
         out.update(_next_step(fit, [best["effect"]], data))
@@ -762,11 +772,6 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
         out["unexplained"] = {"claimed": False, **dependence,
                               "message": ("no library effect explains the residual "
                                           "significantly; " + dependence["message"])}
-        if out["at_floor"]:
-            out["unexplained"]["message"] += (
-                f"; the model is at the {floor_kind} floor ({floor_all:.1f} nm: what the twin's "
-                "complete model reaches on these data)" if floor_kind == "achievable" else
-                f"; the model is at the noise floor ({floor_all:.1f} nm)")
     return Diagnosis(out)
 
 

@@ -37,7 +37,7 @@ import numpy as np
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.calibration.physics.measurements import measurements
 from deltatwin.calibration.physics.model import model_effects, projected
-from deltatwin.twin.effects import LIBRARY
+from deltatwin.twin.effects import EffectError, effect_class
 from deltatwin.twin.instruments.optics import AXES
 from deltatwin.twin.noise import quantised_u
 from deltatwin.twin.scenario import ERROR_SOURCES
@@ -66,12 +66,24 @@ AT_FLOOR = 1.1   # a model within 1.1x the achievable floor is at the floor
 LADDER_EVALUATIONS = 80
 
 
+def _has_model_form(name: str) -> bool:
+    """Whether the effect called ``name`` (a library effect, or a user effect this process has
+    loaded: the twin that made the data ran it) has a model form; no code is run to tell."""
+    try:
+        return bool(effect_class(name, trust=False).model_stages())
+    except EffectError:
+        return False
+
+
 def true_model(meta: dict) -> tuple[list[str], dict]:
-    """The data's model effects (those of the twin's truth with a model form) and the twin's
+    """The data's model effects (those of the twin's truth with a model form, a researcher's
+    own included where this process has loaded it: the floor of data made by a twin with an
+    effect outside the library is what the model with that effect reaches) and the twin's
     values of all their parameters: ({effect: {parameter: value}})."""
     truth = (meta or {}).get("truth") or {}
     forms = set(model_effects())
-    effects = [e for e in truth.get("effects", []) if e["name"] in forms]
+    effects = [e for e in truth.get("effects", [])
+               if e["name"] in forms or _has_model_form(e["name"])]
     return ([e["name"] for e in effects],
             {e["name"]: {p: v["value"] for p, v in e["parameters"].items()} for e in effects})
 
@@ -83,7 +95,7 @@ def true_fit(df, meta: dict, noise_nm: float = 5.0) -> PhysicsFit:
     laboratory's known setup), never from the twin's values of the fitted parameters."""
     effects, values = true_model(meta)
     fixed = {e: {p: v for p, v in vals.items()
-                 if p not in {q.name for q in LIBRARY[e].free_parameters()}}
+                 if p not in {q.name for q in effect_class(e).free_parameters()}}
              for e, vals in values.items()}
     return fit_from_starts(effects, {"library's starting values": {"start": fixed}}, df, meta,
                            noise_nm=noise_nm, max_evaluations=LADDER_EVALUATIONS)

@@ -244,6 +244,9 @@ def run_diagnose(args) -> int:
 
 def _print_unexplained(u: dict) -> None:
     """What the residual still depends on and the proposed form, one line each."""
+    if u.get("at_floor"):                   # the message's second part: the floor's
+        print(u["message"].split("; ", 1)[-1])
+        return
     if not u["depends_on"]:
         print("the residual does not depend on any recorded variable (noise-like)")
         return

@@ -459,6 +459,22 @@ def test_the_attribution_in_a_second_process_gives_the_same_diagnosis(monkeypatc
         diagnose(fit, variables=laboratory_variables(df.iloc[:10]))
 
 
+def test_at_the_floor_nothing_is_proposed():
+    """A model at its achievable floor with no library effect significant: the diagnosis says
+    so and proposes neither a variable nor a form (what they would fit is the floor's noise)."""
+    from deltatwin.calibration.diagnosis.floor import record_achievable_floor
+
+    sc = Scenario.load("quiet/thermal-and-loop")
+    df, meta = sc.simulate(0.05)
+    record_achievable_floor(df, meta)                  # as `deltatwin simulate` does
+    fit = PhysicsFit(["geometric_errors", "thermal_expansion", "loop_drift"],
+                     max_evaluations=80).fit(df, meta)
+    d = diagnose(fit)
+    assert d["missing_effect"] is None and d["at_floor"]
+    assert d["unexplained"]["depends_on"] == [] and "form" not in d["unexplained"]
+    assert d["unexplained"]["message"].endswith("nothing is proposed")
+
+
 def test_the_diagnosis_is_a_typed_result_with_json():
     """diagnose returns a Diagnosis: attributes for what a researcher reads, its rows
     Candidates, strict JSON equal to the mapping (NaN as null), and a repr that says what was
