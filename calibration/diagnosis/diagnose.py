@@ -222,7 +222,7 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
             "held_at": held, "p_value": verdict["p_value"],
             "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
             "p_validation": verdict["p_validation"], "p_combined": verdict["p_combined"],
-            "significant": verdict["significant"],
+            "significant": verdict["significant"], "alpha": ALPHA / len(tried),
             # whether the validation rows confirm either try (Bonferroni over the tries): the
             # row's own verdict is the lower BIC's, which may be the other
             "p_validation_any": min(1.0, len(tried) * min(v[1]["p_validation"]
@@ -445,6 +445,8 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
                  meas.residual_dof(r0.size, k_refit), base.residual_, refit.residual_,
                  floor_all_nm, ALPHA, _serial_inflation(meas, r0 - r1, r1))
     row.update({"refit_explained_fraction": v["explained_fraction"],
+                "refit_val_err90_after_nm": figures_nm(refit.residual_, meas.val)["all"][
+                    "err_p90"],
                 "refit_gap_closed": v["gap_closed"], "refit_p_value": v["p_value"],
                 "refit_p_combined": v["p_combined"], "refit_delta_bic": v["delta_bic"]})
     confirmed = v["gap_closed"] >= GAP_CLOSED and v["p_combined"] < ALPHA

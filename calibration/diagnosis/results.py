@@ -4,6 +4,7 @@ with ``--json`` (key by key as ``diagnose`` documents it), with the fields a res
 most as attributes, a ``to_json`` and a ``repr`` that says what was found."""
 from __future__ import annotations
 
+from deltatwin.calibration.stats import ALPHA
 from deltatwin.calibration.tables import strict_json
 
 
@@ -22,6 +23,30 @@ class Candidate(dict):
 
     def to_json(self, **kwargs) -> str:
         return strict_json(self, **kwargs)
+
+    def decided_by(self) -> str:
+        """What the row's verdict rests on: "refit" (the model refitted with the candidate:
+        significant through its refit's tests), "validation" (significant through the
+        calibration and validation tests combined), "calibration" (its calibration test),
+        or "" (not significant, or failed)."""
+        if not self.get("significant") or "failed" in self:
+            return ""
+        if "refit_explained_fraction" in self:
+            return "refit"
+        alpha = self.get("alpha", ALPHA)
+        return ("calibration" if self["p_value"] < alpha and self["delta_bic"] < 0
+                else "validation")
+
+    def table_figures(self) -> tuple[float, float, float, float]:
+        """(explained fraction, validation error 90 % after (nm), calibration p, dBIC) of the
+        tests the verdict rests on: a refit's where the refit decided, else the linearised
+        candidate's; the table prints these beside the verdict, so the two agree."""
+        if self.decided_by() == "refit":
+            return (self["refit_explained_fraction"],
+                    self.get("refit_val_err90_after_nm", self["val_err90_after_nm"]),
+                    self["refit_p_value"], self["refit_delta_bic"])
+        return (self["explained_fraction"], self["val_err90_after_nm"], self["p_value"],
+                self["delta_bic"])
 
     def __repr__(self) -> str:
         return (f"Candidate({self.effect!r}, explains {100 * self.explained_fraction:.0f} %, "

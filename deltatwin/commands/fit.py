@@ -222,10 +222,13 @@ def run_diagnose(args) -> int:
     print(f"  {'effect':<20} {'explains':>9} {'val err90 after':>16} {'p-value':>9} "
           f"{'dBIC':>8} {'absorbed':>9}  significant")
     for c in d["ranking"]:
-        print(f"  {c['effect']:<20} {100 * c['explained_fraction']:8.1f}% "
-              f"{c['val_err90_after_nm']:13.1f} nm {c['p_value']:9.2g} {c['delta_bic']:8.0f} "
-              f"{100 * c['absorbed_fraction']:8.0f}%  "
-              f"{'failed' if 'failed' in c else 'yes' if c['significant'] else 'no'}")
+        # the figures the verdict rests on (a refit's when the refit decided)
+        explained, after, p, d_bic = c.table_figures()
+        how = {"refit": "yes (refitted)", "validation": "yes (with validation)",
+               "calibration": "yes"}.get(c.decided_by(), "no")
+        print(f"  {c['effect']:<20} {100 * explained:8.1f}% {after:13.1f} nm {p:9.2g} "
+              f"{d_bic:8.0f} {100 * c['absorbed_fraction']:8.0f}%  "
+              f"{'failed' if 'failed' in c else how}")
     for line in d["absorbed"] + d["failed_candidates"]:
         print(f"  {line}")
     floor = d["floor_nm"]

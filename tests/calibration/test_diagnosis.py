@@ -493,3 +493,52 @@ def test_the_diagnosis_is_a_typed_result_with_json():
     assert repr(d).startswith("Diagnosis(geometric_errors: validation error 90 %")
     assert (f"missing {d.missing_effect}" in repr(d)) if d.missing_effect else \
         "no library effect" in repr(d)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["hidden/magnetic-force", "hidden/loop-drift",
+                                  "hidden/thermal-expansion"])
+def test_every_rows_verdict_follows_from_the_figures_the_table_prints(name):
+    """On shipped hidden scenarios of both campaign kinds (reduced scale, the data's baseline
+    and setup, the floor recorded as `simulate` records it), each ranking row's "significant"
+    is the rule applied to the figures the table prints for it (``Candidate.table_figures``:
+    a refit's where the refit decided) with its test level ``alpha``: by the calibration rows
+    (p < alpha, the BIC falls, explains MIN_EXPLAINED or closes GAP_CLOSED of the gap to the
+    floor, the model not within AT_FLOOR of it), by the calibration and validation rows
+    combined (p_combined < alpha, closes GAP_CLOSED), or by the refit's tests; and a row
+    called not significant satisfies neither of the first two on its printed figures unless a
+    refit or the generic terms judged it."""
+    from deltatwin.calibration.diagnosis.diagnose import AT_FLOOR, GAP_CLOSED, MIN_EXPLAINED
+    from deltatwin.calibration.diagnosis.floor import record_achievable_floor
+    from deltatwin.calibration.stats import ALPHA
+    from deltatwin.twin.lab_setup import baseline_of, known_constants
+
+    sc = Scenario.load(name)
+    df, meta = sc.simulate(sc.reduced_scale)
+    record_achievable_floor(df, meta)
+    fit = PhysicsFit(baseline_of(meta), start=known_constants(meta),
+                     max_evaluations=80).fit(df, meta)
+    d = diagnose(fit)
+    floor = d["floor_nm"]["all"]
+    above = d["val_err90_nm"] > AT_FLOOR * floor
+    seen = set()
+    for c in d["ranking"]:
+        if "failed" in c:
+            assert not c["significant"]
+            continue
+        explained, _, p, d_bic = c.table_figures()
+        how = c.decided_by()
+        seen.add(how)
+        by_calibration = (p < c["alpha"] and d_bic < 0 and above
+                          and (explained >= MIN_EXPLAINED or c["gap_closed"] >= GAP_CLOSED))
+        by_both = c["gap_closed"] >= GAP_CLOSED and c["p_combined"] < c["alpha"]
+        if how == "calibration":
+            assert by_calibration, c
+        elif how == "validation":
+            assert by_both and not by_calibration, c
+        elif how == "refit":
+            assert (c["refit_p_value"] < ALPHA and c["refit_delta_bic"] < 0) or (
+                c["refit_gap_closed"] >= GAP_CLOSED and c["refit_p_combined"] < ALPHA), c
+        elif "refit_explained_fraction" not in c and not c.get("matched_by_generic"):
+            assert not (by_calibration or by_both), c
+    assert seen & {"calibration", "validation", "refit"}, "no row was significant"
