@@ -75,8 +75,9 @@ def report(results: list[dict]) -> None:
         print(f"  rows called significant: {_interval(claims, len(rows))}; alpha "
               f"{100 * ALPHA:.2f} %, target <= {150 * ALPHA:.2f} %: "
               f"{'met' if claims / max(len(rows), 1) <= 1.5 * ALPHA else 'NOT met'}")
-        print(f"  campaigns with a claim: {_interval(sum(any(s for _, s, _ in r['rows']) for r in rs), len(rs))}"
-              f" (independent rows at alpha: {100 * expected:.2f} %)")
+        claimed = sum(any(s for _, s, _ in r["rows"]) for r in rs)
+        print(f"  campaigns with a claim: {_interval(claimed, len(rs))} (independent rows at "
+              f"alpha: {100 * expected:.2f} %)")
         print(f"  a missing effect named: {sum(bool(r['named']) for r in rs)}; a form proposed: "
               f"{sum(r['form'] for r in rs)}; fits not converged: "
               f"{sum(not r['converged'] for r in rs)}")

@@ -95,7 +95,7 @@ def usage(parser: argparse.ArgumentParser) -> str:
     one_line = " ".join(parser.format_usage().split())          # the COLUMNS set by the caller
     head, *items = _usage_items(one_line)
     prog = f"{head} {items.pop(0)}"                              # 'usage:' and the program
-    for word in parser.prog.split()[1:]:
+    for _ in parser.prog.split()[1:]:                        # the subcommand's words
         prog += f" {items.pop(0)}"
     lines, indent = [prog], " " * (len(prog) + 1)
     for item in items:

@@ -91,9 +91,10 @@ def in_background(fun, *args, **kwargs):
     child process, beside what the caller computes meanwhile: a second core for a whole
     independent task of a second or so (a thread would hold the GIL for its Python between the
     numpy calls; the child shares the caller's arrays copy-on-write and sends back only its
-    result, pickled; its BLAS on one thread, here as there, the caller's own pool not doubled).  Else
-    it runs at once, on the arguments as they are (as the child would).  The result is the same provided the caller does not
-    change the arguments meanwhile (the child computes on them as they were at the start)."""
+    result, pickled; its BLAS on one thread, here as there, the caller's own pool not
+    doubled). Else it runs at once, on the arguments as they are (as the child would). The
+    result is the same provided the caller does not change the arguments meanwhile (the child
+    computes on them as they were at the start)."""
     if not BACKGROUND or not sys.platform.startswith("linux"):
         return _computed_now(fun, *args, **kwargs)
     read, write = os.pipe()

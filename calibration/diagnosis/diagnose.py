@@ -61,7 +61,6 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolation_message,
 )
 from deltatwin.calibration.diagnosis.floor import AT_FLOOR, LADDER_EVALUATIONS, floor_of
-from deltatwin.calibration.diagnosis.results import Diagnosis
 from deltatwin.calibration.diagnosis.model_form import (
     JointFrame,
     ModelSpan,
@@ -69,6 +68,7 @@ from deltatwin.calibration.diagnosis.model_form import (
     load_candidates,
     load_terms,
 )
+from deltatwin.calibration.diagnosis.results import Diagnosis
 from deltatwin.calibration.diagnosis.term_form import form_message, missing_term_form
 from deltatwin.calibration.errors import CalibrationInputError, MissingColumnsError
 from deltatwin.calibration.physics.fit import (
