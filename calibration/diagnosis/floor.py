@@ -10,7 +10,8 @@ records them (else the air index wanders unrecorded). No effect added to a model
 errors, so a model is *at the floor* when it reaches what the twin's own effects reach when
 fitted to the same data, the **achievable floor**. ``achievable_floor`` fits that true model
 (the data's model effects, their free parameters fitted from the library's starting values as
-any model's are: what a researcher could reach, never the twin's values) and gives its
+any model's are, and from the baseline's fit where the data declare one: what a researcher
+could reach, never the twin's values) and gives its
 validation error and a budget: the noise floor and what the other instruments add above it
 (the quadrature difference).
 

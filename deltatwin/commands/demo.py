@@ -151,7 +151,7 @@ def run(args) -> int:
           "(the readings' own noise: interferometers and servo settling)")
     print("  achievable floor: " + ", ".join(f"{k} {v:.1f}" for k, v in achievable.items())
           + f" nm (the twin's complete model fitted on these data from the library's starting "
-          f"values; at the floor: within "
+          f"values and from the baseline's fit; at the floor: within "
           f"{AT_FLOOR}x). No effect added brings a model much below it: the model reads the "
           "robot's conditions through the lab's instruments, whose errors no effect can remove")
     # measured either way: the complete model's refit gives the noise floor's share and the
