@@ -12,30 +12,7 @@ from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 from deltatwin.cli import main
 from deltatwin.twin.dataset import write_dataset
 from deltatwin.twin.scenario import SCENARIO_DIR, Scenario, ScenarioError
-
-EFFECT = '''
-import pathlib
-pathlib.Path(__file__).with_name("ran.txt").write_text("the file's code ran")
-
-from deltatwin.twin.effects import Effect, Parameter, shift_reading
-
-
-class Ripple(Effect):
-    name = "ripple_{tag}"
-    summary = "a ripple on x"
-    parameters = (Parameter("amplitude_m", "m", 1e-8, "amplitude"),)
-
-    def optics(self, points, optics):
-        shift_reading(optics, "x", self.amplitude_m + 0 * points.q[:, 0])
-
-
-class Angles(Effect):
-    name = "angles_{tag}"
-    summary = "raises where the encoders are read"
-
-    def motor_angles(self, points):
-        raise RuntimeError("no encoder here")
-'''
+from tests.user_effect_files import marker_effect_file
 
 
 def error_line(capsys) -> str:
@@ -48,7 +25,7 @@ def error_line(capsys) -> str:
 
 def _lab(tmp_path, tag, cls="Ripple"):
     """A user effect file and a scenario naming it (relative to the scenario's folder)."""
-    (tmp_path / f"fx_{tag}.py").write_text(EFFECT.format(tag=tag))
+    (tmp_path / f"fx_{tag}.py").write_text(marker_effect_file(f"ripple_{tag}", f"angles_{tag}"))
     text = (SCENARIO_DIR / "paper-force.toml").read_text()
     text = re.sub(r"(?m)^on = \[", f'on = ["./fx_{tag}.py:{cls}", ', text, count=1)
     (tmp_path / "lab.toml").write_text(text)

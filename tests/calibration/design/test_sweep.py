@@ -23,6 +23,7 @@ from deltatwin.calibration.design.sweep import (
     run_sweep,
 )
 from deltatwin.cli import main
+from tests.user_effect_files import marker_effect_file
 
 TINY = """
 [sweep]
@@ -154,29 +155,12 @@ def test_a_case_runs_on_its_threads_and_restores_the_callers(tmp_path, monkeypat
     assert deterministic_columns(pd.DataFrame([rec])) == ["case_id"]
 
 
-USER_EFFECT = '''
-import pathlib
-pathlib.Path(__file__).with_name("ran.txt").write_text("the file's code ran")
-
-from deltatwin.twin.effects import Effect, Parameter, shift_reading
-
-
-class Ripple(Effect):
-    name = "sweep_{tag}"
-    summary = "a constant offset on x"
-    parameters = (Parameter("offset_m", "m", 1e-8, "offset"),)
-
-    def optics(self, points, optics):
-        shift_reading(optics, "x", self.offset_m + 0 * points.q[:, 0])
-'''
-
-
 def _lab_spec(tmp_path, tag, baseline=None) -> tuple[Path, Path]:
     """A scenario naming a user effect (relative to its own folder, not the working directory),
     and a one-case sweep of it; the effect's code writes ran.txt when imported."""
     lab = tmp_path / "lab"
     lab.mkdir()
-    (lab / "fx.py").write_text(USER_EFFECT.format(tag=tag))   # effect names are per process
+    (lab / "fx.py").write_text(marker_effect_file(f"sweep_{tag}"))   # effect names are per process
     text = (Path(__file__).parents[3] / "scenarios" / "quiet" / "gravity-sag.toml").read_text()
     (lab / "scenario.toml").write_text(text.replace('on = ["gravity_sag"]',
                                                     'on = ["gravity_sag", "./fx.py:Ripple"]'))
@@ -214,7 +198,7 @@ def test_a_sweep_baseline_naming_a_user_effect_needs_consent(tmp_path):
     """The specification is a file too: a user effect its baseline names (relative to its
     folder) needs consent; the cases name it by its absolute path."""
     spec, scenario_code = _lab_spec(tmp_path, "lab", '["geometric_errors", "./base.py:Base"]')
-    (tmp_path / "base.py").write_text(USER_EFFECT.format(tag="base").replace(
+    (tmp_path / "base.py").write_text(marker_effect_file("sweep_base").replace(
         "Ripple", "Base").replace("ran.txt", "base-ran.txt"))
     code = (tmp_path / "base.py").resolve()
     with pytest.raises(SweepError, match="would run the Python code") as exc:
