@@ -49,3 +49,25 @@ def test_the_next_command_carries_the_user_s_override(drift):
     d = diagnose(fit, "drift.parquet")
     assert d["missing_effect"] == "loop_drift", [c["effect"] for c in d["ranking"][:3]]
     assert d["next_command"].endswith(" --set loop_drift.frame_arm_m=-0.55,0.0 -o fitted.toml")
+
+
+def test_a_value_the_setup_states_is_the_prior_an_undetermined_direction_is_held_at():
+    """On the force campaign the frame's expansion coefficient is not determined (the frame's
+    temperature barely moves while the rows are measured): where the data's setup states it
+    (an aluminium frame, 23e-6 /K) the fit holds it there; where it does not, at the
+    library's steel (11.7e-6 /K)."""
+    import copy
+
+    sc = Scenario.load("hidden/magnetic-force")
+    df, meta = sc.simulate(sc.reduced_scale)
+    effects = ["geometric_errors", "loop_drift"]
+    plain = PhysicsFit(effects).fit(df, meta)
+    stated = copy.deepcopy(meta)
+    stated["setup"]["known"]["loop_drift"]["frame_cte_per_K"] = 23e-6
+    held = PhysicsFit(effects).fit(df, stated)
+
+    def frame(fit):
+        return next(p for p in fit.parameters_ if p["label"] == "loop_drift.frame_cte_per_K")
+    assert frame(plain)["identified_fraction"] < 0.5 and frame(held)["identified_fraction"] < 0.5
+    assert frame(plain)["value"] == pytest.approx(11.7e-6, rel=0.1)
+    assert frame(held)["value"] == pytest.approx(23e-6, rel=0.1)
