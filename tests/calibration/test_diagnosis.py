@@ -3,6 +3,7 @@ effect is ranked first, adding it lowers the validation error >= 3x to within 1.
 floor; two hidden effects are found one after the other; an effect outside the library is not
 claimed, and the variable it depends on is named."""
 import json
+import re
 import subprocess
 import sys
 import tomllib
@@ -131,7 +132,10 @@ def test_fitted_model_file_round_trips(tmp_path):
                        (text.replace("directions = [", "directions = [[0.0], "),
                         r"\[identification\] directions must be orthonormal"),
                        (text.replace('data_sha256 = "', 'data_sha256 = "x'),
-                        r"\[model\] data_sha256 .*SHA-256")):
+                        r"\[model\] data_sha256 .*SHA-256"),
+                       (re.sub(r"thermometer_corrected = \w+", 'thermometer_corrected = "yes"',
+                               text),
+                        r"\[model\] thermometer_corrected must be true or false")):
         path.write_text(bad)
         with pytest.raises(FitError, match=match):
             load_fitted(path)
