@@ -49,15 +49,10 @@ import numpy as np
 import pandas as pd
 from statsmodels.stats.proportion import proportion_confint
 
-from deltatwin.calibration.diagnosis.diagnose import (
-    ABSORBED,
-    ALPHA,
-    diagnose,
-    effect_ladder,
-    nested_verdict,
-)
-from deltatwin.calibration.diagnosis.floor import AT_FLOOR, achievable_floor, true_fit
+from deltatwin.calibration.diagnosis.diagnose import diagnose, effect_ladder, nested_verdict
+from deltatwin.calibration.diagnosis.floor import achievable_floor, true_fit
 from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.stats import ABSORBED, ALPHA, AT_FLOOR
 from deltatwin.twin.cases import FRAME_ARM_M, generate_cases
 from deltatwin.twin.scenario import Scenario
 

@@ -24,9 +24,16 @@ per-(session, axis) drift offset that every model shares. The rule accounts for 
 - **Combining the two.** The calibration and validation rows are disjoint readings, so their
   p-values are combined by Fisher's method (chi-square with 4 degrees of freedom).
 
-``DecisionRule`` holds the rule's few named parameters; the diagnosis and detection power
-(calibration/design/power.py) use it, and tests/calibration/test_stats.py measures its
-false-claim rate on null data where the truth is known.
+- **Relevance.** A claim must matter to the model's error, not only be detectable: a claim by
+  the calibration test explains at least ``min_explained`` of the validation residual's power
+  or closes ``gap_closed`` of the gap between the model's validation error and its achievable
+  floor, and is not made for a model within ``at_floor`` of that floor (what is left there is
+  the floor's own error); a claim by the combined test must close ``gap_closed`` of the gap.
+
+``DecisionRule`` holds the rule's few named parameters (the module's constants are their
+defaults); the diagnosis, its ladder and detection power (calibration/design/power.py) use it,
+and tests/calibration/test_stats.py measures its false-claim rate on null data where the truth
+is known.
 """
 from __future__ import annotations
 
@@ -39,6 +46,14 @@ from scipy import special
 ALPHA = 1e-3                 # the false-claim rate the rule is run at
 VALIDATION_BLOCKS = 8        # contiguous time blocks per session of validation rows, at most
 BLOCK_CORRELATIONS = 10      # a block is at least this many of the score's correlation lengths
+MIN_EXPLAINED = 0.1          # a calibration claim explains this share of the validation power
+GAP_CLOSED = 0.5             # ... or closes this share of the gap to the achievable floor
+AT_FLOOR = 1.1               # a model within this factor of the achievable floor is at it
+# a candidate whose signature lies this much in the model's span is absorbed (reported so)
+ABSORBED = 0.9
+# a candidate explaining less than this share of what generic functions of the laboratory
+# variables explain, and nothing beyond them, is a correlate of the missing term, not it
+GENERIC_SHARE = 0.5
 
 
 def f_test_p(rss0: float, rss1: float, df1: int, df2: int, inflation: float = 1.0) -> float:
@@ -224,22 +239,42 @@ def overlapping_batch_means(scores: np.ndarray, batch: int) -> np.ndarray:
 class Verdict:
     """A bigger model against a smaller one: ``p_value`` (calibration rows' F test),
     ``delta_bic``, ``p_validation`` (the offset-immune block test), ``p_combined`` (Fisher's
-    of the two) and ``significant`` (the rule's decision)."""
+    of the two), the relevance figures ``explained_fraction`` and ``gap_closed``, and
+    ``routes``: the rule's routes to a claim that hold ("calibration", "validation"; empty:
+    not significant)."""
     p_value: float
     delta_bic: float
     p_validation: float
     p_combined: float
-    significant: bool
+    explained_fraction: float
+    gap_closed: float
+    routes: tuple
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.routes)
 
 
 @dataclass(frozen=True)
 class DecisionRule:
-    """The rule: a bigger model is shown by the data when its calibration F test gives
-    p < ``alpha`` and the BIC falls, or when the calibration and validation tests combined
-    (Fisher) give p < ``alpha``. ``validation_blocks``: time blocks per session of
-    validation readings."""
+    """The rule (module docstring): a bigger model is shown by the data when its calibration F
+    test gives p < ``alpha``, the BIC falls and the claim is relevant (explains
+    ``min_explained`` of the validation residual's power or closes ``gap_closed`` of the gap
+    to the achievable floor, the model not within ``at_floor`` of it), or when the
+    calibration and validation tests combined (Fisher) give p < ``alpha`` and it closes
+    ``gap_closed`` of the gap. ``validation_blocks``: time blocks per session of validation
+    readings. ``absorbed`` and ``generic_share``: the diagnosis' reading of a candidate
+    (calibration/diagnosis/diagnose.py): absorbed by the model where that share of its
+    signature lies in the model's span; a correlate of the missing term where it explains less
+    than ``generic_share`` of what generic functions of the laboratory variables explain and
+    nothing beyond them."""
     alpha: float = ALPHA
     validation_blocks: int = VALIDATION_BLOCKS
+    min_explained: float = MIN_EXPLAINED
+    gap_closed: float = GAP_CLOSED
+    at_floor: float = AT_FLOOR
+    absorbed: float = ABSORBED
+    generic_share: float = GENERIC_SHARE
 
     def __post_init__(self):
         if not 0 < self.alpha < 1:
@@ -247,23 +282,50 @@ class DecisionRule:
         if self.validation_blocks < 2:
             raise ValueError(f"DecisionRule: validation_blocks = {self.validation_blocks}: "
                              "at least 2")
+        for name in ("min_explained", "gap_closed", "absorbed", "generic_share"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"DecisionRule: {name} = {getattr(self, name)}: a share, "
+                                 "between 0 and 1")
+        if not self.at_floor >= 1:
+            raise ValueError(f"DecisionRule: at_floor = {self.at_floor}: a factor, at least 1")
 
     def f_critical(self, df1: int, df2: int) -> float:
         """The F statistic the calibration test needs (at ``alpha``)."""
         return float(special.fdtri(max(df1, 1), df2, 1.0 - self.alpha))
 
+    def is_at_floor(self, err90_nm: float, floor_nm: float | None) -> bool | None:
+        """Whether a validation error 90 % ``err90_nm`` is within ``at_floor`` of the floor
+        ``floor_nm`` (None without a floor)."""
+        return bool(err90_nm <= self.at_floor * floor_nm) if floor_nm else None
+
+    def routes(self, p_value: float, delta_bic: float, p_combined: float, explained: float,
+               gap_closed: float, at_floor: bool) -> tuple:
+        """The routes to a claim that hold (class docstring), given the tests' figures and
+        the relevance figures: ``explained`` (share of the validation power), ``gap_closed``
+        (share of the gap to the floor; 0 without a floor) and ``at_floor`` (the smaller
+        model within ``at_floor`` of the floor)."""
+        relevant = (explained >= self.min_explained or gap_closed >= self.gap_closed)
+        out = []
+        if p_value < self.alpha and delta_bic < 0 and relevant and not at_floor:
+            out.append("calibration")
+        if gap_closed >= self.gap_closed and p_combined < self.alpha:
+            out.append("validation")
+        return tuple(out)
+
     def decide(self, rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndarray,
                after: np.ndarray, group: np.ndarray, val: np.ndarray,
                inflation: float = 1.0, session: np.ndarray | None = None,
-               t_s: np.ndarray | None = None) -> Verdict:
+               t_s: np.ndarray | None = None, explained: float = 0.0,
+               gap_closed: float = 0.0, at_floor: bool = False) -> Verdict:
         """The verdict on ``k`` added directions: calibration sums of squares ``rss0`` /
         ``rss1`` (m^2) over ``n`` readings with ``df2`` residual degrees of freedom and the
         serial ``inflation``; the validation residuals ``before`` / ``after`` (N,3) with their
         (session, axis) ``group`` (N,3) on the rows ``val`` (N,), with the rows' ``session``
-        and times ``t_s`` (s) (N,) that cut them into blocks."""
+        and times ``t_s`` (s) (N,) that cut them into blocks; the relevance figures as
+        ``routes`` takes them."""
         p_cal = f_test_p(rss0, rss1, k, df2, inflation)
         d_bic = float(bic_change(n, rss0, rss1, k)) if n else 0.0
         p_val = validation_p(before, after, group, val, session, t_s, self.validation_blocks)
         p_comb = fisher_p(p_cal, p_val)
-        significant = (p_cal < self.alpha and d_bic < 0) or p_comb < self.alpha
-        return Verdict(p_cal, d_bic, p_val, p_comb, bool(significant))
+        return Verdict(p_cal, d_bic, p_val, p_comb, float(explained), float(gap_closed),
+                       self.routes(p_cal, d_bic, p_comb, explained, gap_closed, at_floor))

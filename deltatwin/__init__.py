@@ -60,6 +60,7 @@ _API = {
     "diagnose": "deltatwin.calibration.diagnosis.diagnose",
     "ranking_table": "deltatwin.calibration.diagnosis.diagnose",
     "effect_ladder": "deltatwin.calibration.diagnosis.diagnose",
+    "DecisionRule": "deltatwin.calibration.stats",
     # the report
     "write_recording": "deltatwin.view",
 }

@@ -33,10 +33,15 @@ from scipy import stats
 
 from deltatwin.calibration.design.budget import zero_centred
 from deltatwin.calibration.design.sweep import case_scenario
-from deltatwin.calibration.diagnosis.diagnose import MIN_EXPLAINED
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.model import PhysicsModel, projected
-from deltatwin.calibration.stats import ALPHA, DecisionRule, bic_change, f_at_zero_bic
+from deltatwin.calibration.stats import (
+    ALPHA,
+    MIN_EXPLAINED,
+    DecisionRule,
+    bic_change,
+    f_at_zero_bic,
+)
 
 
 def linearised_power(fit: PhysicsFit, effect: str, true_values: dict | None, sigma_m: float,

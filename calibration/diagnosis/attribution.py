@@ -46,6 +46,7 @@ from scipy import optimize, special
 
 from deltatwin.calibration.blackbox.features import causal_derivatives
 from deltatwin.calibration.physics.measurements import move_directions
+from deltatwin.calibration.stats import ALPHA
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import KinematicsError, forward
 from deltatwin.models.params import load_params
@@ -53,8 +54,9 @@ from deltatwin.twin.instruments.optics import AC_CHANNELS, AXES
 
 log = logging.getLogger(__name__)
 
-ALPHA = 1e-3          # significance of an added family (before Bonferroni)
-MIN_SHARE = 0.02      # an added family explains at least this share of the validation power
+# an added family is significant at the rule's alpha (before Bonferroni) and explains at least
+# this share of the validation power (the missing term's form, term_form.py, selects so too)
+MIN_SHARE = 0.02
 MAX_TERMS = 8
 OVERSAMPLING = 3      # periodogram frequencies per 1 / range
 SCANNED = {"sine": 1, "step": 1}   # parameters chosen by a scan (period, step time)

@@ -34,12 +34,13 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolated_variables,
     extrapolation_message,
 )
-from deltatwin.calibration.diagnosis.floor import AT_FLOOR, floor_of
+from deltatwin.calibration.diagnosis.floor import floor_of
 from deltatwin.calibration.errors import CalibrationInputError
 from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
 from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, residuals
 from deltatwin.calibration.physics.model_file import load_fitted
 from deltatwin.calibration.physics.readings import session_zeros
+from deltatwin.calibration.stats import AT_FLOOR
 from deltatwin.calibration.streams import DEFAULT_WINDOW_S
 from deltatwin.models.geometry import build_geometry
 from deltatwin.models.kinematics import forward

@@ -37,6 +37,7 @@ researcher's own effect (docs/effects.md).
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -60,7 +61,7 @@ from deltatwin.calibration.diagnosis.conditions import (
     extrapolated_variables,
     extrapolation_message,
 )
-from deltatwin.calibration.diagnosis.floor import AT_FLOOR, LADDER_EVALUATIONS, floor_of
+from deltatwin.calibration.diagnosis.floor import LADDER_EVALUATIONS, floor_of
 from deltatwin.calibration.diagnosis.model_form import (
     JointFrame,
     ModelSpan,
@@ -85,7 +86,7 @@ from deltatwin.calibration.physics.model import (
     projected,
     residuals,
 )
-from deltatwin.calibration.stats import ALPHA, DecisionRule, f_test_p, serial_inflation
+from deltatwin.calibration.stats import DecisionRule, f_test_p, serial_inflation
 from deltatwin.models.batched import in_background
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.effects import LIBRARY, EffectError
@@ -101,12 +102,6 @@ from deltatwin.twin.lab_setup import (
 # what a candidate the model cannot take on raises (a pose out of reach, an impossible value):
 # its row of the ranking says so, the others are still ranked
 CANDIDATE_ERRORS = (CalibrationInputError, EffectError, KinematicsError, np.linalg.LinAlgError)
-MIN_EXPLAINED = 0.1
-ABSORBED = 0.9   # a candidate whose signature lies this much in the model's span is absorbed
-GAP_CLOSED = 0.5   # or a candidate closes half the gap between the model and the floor
-# a candidate explaining less than this share of what generic functions of the laboratory
-# variables explain, and nothing beyond them, is a correlate of the missing term, not it
-GENERIC_SHARE = 0.5
 # candidates judged again refitted per diagnosis (_refitted: each a fit of the ladder's budget)
 REFITTED_AT_MOST = 2
 # a candidate's verdict when what its determined directions leave of its start is held off
@@ -166,7 +161,8 @@ def _responses(fit: PhysicsFit, names: list, spans: bool) -> tuple[dict, dict]:
 
 def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: np.ndarray,
                e0: np.ndarray, n: int, k_m: int, before: np.ndarray, floor_all_nm: float | None,
-               generic: tuple[np.ndarray, float] | None, JS: np.ndarray, effect_spans: dict):
+               generic: tuple[np.ndarray, float] | None, JS: np.ndarray, effect_spans: dict,
+               rule: DecisionRule):
     """One candidate's row of the ranking. ``response``: its ``_response`` (or the error that
     stopped it, raised here); ``JS``: the model's identified directions on every row
     (N,3,k_m), ``effect_spans``: ``_effect_spans(fit)``; both the same for every candidate;
@@ -198,13 +194,14 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
     # the candidate at its start and, where what its determined directions leave of the start
     # matters (``_held_at``), switched off along it: the verdict of the two that is
     # significant (the lower BIC if both or neither) is the candidate's; two tries of one
-    # candidate are two chances at significance, so each is tested at ALPHA / 2 (Bonferroni)
+    # candidate are two chances at significance, so each is tested at alpha / 2 (Bonferroni)
     held = _held_at(fit, X, projected(meas, cal, delta0))
     tried = [(held, r, delta0)]
     if held:
         tried.append(("off", r + projected(meas, cal, delta0), 0.0 * delta0))
+    each = dataclasses.replace(rule, alpha=rule.alpha / len(tried))
     verdicts = [_refit_verdict(fit, X, full, h, r_h, d_h, e0, n, k_m, k_c, before,
-                               floor_all_nm, Jm, generic, ALPHA / len(tried))
+                               floor_all_nm, Jm, generic, each)
                 for h, r_h, d_h in tried]
     held, verdict, after, coef = min(verdicts, key=lambda v: (not v[1]["significant"],
                                                               v[1]["delta_bic"]))
@@ -222,7 +219,8 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
             "held_at": held, "p_value": verdict["p_value"],
             "delta_bic": verdict["delta_bic"], "gap_closed": verdict["gap_closed"],
             "p_validation": verdict["p_validation"], "p_combined": verdict["p_combined"],
-            "significant": verdict["significant"], "alpha": ALPHA / len(tried),
+            "significant": verdict["significant"], "alpha": each.alpha,
+            "decided_by": verdict["routes"][0] if verdict["routes"] else "",
             # whether the validation rows confirm either try (Bonferroni over the tries): the
             # row's own verdict is the lower BIC's, which may be the other
             "p_validation_any": min(1.0, len(tried) * min(v[1]["p_validation"]
@@ -235,11 +233,11 @@ def _candidate(fit: PhysicsFit, name: str, response: tuple, Jm: np.ndarray, Qm: 
 def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
                    r: np.ndarray, delta0: np.ndarray, e0: np.ndarray, n: int, k_m: int, k_c: int,
                    before: np.ndarray, floor_all_nm: float | None, Jm: np.ndarray,
-                   generic: tuple | None, alpha: float = ALPHA):
+                   generic: tuple | None, rule: DecisionRule):
     """A candidate's verdict with its change at ``delta0`` (N,3) and its determined directions
     and the model's (``X`` on the calibration readings, ``full`` on every row) refitted to
     ``r`` (the calibration residual with ``delta0`` on), against the model's ``e0`` (its
-    residual after its own directions' step), significant at ``alpha``: (held, verdict,
+    residual after its own directions' step), by the ``rule``: (held, verdict,
     residual after, the coefficients of ``X``'s columns)."""
     meas = fit.measurements_
     coef = np.linalg.lstsq(X, r, rcond=None)[0] if X.shape[1] else np.zeros(0)
@@ -248,19 +246,20 @@ def _refit_verdict(fit: PhysicsFit, X: np.ndarray, full: list, held: str | None,
     after = _val_after(meas, fit, change)
     verdict = _verdict(meas, float(e0 @ e0), float(e1 @ e1), k_c, n,
                        meas.residual_dof(n, k_m + k_c), before, after,
-                       floor_all_nm, alpha, _serial_inflation(meas, e0 - e1, e1))
+                       floor_all_nm, rule, _serial_inflation(meas, e0 - e1, e1))
     if generic is not None:
         verdict.update(_beyond_generic(meas, r, X[:, k_m:], Jm, generic, k_c, n,
-                                       verdict["explained_fraction"]))
+                                       verdict["explained_fraction"], rule))
         # only a candidate that would be claimed can be a correlate of the missing term, and
-        # not one the validation rows confirm closing GAP_CLOSED of the gap to the floor: a
+        # not one the validation rows confirm closing gap_closed of the gap to the floor: a
         # correlate does not bring the model halfway to what the complete model reaches; with
         # two effects missing the generic terms hold both, and each alone explains less than
-        # GENERIC_SHARE of them (air refraction at 10x beside loop drift: 18 % against 44 %,
+        # generic_share of them (air refraction at 10x beside loop drift: 18 % against 44 %,
         # closing 66 % of the gap, validation p = 8e-8)
-        confirmed = verdict["gap_closed"] >= GAP_CLOSED and verdict["p_combined"] < alpha
+        confirmed = "validation" in verdict["routes"]
         verdict["matched_by_generic"] &= verdict["significant"] and not confirmed
-        verdict["significant"] &= not verdict["matched_by_generic"]
+        if verdict["matched_by_generic"]:
+            verdict["significant"], verdict["routes"] = False, ()
     return held, verdict, after, coef
 
 
@@ -312,7 +311,7 @@ def _held_at(fit: PhysicsFit, X: np.ndarray, d0: np.ndarray) -> str | None:
     refraction was then claimed on null cases), so it is held at one of its two natural
     values, the start or the effect off, each tried (the caller keeps the significant
     verdict, else the lower BIC: a force plan's calibration grid rejected loop drift's start
-    that the validation rows confirmed, p_combined < ALPHA): no direction is added. Returns
+    that the validation rows confirmed, p_combined < alpha): no direction is added. Returns
     "start" or None when the start lies within the columns' span (both are the same)."""
     if not np.any(d0):
         return None
@@ -344,17 +343,17 @@ def _generic(Jm: np.ndarray, G: np.ndarray, explained: float, r0: np.ndarray,
 
 
 def _beyond_generic(meas, r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic: tuple,
-                    k_c: int, n: int, explained: float) -> dict:
+                    k_c: int, n: int, explained: float, rule: DecisionRule) -> dict:
     """Whether a candidate's improvement is matched by generic functions of the laboratory
     variables (the missing term's sparse form, term_form.py): ``generic`` as ``_generic``
     makes it, on the calibration readings, session means out; ``r`` the residual with the
     candidate on at its starting values and ``Xc`` its own new directions. The candidate adds
     something beyond the generic terms when its directions (or its fixed change) still lower the calibration
-    residual significantly (F test, p < ALPHA, its statistic divided by the rows'
+    residual significantly (F test, p < the ``rule``'s alpha, its statistic divided by the rows'
     serial-correlation factor as the calibration test's, ``_serial_inflation`` on ``meas``'
     (session, axis) groups) with the model's directions and the generic terms already fitted.
     It is *matched* when it does not and it explains less than
-    GENERIC_SHARE of what the generic terms explain of the validation residual (at most the
+    the rule's generic_share of what the generic terms explain of the validation residual (at most the
     share above the floor, ``_above_floor_share``): the residual's
     structure is then not this effect's signature; its directions merely correlate with a term
     the library does not hold (a force outside the library tilts the platform, and the Abbe
@@ -375,8 +374,8 @@ def _beyond_generic(meas, r: np.ndarray, Xc: np.ndarray, Jm: np.ndarray, generic
     # independent rows)
     inflation = _serial_inflation(meas, e_g - e_gc, e_gc)
     out["p_beyond_generic"] = f_test_p(rss_g, rss_gc, df1, df2, inflation)
-    out["matched_by_generic"] = bool(out["p_beyond_generic"] >= ALPHA
-                                     and explained < GENERIC_SHARE
+    out["matched_by_generic"] = bool(out["p_beyond_generic"] >= rule.alpha
+                                     and explained < rule.generic_share
                                      * min(generic_explained, above_floor))
     return out
 
@@ -391,7 +390,7 @@ def _refit(fit: PhysicsFit, effects: list) -> PhysicsFit:
 
 
 def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | None,
-              reference) -> None:
+              reference, rule: DecisionRule) -> None:
     """A candidate judged again on the model refitted with it (from the model's fitted values,
     the laboratory's constants, the ladder's budget), where its linearisation at the model's
     fit is a poor guide: the model's own parameters took part of the missing effect's place.
@@ -399,11 +398,11 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
     ranking row, changed in place; the caller decides):
 
     * matched by the generic terms (significant but for that): what its linearisation
-      explains of the validation residual fell short of ``needed`` (GENERIC_SHARE of what the
+      explains of the validation residual fell short of ``needed`` (generic_share of what the
       generic terms explain above the floor; a thermal case hiding loop drift at the library's
       strength: 13 % linearised, 59 % refitted, the generic terms 80 %, 59 % above the floor);
     * not significant, though the validation rows confirm its linearised change
-      (``p_validation_any`` < ALPHA: either of its tries, held at its start or off), whatever
+      (``p_validation_any`` < alpha: either of its tries, held at its start or off), whatever
       share of the gap to the floor the change of its verdict closes (a force case hiding
       loop drift x1, seed 2222 case001: 20 % of the gap linearised, p_validation 2e-57;
       refitted it determines no direction beyond the model's, so it is not named; one hiding
@@ -412,18 +411,18 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
       held off, combined 0.009; refitted it closes 93 % of the gap, combined p = 8e-6).
 
     The refit's verdict is ``_verdict`` on the refit itself (the calibration residual sums of
-    squares before and after, the new identified directions, the serial factor, the
-    validation residuals): the candidate is significant when that verdict is and it explains
-    ``needed`` or more, or closes GAP_CLOSED of the gap with the calibration and validation
-    tests combined below ALPHA (a correlate of a term outside the library stays a correlate
-    refitted). The refit is compared with ``reference()``, the model refitted alone in the
-    same way (``fit`` itself when converged): an unconverged model gains from the budget alone
-    (a control stopped at 4 evaluations: calibration p = 7e-128 without any candidate). A
-    refit that determines no direction beyond the reference's, or leaves the calibration rows
-    no better, is not judged again (the validation rows alone would name it). Recorded as
-    ``refit_explained_fraction``, ``refit_gap_closed``, ``refit_p_value``,
-    ``refit_p_combined``, ``refit_delta_bic``; a refit that fails leaves the row as it was,
-    its error in ``refit_failed``."""
+    squares before and after, the new identified directions, the serial factor, the validation
+    residuals): the candidate is significant when that verdict is and it explains ``needed`` or
+    more, or closes gap_closed of the gap with the calibration and validation tests combined
+    below alpha (the ``rule``'s validation route; a correlate of a term outside the library
+    stays a correlate refitted). The refit is compared with ``reference()``, the model refitted
+    alone in the same way (``fit`` itself when converged): an unconverged model gains from the
+    budget alone (a control stopped at 4 evaluations: calibration p = 7e-128 without any
+    candidate). A refit that determines no direction beyond the reference's, or leaves the
+    calibration rows no better, is not judged again (the validation rows alone would name it).
+    Recorded as ``refit_explained_fraction``, ``refit_gap_closed``, ``refit_p_value``,
+    ``refit_p_combined``, ``refit_delta_bic``; a refit that fails leaves the row as it was, its
+    error in ``refit_failed``."""
     meas = fit.measurements_
     try:
         base = reference()
@@ -443,15 +442,15 @@ def _refitted(fit: PhysicsFit, row: dict, needed: float, floor_all_nm: float | N
         return
     v = _verdict(meas, rss0, rss1, k, r0.size,
                  meas.residual_dof(r0.size, k_refit), base.residual_, refit.residual_,
-                 floor_all_nm, ALPHA, _serial_inflation(meas, r0 - r1, r1))
+                 floor_all_nm, rule, _serial_inflation(meas, r0 - r1, r1))
     row.update({"refit_explained_fraction": v["explained_fraction"],
                 "refit_val_err90_after_nm": figures_nm(refit.residual_, meas.val)["all"][
                     "err_p90"],
                 "refit_gap_closed": v["gap_closed"], "refit_p_value": v["p_value"],
                 "refit_p_combined": v["p_combined"], "refit_delta_bic": v["delta_bic"]})
-    confirmed = v["gap_closed"] >= GAP_CLOSED and v["p_combined"] < ALPHA
-    if v["significant"] and (v["explained_fraction"] >= needed or confirmed):
-        row["matched_by_generic"], row["significant"] = False, True
+    if "validation" in v["routes"] or ("calibration" in v["routes"]
+                                        and v["explained_fraction"] >= needed):
+        row["matched_by_generic"], row["significant"], row["decided_by"] = False, True, "refit"
 
 
 def _above_floor_share(err90_nm: float, floor_nm: float | None) -> float:
@@ -506,7 +505,7 @@ def _absorbed(Qm: np.ndarray, Pc: np.ndarray, change0: np.ndarray, effect_spans:
     return {"absorbed_fraction": fraction, "absorbed_by": by, "signature_nm": signature_nm}
 
 
-def _in_words(c: dict, effects: list) -> str:
+def _in_words(c: dict, effects: list, rule: DecisionRule) -> str:
     """A candidate's verdict in words: significant, absorbed by the model, failed, or not
     significant."""
     if "failed" in c:
@@ -528,13 +527,14 @@ def _in_words(c: dict, effects: list) -> str:
                 f"{100 * c['refit_gap_closed']:.0f} % of the gap to the floor; calibration p = "
                 f"{c['refit_p_value']:.2g}, with validation p = {c['refit_p_combined']:.2g})"
                 + (": the calibration rows alone barely vary what it depends on"
-                   if c["refit_p_value"] >= ALPHA or c["refit_delta_bic"] >= 0 else "")
+                   if c["refit_p_value"] >= rule.alpha or c["refit_delta_bic"] >= 0 else "")
                 + HELD_OFF * (c.get("held_at") == "off") + _sized_words(c))
-    if c["significant"] and (c["p_value"] >= ALPHA or c["delta_bic"] >= 0):
+    if c["significant"] and c.get("decided_by") == "validation":
         return (f"{c['effect']}: significant on the validation rows, closes "
                 f"{100 * c['gap_closed']:.0f} % of the gap to the floor (calibration p = "
-                f"{c['p_value']:.2g}, with validation p = {c['p_combined']:.2g}): the "
-                "calibration rows alone barely vary what it depends on"
+                f"{c['p_value']:.2g}, with validation p = {c['p_combined']:.2g})"
+                + (": the calibration rows alone barely vary what it depends on"
+                   if c["p_value"] >= c["alpha"] or c["delta_bic"] >= 0 else "")
                 + HELD_OFF * (c.get("held_at") == "off") + _sized_words(c))
     if c["significant"]:
         return (f"{c['effect']}: significant, explains {100 * c['explained_fraction']:.0f} % of "
@@ -547,7 +547,7 @@ def _in_words(c: dict, effects: list) -> str:
                 f"{c['p_validation_any']:.2g}), but {c['refit_rejected']}: the calibration "
                 "campaign cannot determine it (calibration points interleaved with the "
                 "validation ones, or a calibration that moves what it depends on, would)")
-    if c["absorbed_fraction"] >= ABSORBED:
+    if c["absorbed_fraction"] >= rule.absorbed:
         return (f"{c['effect']}: {100 * c['absorbed_fraction']:.0f} % of its signature is "
                 f"absorbed by {c['absorbed_by'] or '+'.join(effects)} on this campaign: its "
                 "presence can be neither shown nor excluded here (a campaign that moves what "
@@ -556,18 +556,17 @@ def _in_words(c: dict, effects: list) -> str:
 
 
 def _verdict(meas, rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndarray,
-             after: np.ndarray, floor_all_nm: float | None = None, alpha: float = ALPHA,
+             after: np.ndarray, floor_all_nm: float | None, rule: DecisionRule,
              inflation: float = 1.0) -> dict:
-    """Whether ``k`` added directions explain the residual, by the rule (calibration/stats.py,
-    ``DecisionRule`` at ``alpha``): the nested F test and the BIC change on the calibration
-    residual sums of squares (``n`` readings, ``df2`` residual degrees of freedom, the serial
-    ``inflation``), the offset-immune block test on the validation residual before / after
-    (``before``, ``after`` (N,3) on ``meas``' validation rows) and Fisher's combination of the
-    two. Beside it, the explained fraction of the validation residual's power and the fraction
-    of the gap between the validation error 90 % and the floor (``floor_all_nm``) that the
-    candidate closes. A calibration-only claim must also be useful (explain MIN_EXPLAINED of
-    the validation residual or close GAP_CLOSED of the gap, the model not already within
-    AT_FLOOR of the floor); a claim through the combined test must close GAP_CLOSED of the gap."""
+    """Whether ``k`` added directions explain the residual, by the ``rule``
+    (calibration/stats.py ``DecisionRule``): the nested F test and the BIC change on the
+    calibration residual sums of squares (``n`` readings, ``df2`` residual degrees of freedom,
+    the serial ``inflation``), the offset-immune block test on the validation residual before /
+    after (``before``, ``after`` (N,3) on ``meas``' validation rows), Fisher's combination of
+    the two, and the relevance figures the rule weighs with them: the explained fraction of the
+    validation residual's power and the fraction of the gap between the validation error 90 %
+    and the floor (``floor_all_nm``) that the change closes (0 with the model at the floor:
+    what a candidate explains there is the floor's own error)."""
     rows = meas.val[:, None] & np.isfinite(before)
     p_before, p_after = float(np.sum(before[rows] ** 2)), float(np.sum(after[rows] ** 2))
     explained = 1.0 - p_after / p_before if p_before > 0 else 0.0
@@ -575,20 +574,15 @@ def _verdict(meas, rss0: float, rss1: float, k: int, n: int, df2: int, before: n
     if floor_all_nm and rows.any():
         e_before = figures_nm(before, meas.val)["all"]["err_p90"]
         e_after = figures_nm(after, meas.val)["all"]["err_p90"]
-        at_floor = e_before <= AT_FLOOR * floor_all_nm
+        at_floor = rule.is_at_floor(e_before, floor_all_nm)
         if not at_floor:
             gap_closed = (e_before - e_after) / (e_before - floor_all_nm)
-    v = DecisionRule(alpha).decide(rss0, rss1, k, n, df2, before, after, meas.group, meas.val,
-                                   inflation, meas.df["session"].to_numpy(),
-                                   meas.df["t_s"].to_numpy())
-    # a model within AT_FLOOR of the floor has nothing left a library effect could add: what a
-    # candidate explains there is the floor's own error
-    useful = (explained >= MIN_EXPLAINED or gap_closed >= GAP_CLOSED) and not at_floor
-    by_calibration = v.p_value < alpha and v.delta_bic < 0 and useful
-    by_both = gap_closed >= GAP_CLOSED and v.p_combined < alpha
+    v = rule.decide(rss0, rss1, k, n, df2, before, after, meas.group, meas.val, inflation,
+                    meas.df["session"].to_numpy(), meas.df["t_s"].to_numpy(),
+                    explained=explained, gap_closed=gap_closed, at_floor=at_floor)
     return {"p_value": v.p_value, "delta_bic": v.delta_bic, "explained_fraction": explained,
             "gap_closed": gap_closed, "p_validation": v.p_validation,
-            "p_combined": v.p_combined, "significant": bool(by_calibration or by_both)}
+            "p_combined": v.p_combined, "significant": v.significant, "routes": v.routes}
 
 
 def _serial_inflation(meas, explained: np.ndarray, left: np.ndarray) -> float:
@@ -629,11 +623,13 @@ def residual_dependence(df: pd.DataFrame, res: np.ndarray, cal: np.ndarray, val:
 
 
 def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
-             variables: list | None = None) -> Diagnosis:
+             variables: list | None = None, rule: DecisionRule | None = None) -> Diagnosis:
     """Rank the library effects the fitted model lacks (see the module docstring): a
-    Diagnosis (calibration/diagnosis/results.py), its ranking Candidates.
+    Diagnosis (calibration/diagnosis/results.py), its ranking Candidates, judged by ``rule``
+    (calibration/stats.py; its defaults when None).
     ``variables``: ``laboratory_variables`` of the fit's data when already made (they depend
     on the data alone: `deltatwin diagnose` makes them beside the fit it keeps)."""
+    rule = rule or DecisionRule()
     meas = fit.measurements_
     cal = meas.cal
     k_m = fit.identifiability_["n_identified_directions"]
@@ -694,7 +690,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
             progress(name)
         try:
             ranking.append(_candidate(fit, name, responses[name], Jm, Qm, e0, n, k_m, before,
-                                      floor_all, generic, JS, effect_spans))
+                                      floor_all, generic, JS, effect_spans, rule))
         except CANDIDATE_ERRORS as exc:
             # a candidate the model cannot take on (a pose out of reach, an impossible value)
             # says so in its row; the others are still ranked
@@ -707,7 +703,7 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
                             "p_validation_any": math.nan,
                             "absorbed_fraction": math.nan,
                             "absorbed_by": None})
-    generic_needed = GENERIC_SHARE * min(generic_explained, generic[3])
+    generic_needed = rule.generic_share * min(generic_explained, generic[3])
 
     @functools.cache
     def reference() -> PhysicsFit:
@@ -715,13 +711,13 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
         # made once, when a candidate is refitted and the model is not converged
         return fit if fit.converged_ else _refit(fit, fit.effects)
 
-    above_floor = bool(floor_all) and fit.val_["all"]["err_p90"] > AT_FLOOR * floor_all
+    above_floor = rule.is_at_floor(fit.val_["all"]["err_p90"], floor_all) is False
     # the linearisation falls short where the validation rows say the effect is there; only
     # a candidate that adds directions the data determine: refitted, one without moves the
     # model along its own directions and its own undetermined ones, and what that changes is
     # the model's refit, not the candidate (a force case's gravity sag and air refraction, the
     # latter not hidden, each "closed 170 % of the gap" refitted with the calibration worse,
-    # p = 1). A candidate closing GAP_CLOSED of the gap linearised is no exception: its
+    # p = 1). A candidate closing gap_closed of the gap linearised is no exception: its
     # combined test used the try with the lower BIC, and the linearisation still falls short
     # (9292 case005's loop drift x3: 63 % linearised, combined p = 0.009; refitted 93 %, 8e-6).
     # Each refit is a fit of the ladder's budget: the REFITTED_AT_MOST with the
@@ -729,12 +725,12 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     again = sorted((c for c in ranking if c.get("new_directions", 0) >= 1 and (
         c.get("matched_by_generic") or (
             above_floor and "failed" not in c and not c["significant"]
-            and c["p_validation_any"] < ALPHA))),
+            and c["p_validation_any"] < rule.alpha))),
         key=lambda c: c["p_validation_any"])
     for c in again[:REFITTED_AT_MOST]:
-        _refitted(fit, c, generic_needed, floor_all, reference)
+        _refitted(fit, c, generic_needed, floor_all, reference, rule)
     for c in ranking:
-        c["verdict"] = _in_words(c, fit.effects)
+        c["verdict"] = _in_words(c, fit.effects, rule)
     ranking.sort(key=lambda c: (not c["significant"], "failed" in c,
                                 c.get("refit_delta_bic", c["delta_bic"]) if c["significant"]
                                 else -c["explained_fraction"]))
@@ -742,10 +738,10 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
     out = {"effects": fit.effects, "val_err90_nm": val_fig["all"]["err_p90"],
            "val_err90_by_axis_nm": {a: val_fig[a]["err_p90"] for a in AXES if a in val_fig},
            "ranking": ranking, "floor_nm": floor, "floor_kind": floor_kind,
-           "at_floor": (bool(val_fig["all"]["err_p90"] <= AT_FLOOR * floor_all)
-                        if floor_all else None),
+           "at_floor": rule.is_at_floor(val_fig["all"]["err_p90"], floor_all),
            "absorbed": [c["verdict"] for c in ranking
-                        if not c["significant"] and c.get("absorbed_fraction", 0) >= ABSORBED],
+                        if not c["significant"]
+                        and c.get("absorbed_fraction", 0) >= rule.absorbed],
            "failed_candidates": [c["verdict"] for c in ranking if "failed" in c],
            "fit_status": fit.status_}
     extrapolated = extrapolated_variables(meas.df)
@@ -779,16 +775,19 @@ def diagnose(fit: PhysicsFit, data: str = "DATA", progress=None,
 
 def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DATA",
                   max_added: int = 3, progress=None, known: dict | None = None, made=(),
-                  **fit_options):
+                  rule: DecisionRule | None = None, **fit_options):
     """The loop a researcher runs: fit the baseline, diagnose, add the significant effect the
     diagnosis names, refit, until none is significant (or ``max_added`` were added).
     ``known``: the laboratory's constants ({effect: {parameter: value}}), given to every fit
     and to the candidates of every diagnosis. ``made``: fits already made on these rows (the
     achievable floor's: the complete model from the library's starting values is also the
-    last rung's first start), reused instead of refitted (``fit_from_starts``). Each model
+    last rung's first start), reused instead of refitted (``fit_from_starts``). ``rule``:
+    what every diagnosis, pair and start choice judges by (calibration/stats.py; its defaults
+    when None). Each model
     is fitted from the priors and from the previous model's values, the baseline from the
     priors and from the baseline without each of its effects after the first; another start
-    than the priors is kept when it lowers the calibration cost beyond chance (ALPHA); a
+    than the priors is kept when it lowers the calibration cost beyond chance (the rule's
+    alpha); a
     model that added an effect is then fitted again from where it ended, in the directions
     identified there, if they leave a step (``fitted_again_where_it_ended``: kept when its
     calibration cost is lower; the baseline is not, its linearised candidates are judged
@@ -815,8 +814,8 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     library's CTEs: held at the library's values its refit predicted validation worse on five
     of twelve seeds, 1.13-1.26x the floor).
 
-    Where a diagnosis names no effect and the model is above AT_FLOOR times the achievable
-    floor, two effects may be added together as one rung (``_pair``: each too small alone,
+    Where a diagnosis names no effect and the model is above the rule's at_floor times the
+    achievable floor, two effects may be added together as one rung (``_pair``: each too small alone,
     significant together against the model and lowering the validation error); the
     diagnosis then names the first (``missing_effect``) and records the pair (``pair``, and
     every pair tried in ``pairs_tried``), the rung's ``added`` is "first + second".
@@ -826,6 +825,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
     achievable_floor_nm, fit_status, fit_start: the start its fit was kept from,
     fitted_again: whether ``fitted_again_where_it_ended`` replaced it}), the
     diagnosis of every model, and the fits."""
+    rule = rule or DecisionRule()
     noise = ((meta or {}).get("truth") or {}).get("noise_floor_nm")
     achievable = ((meta or {}).get("truth") or {}).get("achievable_floor_nm")
     fit_options.setdefault("max_evaluations", LADDER_EVALUATIONS)
@@ -874,7 +874,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                                        **fit_options)
                 starts[f"without {dropped}"] = {"start": merged(rung.model_.values(),
                                                                      known)}
-        fit = fit_from_starts(effects, starts, df, meta, made=made, chance_alpha=ALPHA,
+        fit = fit_from_starts(effects, starts, df, meta, made=made, chance_alpha=rule.alpha,
                               **fit_options)
         if fits:
             # a rung that added an effect: its fit chose its directions at its start, where
@@ -909,10 +909,10 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                        "added": None if round_ == 0 else effects[-1]})
         if progress:
             progress(f"diagnose {'+'.join(effects) or 'nominal robot'}")
-        d = diagnose(fit, data)
+        d = diagnose(fit, data, rule=rule)
         diagnoses.append(d)
         if d["missing_effect"] is None and round_ + 2 <= max_added:
-            pair = _pair(fit, d, df, meta, {"priors": {"start": known}}, made=made,
+            pair = _pair(fit, d, df, meta, {"priors": {"start": known}}, rule, made=made,
                          **fit_options)
             if pair is not None:
                 # the two effects are one rung: neither is claimed without the other
@@ -928,7 +928,7 @@ def effect_ladder(df: pd.DataFrame, meta: dict | None, baseline, data: str = "DA
                 ladder.append({**_rung(pair, noise, achievable),
                                "model": f"+ {' + '.join(effects[-2:])}",
                                "added": " + ".join(effects[-2:])})
-                d = diagnose(pair, data)
+                d = diagnose(pair, data, rule=rule)
                 diagnoses.append(d)
         if d["missing_effect"] is None or len(fits) - 1 >= max_added:
             break
@@ -962,7 +962,7 @@ def _rung(fit: PhysicsFit, noise: float | None, achievable) -> dict:
 
 
 def _pair(fit: PhysicsFit, diagnosis: dict, df: pd.DataFrame, meta: dict | None, starts: dict,
-          made=(), **fit_options):
+          rule: DecisionRule, made=(), **fit_options):
     """Two effects the ladder adds together where its diagnosis names none (``effect_ladder``),
     or None. Missing effects can each be too small alone and reach the floor together: a
     thermal case hiding loop drift and air refraction at a third of the library's strength
@@ -971,7 +971,7 @@ def _pair(fit: PhysicsFit, diagnosis: dict, df: pd.DataFrame, meta: dict | None,
     the calibration worse, the two refitted together reach 9.47 nm; a force case hiding
     magnetic force at a third with air refraction and loop drift (seed 3636 case001, 110.8 nm
     against 97.0): magnetic force explains 8 % (calibration p = 2e-121), loop drift 5 %
-    (p = 0.3), the two refitted together 97.2 nm. With the model above AT_FLOOR times the
+    (p = 0.3), the two refitted together 97.2 nm. With the model above at_floor times the
     achievable floor, the candidate the calibration rows see most clearly among those not
     significant that add a direction the data determine (the fit's rule, ``new_directions``;
     lowest calibration p) is refitted with each
@@ -979,7 +979,8 @@ def _pair(fit: PhysicsFit, diagnosis: dict, df: pd.DataFrame, meta: dict | None,
     (``fit_from_starts``, then ``fitted_again_where_it_ended``): the pairs are judged
     against ``fit`` by one verdict each (``_joint_verdict``: the nested F test with the serial
     factor on the new identified directions, the BIC, the explained fraction or the gap to
-    the floor closed), at ALPHA over the number of pairs (Bonferroni); the significant pair of
+    the floor closed), by ``rule`` at its alpha over the number of pairs (Bonferroni); the
+    significant pair of
     lowest BIC is returned when it also lowers the validation error (the ladder's rule), its
     verdict in ``diagnosis["pair"]``."""
     if diagnosis.get("at_floor") is not False:
@@ -998,8 +999,9 @@ def _pair(fit: PhysicsFit, diagnosis: dict, df: pd.DataFrame, meta: dict | None,
     for other in others:
         pair = fitted_again_where_it_ended(fit_from_starts(
             fit.effects + [first, other], starts, df, meta, made=made,
-            chance_alpha=ALPHA, **fit_options))
-        tried.append((_joint_verdict(fit, pair, ALPHA / len(others)), pair))
+            chance_alpha=rule.alpha, **fit_options))
+        each = dataclasses.replace(rule, alpha=rule.alpha / len(others))
+        tried.append((_joint_verdict(fit, pair, each), pair))
     diagnosis["pairs_tried"] = [{"effects": p.effects[-2:], **v} for v, p in tried]
     best = [(v, p) for v, p in tried if v["significant"]
             and p.val_["all"]["err_p90"] < fit.val_["all"]["err_p90"]]
@@ -1010,9 +1012,9 @@ def _pair(fit: PhysicsFit, diagnosis: dict, df: pd.DataFrame, meta: dict | None,
     return pair
 
 
-def _joint_verdict(fit: PhysicsFit, pair: PhysicsFit, alpha: float) -> dict:
+def _joint_verdict(fit: PhysicsFit, pair: PhysicsFit, rule: DecisionRule) -> dict:
     """``_verdict`` of the model ``pair`` (``fit``'s model with two effects added, ``_pair``)
-    against ``fit`` on the same rows, at ``alpha``: the nested F test of the calibration
+    against ``fit`` on the same rows, by ``rule``: the nested F test of the calibration
     residuals on the new identified directions (the serial factor), the BIC, the validation
     residuals, the gap to the floor closed. Not significant when it identifies no new
     direction or leaves the calibration rows no better: as in ``_refitted``, the validation
@@ -1021,7 +1023,7 @@ def _joint_verdict(fit: PhysicsFit, pair: PhysicsFit, alpha: float) -> dict:
     was named with beam misalignment not hidden)."""
     floor, _ = floor_of(fit.meta_)
     floor_all = (floor.get("all") or max(floor[a] for a in AXES if a in floor)) if floor else None
-    verdict = nested_verdict(fit, pair, alpha, floor_all)
+    verdict = nested_verdict(fit, pair, rule, floor_all)
     better = verdict.pop("calibration_better")
     if verdict["new_directions"] < 1 or not better:
         return {"significant": False, "new_directions": verdict["new_directions"],
@@ -1029,15 +1031,16 @@ def _joint_verdict(fit: PhysicsFit, pair: PhysicsFit, alpha: float) -> dict:
     return verdict
 
 
-def nested_verdict(fit: PhysicsFit, other: PhysicsFit, alpha: float = ALPHA,
+def nested_verdict(fit: PhysicsFit, other: PhysicsFit, rule: DecisionRule | None = None,
                    floor_all_nm: float | None = None) -> dict:
     """``_verdict`` of the model ``other`` against ``fit``'s, both fitted on the same rows
     (``other`` with more effects): the nested F test of the calibration residual sums of
     squares (session means out) over the directions ``other`` identifies beyond ``fit``'s, with
     the rows' serial factor, the BIC, the validation residuals (and the gap to
-    ``floor_all_nm`` closed), at ``alpha``; with ``new_directions`` and ``calibration_better``
-    (``other`` leaves the calibration rows' sum of squares lower). Used by ``_joint_verdict``
-    and by benchmarks/discovery.py to ask whether a round's data show the complete model."""
+    ``floor_all_nm`` closed), by ``rule`` (its defaults when None); with ``new_directions``
+    and ``calibration_better`` (``other`` leaves the calibration rows' sum of squares lower).
+    Used by ``_joint_verdict`` and by benchmarks/discovery.py to ask whether a round's data
+    show the complete model."""
     meas = fit.measurements_
     # the calibration test on least squares' residuals (a fit corrected for the thermometers
     # leaves a larger sum of squares by design); the validation rows see the fitted models
@@ -1047,7 +1050,7 @@ def nested_verdict(fit: PhysicsFit, other: PhysicsFit, alpha: float = ALPHA,
     k1 = other.identifiability_["n_identified_directions"]
     k = k1 - fit.identifiability_["n_identified_directions"]
     return {**_verdict(meas, rss0, rss1, k, r0.size, meas.residual_dof(r0.size, k1),
-                       fit.residual_, other.residual_, floor_all_nm, alpha,
+                       fit.residual_, other.residual_, floor_all_nm, rule or DecisionRule(),
                        _serial_inflation(meas, r0 - r1, r1)),
             "new_directions": k, "calibration_better": rss1 < rss0}
 
@@ -1100,7 +1103,8 @@ def _rejected_refit(refit: PhysicsFit, previous: PhysicsFit, diagnosis: dict) ->
                            "that covers them would tell" if out_of_range else ""))}
 
 
-def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "DATA") -> dict:
+def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "DATA",
+                      rule: DecisionRule | None = None) -> dict:
     """The black-box view of a stepwise model (a DGM): which feature family of the calibration
     library its validation residual still correlates with.
 
@@ -1110,7 +1114,8 @@ def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "D
     and axis the residual (measurement minus model, zeros re-estimated on the calibration rows)
     is regressed on the family's terms over the calibration rows (session means removed); the
     pooled F test, the change of BIC and the explained fraction of the validation residual's
-    power decide as in ``diagnose`` (p < ALPHA, BIC falls, explains >= MIN_EXPLAINED). A family
+    power decide by ``rule`` as in ``diagnose`` (without a floor: p < alpha, the BIC falls,
+    explains at least min_explained). A family
     with terms in the model can still be significant: stepwise left some of its terms out.
     ``unexplained`` lists the recorded variables the residual depends on, as for a physics
     model."""
@@ -1162,7 +1167,7 @@ def diagnose_families(df: pd.DataFrame, meta: dict | None, model, data: str = "D
                 n += int(cal.sum()) - 1
                 after[rows, k] = res[rows, k] - ((X[rows] - Xbar) / scale) @ coef
         verdict = _verdict(meas, rss0, rss1, rank, n, max(n - rank - n_model_terms, 1), res,
-                           after)
+                           after, None, rule or DecisionRule())
         fig = figures_nm(after, meas.val)
         ranking.append({"family": fam.name, "n_terms": len(fam), "in_model": fam.name in in_model,
                         "val_err90_after_nm": fig["all"]["err_p90"], **verdict})

@@ -53,8 +53,6 @@ REMAINDER = "thermal_state_nm"   # what perfect instruments leave
 # shipped papers' scenarios and the hidden ones (tests/calibration/test_floor_budget.py)
 BUDGET_TOLERANCE = 0.25
 
-AT_FLOOR = 1.1   # a model within 1.1x the achievable floor is at the floor
-
 # the ladder's fits may evaluate this many points (PhysicsFit's default: 20): a model lacking an
 # effect is misspecified and slow to converge, and where a fit stops short its result depends
 # on its start's path (a force case's refit with magnetic force stopped at the limit at 126.7

@@ -43,6 +43,7 @@ from typing import NamedTuple
 import numpy as np
 
 from deltatwin.calibration.diagnosis.attribution import (
+    MIN_SHARE,
     Residual,
     Term,
     best_step,
@@ -51,20 +52,14 @@ from deltatwin.calibration.diagnosis.attribution import (
     scans,
     tail_sums,
 )
-from deltatwin.calibration.diagnosis.term_form import (
-    ALPHA,
-    MAX_TERMS,
-    MIN_SHARE,
-    Candidate,
-    candidate_library,
-)
+from deltatwin.calibration.diagnosis.term_form import MAX_TERMS, Candidate, candidate_library
 from deltatwin.calibration.physics.model import (
     PhysicsModel,
     as_slice,
     group_offsets,
     residuals,
 )
-from deltatwin.calibration.stats import f_test_p
+from deltatwin.calibration.stats import ALPHA, f_test_p
 from deltatwin.twin.effects import Effect, Parameter
 from deltatwin.twin.instruments.optics import AXES
 

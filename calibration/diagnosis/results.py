@@ -4,7 +4,6 @@ with ``--json`` (key by key as ``diagnose`` documents it), with the fields a res
 most as attributes, a ``to_json`` and a ``repr`` that says what was found."""
 from __future__ import annotations
 
-from deltatwin.calibration.stats import ALPHA
 from deltatwin.calibration.tables import strict_json
 
 
@@ -25,17 +24,13 @@ class Candidate(dict):
         return strict_json(self, **kwargs)
 
     def decided_by(self) -> str:
-        """What the row's verdict rests on: "refit" (the model refitted with the candidate:
-        significant through its refit's tests), "validation" (significant through the
-        calibration and validation tests combined), "calibration" (its calibration test),
-        or "" (not significant, or failed)."""
+        """What the row's verdict rests on, the rule's route (calibration/stats.py
+        ``DecisionRule.routes``): "refit" (the model refitted with the candidate: significant
+        through its refit's tests), "calibration" (its calibration test), "validation" (the
+        calibration and validation tests combined), or "" (not significant, or failed)."""
         if not self.get("significant") or "failed" in self:
             return ""
-        if "refit_explained_fraction" in self:
-            return "refit"
-        alpha = self.get("alpha", ALPHA)
-        return ("calibration" if self["p_value"] < alpha and self["delta_bic"] < 0
-                else "validation")
+        return self.get("decided_by", "")
 
     def table_figures(self) -> tuple[float, float, float, float]:
         """(explained fraction, validation error 90 % after (nm), calibration p, dBIC) of the
@@ -56,7 +51,7 @@ class Candidate(dict):
 class Diagnosis(dict):
     """``diagnose``'s result: ``effects`` (the model's), ``val_err90_nm`` (its validation
     error 90 %), ``ranking`` (Candidates, the significant first), ``missing_effect`` (the
-    effect named, or None), ``at_floor`` (within AT_FLOOR of the floor, or None without one),
+    effect named, or None), ``at_floor`` (within the rule's at_floor of the floor, or None without one),
     ``floor_nm`` and ``unexplained`` (what the residual depends on when no effect is named)."""
 
     def __init__(self, *args, **kwargs):

@@ -29,15 +29,15 @@ import pandas as pd
 from scipy import special
 
 from deltatwin.calibration.diagnosis.attribution import (
+    MIN_SHARE,
     Residual,
     Variable,
     laboratory_variables,
     scans,
 )
+from deltatwin.calibration.stats import ALPHA
 from deltatwin.twin.instruments.optics import AXES
 
-ALPHA = 1e-3
-MIN_SHARE = 0.02
 MAX_TERMS = 4
 
 # how a variable is printed: (display unit, SI per display unit, centred at its mean)

@@ -39,13 +39,10 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from deltatwin.calibration.diagnosis.diagnose import effect_ladder
-    from deltatwin.calibration.diagnosis.floor import (
-        AT_FLOOR,
-        budget_lines,
-        record_achievable_floor,
-    )
+    from deltatwin.calibration.diagnosis.floor import budget_lines, record_achievable_floor
     from deltatwin.calibration.diagnosis.report import tried_instead_line, write_report
     from deltatwin.calibration.physics.model_file import fitted_toml
+    from deltatwin.calibration.stats import AT_FLOOR
     from deltatwin.files import atomic_folder, atomic_write_text
     from deltatwin.twin.dataset import write_dataset
     from deltatwin.twin.scenario import Scenario, check_scale

@@ -512,9 +512,8 @@ def test_every_rows_verdict_follows_from_the_figures_the_table_prints(name):
     combined (p_combined < alpha, closes GAP_CLOSED), or by the refit's tests; and a row
     called not significant satisfies neither of the first two on its printed figures unless a
     refit or the generic terms judged it."""
-    from deltatwin.calibration.diagnosis.diagnose import AT_FLOOR, GAP_CLOSED, MIN_EXPLAINED
     from deltatwin.calibration.diagnosis.floor import record_achievable_floor
-    from deltatwin.calibration.stats import ALPHA
+    from deltatwin.calibration.stats import ALPHA, AT_FLOOR, GAP_CLOSED, MIN_EXPLAINED
     from deltatwin.twin.lab_setup import baseline_of, known_constants
 
     sc = Scenario.load(name)

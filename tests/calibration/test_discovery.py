@@ -16,11 +16,14 @@ from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.fit import PhysicsFit, fit_from_starts
 from deltatwin.calibration.physics.measurements import Measurements
 from deltatwin.calibration.physics.model import PhysicsModel
+from deltatwin.calibration.stats import ABSORBED, ALPHA, GAP_CLOSED, GENERIC_SHARE, DecisionRule
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.twin.cases import KNOWN, MODEL, Case, generate_cases
 from deltatwin.twin.lab_setup import merged
 from deltatwin.twin.scenario import Scenario
 from tests.calibration.series import ar1
+
+RULE = DecisionRule()   # the rule's defaults, as the diagnosis runs by default
 
 BASELINE = ["geometric_errors", "thermal_expansion", "sensor_contact"]
 
@@ -261,13 +264,13 @@ def test_a_candidate_the_calibration_rows_barely_see_is_claimed_when_validation_
     meas = _validation_rows(300)
     floor_nm = diagnosis.figures_nm(noise, val)["all"]["err_p90"]
     args = (3002.0, 2990.0, 2, 3000, 2990)
-    v = diagnosis._verdict(meas, *args, change + noise, noise, floor_nm)
+    v = diagnosis._verdict(meas, *args, change + noise, noise, floor_nm, RULE)
     assert 1e-3 < v["p_value"] < 1e-2 and v["delta_bic"] > 0
     assert v["gap_closed"] > 0.9 and v["p_combined"] < 1e-3 and v["significant"]
-    assert not diagnosis._verdict(meas, *args, change + noise, noise, None)["significant"]
-    at_floor = diagnosis._verdict(meas, *args, noise, noise - 0.1 * change, floor_nm)
+    assert not diagnosis._verdict(meas, *args, change + noise, noise, None, RULE)["significant"]
+    at_floor = diagnosis._verdict(meas, *args, noise, noise - 0.1 * change, floor_nm, RULE)
     assert at_floor["gap_closed"] == 0 and not at_floor["significant"]
-    useless = diagnosis._verdict(meas, *args, change + noise, change + noise, floor_nm)
+    useless = diagnosis._verdict(meas, *args, change + noise, change + noise, floor_nm, RULE)
     assert not useless["significant"]
 
 
@@ -284,10 +287,10 @@ def test_nothing_is_claimed_from_a_model_at_the_achievable_floor():
     meas = _validation_rows(300)
     floor_nm = diagnosis.figures_nm(noise, val)["all"]["err_p90"]
     args = (3100.0, 2990.0, 1, 3000, 2990)
-    free = diagnosis._verdict(meas, *args, change + noise, noise, None)
+    free = diagnosis._verdict(meas, *args, change + noise, noise, None, RULE)
     assert free["explained_fraction"] > 0.1 and free["p_value"] < 1e-6 and free["significant"]
     assert diagnosis.figures_nm(change + noise, val)["all"]["err_p90"] <= 1.1 * floor_nm
-    assert not diagnosis._verdict(meas, *args, change + noise, noise, floor_nm)["significant"]
+    assert not diagnosis._verdict(meas, *args, change + noise, noise, floor_nm, RULE)["significant"]
 
 
 def test_a_candidate_held_at_the_librarys_start_does_not_make_the_calibration_worse(tmp_path):
@@ -405,7 +408,7 @@ def test_a_rejected_effect_significant_held_off_is_refitted_held_off(monkeypatch
     ranking = [{"effect": "loop_drift", "significant": True, "held_at": held_at},
                {"effect": "magnetic_force", "significant": True, "held_at": None}]
     named = iter(["loop_drift", None])
-    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data: {
+    monkeypatch.setattr(diagnosis, "diagnose", lambda fit, data, **kw: {
         "missing_effect": next(named), "ranking": ranking, "extrapolation": {}})
     errors = iter([45.0, 69.0, 40.0])
     fitted = []
@@ -471,11 +474,11 @@ def test_a_candidate_is_compared_with_what_generic_terms_explain_above_the_floor
     assert diagnosis._above_floor_share(10.0, 10.84) == diagnosis._above_floor_share(10, None) == 1
     meas = _one_group(400)
     without = diagnosis._beyond_generic(meas, r, Xc, Jm, diagnosis._generic(Jm, G, 0.41, r, 1.0),
-                                        1, 400, 0.18)
-    assert without["p_beyond_generic"] >= diagnosis.ALPHA and without["matched_by_generic"]
+                                        1, 400, 0.18, RULE)
+    assert without["p_beyond_generic"] >= ALPHA and without["matched_by_generic"]
     with_floor = diagnosis._beyond_generic(meas, r, Xc, Jm,
                                            diagnosis._generic(Jm, G, 0.41, r, above), 1, 400,
-                                           0.18)
+                                           0.18, RULE)
     assert not with_floor["matched_by_generic"]
 
 
@@ -516,7 +519,7 @@ def test_a_candidate_matched_by_generic_terms_is_judged_again_refitted(tmp_path)
     meta, diagnoses, row = _loop_drift_x1(tmp_path, 6502, 4, "thermal", 0.02)
     above = diagnosis._above_floor_share(diagnoses[0]["val_err90_nm"],
                                          meta["truth"]["achievable_floor_nm"]["all"])
-    needed = diagnosis.GENERIC_SHARE * min(row["generic_explained_fraction"], above)
+    needed = GENERIC_SHARE * min(row["generic_explained_fraction"], above)
     assert row["explained_fraction"] < needed <= row["refit_explained_fraction"], row
     assert row["significant"] and not row["matched_by_generic"]
     assert diagnoses[0]["missing_effect"] == "loop_drift" and "refitted" in row["verdict"]
@@ -531,7 +534,7 @@ def test_a_refit_that_determines_nothing_new_is_not_named_on_the_validation_rows
     it replaced gave p = 2e-57), so nothing confirms it and it is not refitted. It is not
     named; its row says that most of its signature is absorbed by the model's geometry."""
     _, diagnoses, row = _loop_drift_x1(tmp_path, 2222, 1, "force", 0.3)
-    assert row["p_validation_any"] >= diagnosis.ALPHA and row["gap_closed"] < diagnosis.GAP_CLOSED
+    assert row["p_validation_any"] >= ALPHA and row["gap_closed"] < GAP_CLOSED
     assert "refit_p_combined" not in row
     assert not row["significant"] and "absorbed by geometric_errors" in row["verdict"], row
     assert not any(c["significant"] for c in diagnoses[0]["ranking"])
@@ -563,16 +566,16 @@ def test_the_test_beyond_generic_terms_holds_its_level_on_correlated_rows():
         G = rng.standard_normal((n, 2))
         generic = diagnosis._generic(Jm, G, 0.5, e - e.mean(), 1.0)
         p.append(diagnosis._beyond_generic(meas, e - e.mean(), (x - x.mean())[:, None], Jm,
-                                           generic, 1, n, 0.0)["p_beyond_generic"])
+                                           generic, 1, n, 0.0, RULE)["p_beyond_generic"])
     p = np.array(p)
-    assert np.mean(p < 0.01) <= 0.07 and np.mean(p < diagnosis.ALPHA) <= 0.03
+    assert np.mean(p < 0.01) <= 0.07 and np.mean(p < ALPHA) <= 0.03
     # the naive F test on these draws: below 0.01 in a third or more (the test above)
     x = ar1(rng, n, 0.95)
     r = x + 0.2 * rng.standard_normal(n)
     found = diagnosis._beyond_generic(meas, r - r.mean(), (x - x.mean())[:, None], Jm,
                                       diagnosis._generic(Jm, rng.standard_normal((n, 2)), 0.5,
                                                         r - r.mean(), 1.0),
-                                      1, n, 0.0)
+                                      1, n, 0.0, RULE)
     assert found["p_beyond_generic"] < 1e-6
 
 
@@ -669,7 +672,7 @@ def test_an_absorbed_effect_far_beyond_its_typical_size_is_named_and_refitted(tm
         assert all(d["missing_effect"] is None for d in diagnoses), diagnoses[0]["ranking"]
         return
     row = next(c for c in diagnoses[0]["ranking"] if c["effect"] == "beam_misalignment")
-    assert row["new_directions"] == 0 and row["absorbed_fraction"] >= diagnosis.ABSORBED
+    assert row["new_directions"] == 0 and row["absorbed_fraction"] >= ABSORBED
     assert row["sized_directions"] >= 1 and row["significant"], row
     assert diagnoses[0]["missing_effect"] == "beam_misalignment" and "estimate" in row
     assert ladder[-1]["added"] == "beam_misalignment" and "estimate" in ladder[-1]["fit_start"]
@@ -730,11 +733,11 @@ def test_a_candidate_closing_half_the_gap_but_not_confirmed_linearised_is_judged
     floor = meta["truth"]["achievable_floor_nm"]
     row = next(c for c in diagnoses[0]["ranking"] if c["effect"] == "loop_drift")
     # linearised: half the gap closed, the combined test not below ALPHA
-    assert row["gap_closed"] >= diagnosis.GAP_CLOSED and row["p_combined"] >= diagnosis.ALPHA
-    assert row["p_validation_any"] < diagnosis.ALPHA and row["new_directions"] >= 1, row
+    assert row["gap_closed"] >= GAP_CLOSED and row["p_combined"] >= ALPHA
+    assert row["p_validation_any"] < ALPHA and row["new_directions"] >= 1, row
     # refitted: confirmed
-    assert row["refit_gap_closed"] >= diagnosis.GAP_CLOSED, row
-    assert row["refit_p_combined"] < diagnosis.ALPHA and row["significant"], row
+    assert row["refit_gap_closed"] >= GAP_CLOSED, row
+    assert row["refit_p_combined"] < ALPHA and row["significant"], row
     assert diagnoses[0]["missing_effect"] == "loop_drift"
     assert "refitted with the model" in row["verdict"], row["verdict"]
     assert f"calibration p = {row['refit_p_value']:.2g}" in row["verdict"]
@@ -769,5 +772,5 @@ def test_the_benchmark_counts_the_rounds_whose_data_show_the_complete_model(tmp_
     data = bench.shown_by_data(fits[0], complete)
     assert data["shown"] is shown, data
     if not shown:
-        assert data["p_calibration"] == 1.0 and data["p_validation"] >= diagnosis.ALPHA, data
+        assert data["p_calibration"] == 1.0 and data["p_validation"] >= ALPHA, data
     assert not bench.shown_by_data(complete, complete)["shown"]

@@ -6,8 +6,9 @@ twin's complete model refitted on the same data)."""
 import pytest
 
 from deltatwin.calibration.diagnosis.diagnose import diagnose
-from deltatwin.calibration.diagnosis.floor import AT_FLOOR, record_achievable_floor
+from deltatwin.calibration.diagnosis.floor import record_achievable_floor
 from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.stats import AT_FLOOR
 from deltatwin.twin.cases import HIDDEN_SCENARIOS
 from deltatwin.twin.scenario import Scenario
 

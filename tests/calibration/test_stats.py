@@ -167,6 +167,60 @@ def test_a_bad_rule_is_refused():
         stats.DecisionRule(alpha=0)
     with pytest.raises(ValueError, match="validation_blocks = 1"):
         stats.DecisionRule(validation_blocks=1)
+    with pytest.raises(ValueError, match="min_explained = 1.5: a share"):
+        stats.DecisionRule(min_explained=1.5)
+    with pytest.raises(ValueError, match="at_floor = 0.9: a factor"):
+        stats.DecisionRule(at_floor=0.9)
+
+
+@pytest.mark.parametrize("p, dbic, p_comb, explained, gap, at_floor, routes", [
+    (1e-5, -10.0, 1e-6, 0.20, 0.0, False, ("calibration",)),        # detected and relevant
+    (1e-5, -10.0, 1e-6, 0.05, 0.0, False, ()),                      # detected, explains 5 %
+    (1e-5, -10.0, 1e-6, 0.05, 0.6, False, ("calibration", "validation")),
+    (1e-5, +3.0, 1e-6, 0.50, 0.0, False, ()),                       # the BIC rises
+    (1e-5, -10.0, 1e-6, 0.50, 0.0, True, ()),                       # the model at its floor
+    (0.2, +3.0, 1e-4, 0.02, 0.55, False, ("validation",)),          # the validation rows show it
+    (0.2, +3.0, 2e-3, 0.02, 0.90, False, ()),                       # ... not below alpha
+    (1e-3, -10.0, 1e-6, 0.50, 0.0, False, ()),                      # p equal to alpha: no
+])
+def test_the_rules_routes(p, dbic, p_comb, explained, gap, at_floor, routes):
+    """Each route of the rule on hand-picked figures at its defaults (alpha 1e-3, min_explained
+    0.1, gap_closed 0.5): written out case by case, not from the rule's code."""
+    rule = stats.DecisionRule()
+    assert rule.routes(p, dbic, p_comb, explained, gap, at_floor) == routes
+
+
+def test_the_rule_decides_at_floor_by_its_factor():
+    rule = stats.DecisionRule()
+    assert rule.is_at_floor(54.9, 50.0) and not rule.is_at_floor(55.1, 50.0)
+    assert rule.is_at_floor(80.0, None) is None
+    assert stats.DecisionRule(at_floor=2.0).is_at_floor(99.0, 50.0)
+
+
+def test_every_parameter_of_the_rule_is_a_module_default_and_documented():
+    """The rule's parameters are all the decision thresholds the diagnosis has: each is a field
+    of DecisionRule whose default is the module constant of the same name, and each has its row
+    in docs/statistics.md's table; the diagnosis modules define no threshold of their own
+    (printed: the count the rule rests on)."""
+    import ast
+    import dataclasses
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    doc = (root / "docs" / "statistics.md").read_text()
+    fields = dataclasses.fields(stats.DecisionRule)
+    for f in fields:
+        assert getattr(stats, f.name.upper()) == f.default, f.name
+        assert f"| `{f.name}` | {f.default:g} |" in doc, f.name
+    print(f"the rule's parameters: {len(fields)}: "
+          + ", ".join(f"{f.name} = {f.default:g}" for f in fields))
+    rule_names = {f.name.upper() for f in fields} | {"ALPHA"}
+    for module in ("diagnose.py", "floor.py", "compare.py", "attribution.py", "term_form.py",
+                   "model_form.py"):
+        tree = ast.parse((root / "calibration" / "diagnosis" / module).read_text())
+        own = {t.id for node in tree.body if isinstance(node, ast.Assign)
+               for t in node.targets if isinstance(t, ast.Name)}
+        assert not own & rule_names, (module, own & rule_names)
 
 
 def test_overlapping_batch_means_against_statsmodels_newey_west():
