@@ -1,7 +1,16 @@
 """Fixtures shared by test folders: small campaigns simulated by the twin."""
-import pytest
+import os
 
-from tests.twin_data import slow_paper_thermal
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # one worker per core (-n auto): a worker's linear algebra on every core would only
+    # contend with the other workers (set before numpy loads; the commands the tests run
+    # inherit it)
+    for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_name, "1")
+
+import pytest  # noqa: E402
+
+from tests.twin_data import slow_paper_thermal  # noqa: E402
 
 # A DGM with three structure sensors (85 candidate terms) needs 87 calibration rows per axis:
 # paper-thermal's own reduced scale (2 %: 194 X/Y and 208 Z calibration rows, 96 positions).
