@@ -32,7 +32,7 @@ Z95 = 1.959963984540054
 TARGET = (0.90, 0.98)
 
 
-def _truth_of(values: dict, label: str) -> float | None:
+def truth_of(values: dict, label: str) -> float | None:
     """The twin's value of the parameter labelled ``effect.name[i,j]`` (None if not kept)."""
     effect, _, rest = label.partition(".")
     name, _, index = rest.partition("[")
@@ -55,7 +55,7 @@ def campaign_instances(case, path) -> tuple[list[dict], bool]:
     for p in fit.parameters_:
         if p["label"].startswith("geometric_errors.") or p["identified_fraction"] < 0.5:
             continue
-        truth = _truth_of(values, p["label"])
+        truth = truth_of(values, p["label"])
         if truth is None or not p["uncertainty"] > 0:
             continue
         z = (p["value"] - truth) / p["uncertainty"]

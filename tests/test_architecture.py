@@ -128,3 +128,19 @@ def test_every_package_folder_is_installed():
             rel = init.parent.relative_to(ROOT / folder).parts
             name = ".".join([package, *rel])
             assert name in listed, f"{init.parent.relative_to(ROOT)}: {name} not in pyproject packages"
+
+
+DIAGNOSIS_FUNCTION_LINES = 80
+
+
+def test_every_function_of_the_diagnosis_reads_at_once():
+    """No function (or method) of calibration/diagnosis/ is longer than 80 lines, its docstring
+    included: a maintainer reads each at once."""
+    long = []
+    for path in sorted((ROOT / "calibration" / "diagnosis").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > DIAGNOSIS_FUNCTION_LINES:
+                    long.append(f"{path.name}:{node.lineno} {node.name} ({lines} lines)")
+    assert not long, long

@@ -277,6 +277,26 @@ def _worst(bins: list[dict], key: str, overall: float | None, n_worst: int,
             for b in ok[:n_worst]]
 
 
+def _by_variable(df: pd.DataFrame, long, rows: np.ndarray, n_bins: int,
+                 min_readings: int) -> tuple[dict, list]:
+    """({variable: {bins, p90_ratio_max_min}}, [the variables constant on ``rows``]): the
+    residual ``long`` (``_long``) in ``n_bins`` quantile bins of each recorded variable, and
+    the ratio of its largest to its smallest bin's 90 % error over bins of at least
+    ``min_readings`` readings."""
+    variables, constant = {}, []
+    for name, values in recorded_variables(df).items():
+        binned = _value_bins(values, rows, n_bins)
+        if binned is None:
+            constant.append(name)
+            continue
+        bins = _by_bin(long, *binned)
+        p90 = [b["err_p90_nm"] for b in bins if b["n"] >= min_readings and b["err_p90_nm"]]
+        variables[name] = {"bins": bins,
+                           "p90_ratio_max_min": _num(max(p90) / min(p90)) if len(p90) > 1
+                           else None}
+    return variables, constant
+
+
 def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
             n_time_windows: int = 8, n_bins: int = 5, n_worst: int = 3,
             min_readings: int = 10, params=None) -> dict:
@@ -315,17 +335,7 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
     if "F_N" in df.columns:
         binned = _value_bins(df["F_N"].to_numpy(dtype=np.float64), rows, 12)
         force = _by_bin(long, *binned) if binned else None
-    variables, constant = {}, []
-    for name, values in recorded_variables(df).items():
-        binned = _value_bins(values, rows, n_bins)
-        if binned is None:
-            constant.append(name)
-            continue
-        bins = _by_bin(long, *binned)
-        p90 = [b["err_p90_nm"] for b in bins if b["n"] >= min_readings and b["err_p90_nm"]]
-        variables[name] = {"bins": bins,
-                           "p90_ratio_max_min": _num(max(p90) / min(p90)) if len(p90) > 1
-                           else None}
+    variables, constant = _by_variable(df, long, rows, n_bins, min_readings)
     spread = sorted((v["p90_ratio_max_min"], k) for k, v in variables.items()
                     if v["p90_ratio_max_min"] is not None)[::-1]
     truth = (meta or {}).get("truth") or {}

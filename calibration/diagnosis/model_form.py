@@ -662,32 +662,20 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
     """Forward selection over ``blocks`` [(P, D, scanned)]: the block that lowers the
     calibration residual most joins while it is significant (partial F test, the scanned
     parameters counted, Bonferroni over the blocks) and lowers the validation power by
-    ``min_share`` of it; where it does not lower the validation power so, the blocks of the
+    ``min_share`` of it. Where it does not lower the validation power so, the blocks of the
     same variable (``variable_of``: each block's) that the calibration rows cannot tell from
-    it (it is not significantly better, as below) are tried in its place, strongest first: the
-    same dependence in another form (a y force as I^3 on a portal frame, seed 6161 g02: the
-    load as I^2 led the y polynomial by < 0.1 % of the calibration residual and the load as
-    I^3 by 0.5 %, and explained 1.8 % of the validation power, they 52 % and 38 %: the
-    selection ended with no form, and the researcher kept the baseline at 1.9x the floor).
-    Another variable's blocks are not (a ramp in time took a failing backlash term's place
-    on seed 8181 g04, and the effect written with it validated at 2.3x the floor);
-    ``limit_of(chosen, i)``: False when block i may not join any more;
-    the ``deferred`` blocks (a rotation's: a reading of the platform's response, as in
+    it are tried in its place, strongest first (the same dependence in another form); another
+    variable's blocks are not. ``limit_of(chosen, i)``: False when block i may not join any
+    more; the ``deferred`` blocks (a rotation's: a reading of the platform's response, as in
     attribution.py) are tried only once no other block qualifies.
 
     ``physical`` {i: [j, ...]}: the blocks of the physical form block i stands in for (a
     polynomial of the force on one reading axis: the loads of the same power of the current,
     through the model's statics; a motor's last-move sign or periodic term fitted axis by axis:
     where that motor sits, through the kinematics). The strongest of them joins in i's place
-    unless i lowers the calibration residual by significantly more (the difference of the two
-    sums of squares per parameter i has beyond it (at least one), in units of the residual
-    variance after i, beyond the Bonferroni limit): where both fit within the noise, the
-    physical form carries the pattern the readings share (a load's tilt on every axis and the
-    workspace's softer corners; a motor's kinematic gain, which varies over the workspace) into
-    the effect written from the form, the axis' function does not (a y force growing as I^3 on
-    a portal frame, seed 523 g01: the y polynomial wins the linearised selection by 0.6 % of the
-    residual, the effect written from it validates at 45.5 nm refitted to convergence, the
-    load's at 41.3)."""
+    unless i lowers the calibration residual by significantly more (``_better``): where both
+    fit within the noise, the physical form carries the pattern the readings share into the
+    effect written from the form, the axis' function does not."""
     r, n = joint.r, joint.r.size
     p0 = float(joint.axis_power(joint.b).sum())
     limit = alpha / max(len(blocks), 1)
@@ -721,25 +709,7 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
                 for j in physical.get(i, ()):
                     if j in eligible:
                         make(j)
-        # the trials made, in the order of the blocks (the sort below keeps it among ties)
-        trials = {i: made[i] for i in sorted(made) if made[i] is not None}
-        # the blocks tried, in order: the strongest, then those the calibration rows cannot
-        # tell from it, strongest first; each preceded by its physical alternative where it
-        # is not significantly better than that
-        tries = []
-        if best is not None:
-            alike = [t for t in sorted(trials.values(), key=lambda t: -t[1])
-                     if t is best or (variable_of is not None
-                                      and variable_of[t[0]] == variable_of[best[0]]
-                                      and not _better(best, t, rss, limit))]
-            for t in alike:
-                alternatives = [trials[j] for j in physical.get(t[0], ()) if j in trials]
-                if alternatives:
-                    alt = max(alternatives, key=lambda a: a[1])
-                    if not _better(t, alt, rss, limit):
-                        tries.append(alt)
-                tries.append(t)
-            tries = list({t[0]: t for t in tries}.values())   # each block once, first place
+        tries = _tries(made, best, physical, variable_of, rss, limit)
         best = None
         for i, gain, Pn, kk, df2 in tries:
             trial = chosen + [i]
@@ -756,6 +726,31 @@ def _forward(joint: _Joint, blocks: list, alpha: float, min_share: float,
             break
         chosen, basis, rss, val_power = trial, np.hstack([basis, Pn]), rss - gain, vp
     return _backward(joint, blocks, chosen, limit, min_share * p0)
+
+
+def _tries(made: dict, best, physical: dict, variable_of: list | None, rss: float,
+           limit: float) -> list:
+    """The trials ``_forward`` tries in order, from those ``made`` (block -> trial or None)
+    and the strongest, ``best``: it, then those of its variable the calibration rows cannot
+    tell from it, strongest first; each preceded by its physical alternative where it is not
+    significantly better than that; each block once, in its first place."""
+    if best is None:
+        return []
+    # the trials made, in the order of the blocks (the sort below keeps it among ties)
+    trials = {i: made[i] for i in sorted(made) if made[i] is not None}
+    alike = [t for t in sorted(trials.values(), key=lambda t: -t[1])
+             if t is best or (variable_of is not None
+                              and variable_of[t[0]] == variable_of[best[0]]
+                              and not _better(best, t, rss, limit))]
+    tries = []
+    for t in alike:
+        alternatives = [trials[j] for j in physical.get(t[0], ()) if j in trials]
+        if alternatives:
+            alt = max(alternatives, key=lambda a: a[1])
+            if not _better(t, alt, rss, limit):
+                tries.append(alt)
+        tries.append(t)
+    return list({t[0]: t for t in tries}.values())
 
 
 def _made(made: dict, joint: _Joint, blocks: list, basis: np.ndarray, rss: float, i: int):
@@ -811,6 +806,81 @@ def _backward(joint: _Joint, blocks: list, chosen: list[int], limit: float,
     return chosen
 
 
+def _blocks(candidates: list, axes: list, joint) -> list:
+    """The blocks the selection tries: (candidate, {reading axis: its coefficients' slice}, C
+    (N,3,p), P, D), those whose projected columns are not nil; a function fitted on one axis,
+    on every axis with coefficients of its own (a motor's error) or on every axis with shared
+    ones (a load's response); their columns projected together (_Joint.columns) on the read
+    ``axes``."""
+    tried, pairs = [], []
+    for cand in candidates:
+        c = cand.columns.shape[-1]
+        if cand.columns.ndim == 3:
+            C = np.nan_to_num(cand.columns)
+            C[:, [k for k in range(3) if k not in axes]] = 0.0     # axes read too rarely
+            layouts = [({k: slice(0, c) for k in axes}, C)]
+        else:
+            layouts, X = [], np.nan_to_num(cand.columns)
+            for group in ([axes] if _on_every_axis(cand) else [[k] for k in axes]):
+                layouts.append(({k: slice(i * c, (i + 1) * c) for i, k in enumerate(group)},
+                                Placed(c * len(group),
+                                       tuple((k, i * c, X) for i, k in enumerate(group)))))
+        tried += [(cand, layout, C) for layout, C in layouts]
+    for start in range(0, len(tried), COLUMNS_AT_ONCE):
+        batch = tried[start:start + COLUMNS_AT_ONCE]
+        for (cand, layout, C), (P, D) in zip(batch, joint.columns([C for _, _, C in batch])):
+            if np.linalg.norm(P) > 0:
+                pairs.append((cand, layout, C, P, D))
+    return pairs
+
+
+def _stands_for(c) -> tuple | None:
+    """The physical form a reading function stands in for: a force's polynomial on one axis,
+    the loads of its power; a motor's last-move sign or periodic term fitted axis by axis,
+    where that motor sits (_forward)."""
+    if c.variable == "F_N" and c.kind in ("poly", "product"):
+        return ("load", c.power)
+    return {"sign": ("motor_sign", c.variable), "sine": ("motor_sine", c.variable)}.get(c.kind)
+
+
+def _physical_forms(pairs: list) -> dict:
+    """{block index: the indices of the physical blocks it stands in for} (``_stands_for``)."""
+    physical_of = {}
+    for j, (c, *_) in enumerate(pairs):
+        if c.kind in ("load", "motor_sign", "motor_sine"):
+            key = (c.kind, c.power if c.kind == "load" else c.variable)
+            physical_of.setdefault(key, []).append(j)
+    return {i: physical_of[_stands_for(c)] for i, (c, *_) in enumerate(pairs)
+            if _stands_for(c) in physical_of}
+
+
+def _form_rows(pairs: list, chosen: list, per_term: list, shares: dict, axes: list, joint,
+               p0_axes: np.ndarray, p_full: np.ndarray, min_share: float) -> list:
+    """The form's rows per axis (``joint_form``) from the chosen blocks, their coefficients
+    ``per_term`` and each (term, axis)'s ``shares``: a term on several axes is listed on those
+    where it explains at least a joining term's share, and on its strongest; an axis whose
+    terms together explain less than that share is left out."""
+    listed = {(j, k) for (j, k), share in shares.items()
+              if share >= min_share or share == max(v for (m, _), v in shares.items() if m == j)}
+    form = []
+    for k in axes:
+        terms = []
+        for j, c in zip(chosen, per_term):
+            if (j, k) in listed:
+                term = pairs[j][0].describe(c[pairs[j][1][k]])
+                term["explained_fraction"] = shares[j, k]
+                terms.append(term)
+        if not terms or p0_axes[k] <= 0 or 1.0 - p_full[k] / p0_axes[k] < min_share:
+            continue
+        terms.sort(key=lambda t: -t["explained_fraction"])
+        n_val = max(int(np.sum(joint.axis_of == k)), 1)
+        form.append({"axis": AXES[k], "terms": terms,
+                     "explained_fraction": 1.0 - p_full[k] / p0_axes[k],
+                     "val_rms_nm": float(np.sqrt(p0_axes[k] / n_val) * 1e9),
+                     "val_rms_after_nm": float(np.sqrt(p_full[k] / n_val) * 1e9)})
+    return form
+
+
 def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float = ALPHA,
                min_share: float = MIN_SHARE, max_terms: int = MAX_TERMS,
                variables: list | None = None, frame: JointFrame | None = None,
@@ -840,50 +910,15 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
                   + (load_candidates(fit) if loads is None else loads)
                   + motor_candidates(fit, variables, target))
     axes = [k for k, _, _ in target.axes]
-    # the blocks the selection tries: (candidate, {reading axis: its coefficients' slice}, C
-    # (N,3,p), P, D); a function fitted on one axis, on every axis with coefficients of its own
-    # (a motor's error) or on every axis with shared ones (a load's response); their columns
-    # projected together (_Joint.columns)
-    tried, pairs = [], []
-    for cand in candidates:
-        c = cand.columns.shape[-1]
-        if cand.columns.ndim == 3:
-            C = np.nan_to_num(cand.columns)
-            C[:, [k for k in range(3) if k not in axes]] = 0.0     # axes read too rarely
-            layouts = [({k: slice(0, c) for k in axes}, C)]
-        else:
-            layouts, X = [], np.nan_to_num(cand.columns)
-            for group in ([axes] if _on_every_axis(cand) else [[k] for k in axes]):
-                layouts.append(({k: slice(i * c, (i + 1) * c) for i, k in enumerate(group)},
-                                Placed(c * len(group),
-                                       tuple((k, i * c, X) for i, k in enumerate(group)))))
-        tried += [(cand, layout, C) for layout, C in layouts]
-    for start in range(0, len(tried), COLUMNS_AT_ONCE):
-        batch = tried[start:start + COLUMNS_AT_ONCE]
-        for (cand, layout, C), (P, D) in zip(batch, joint.columns([C for _, _, C in batch])):
-            if np.linalg.norm(P) > 0:
-                pairs.append((cand, layout, C, P, D))
+    pairs = _blocks(candidates, axes, joint)
     on = lambda j, k: k in pairs[j][1]
     per_axis = lambda chosen, i: all(sum(on(j, k) for j in chosen) < max_terms
                                      for k in pairs[i][1])
     responses = {v.name for v in variables if v.response}
-    # the physical form each reading function stands in for: a force's polynomial on one axis,
-    # the loads of its power; a motor's last-move sign or periodic term fitted axis by axis,
-    # where that motor sits (_forward)
-    stands_for = lambda c: (("load", c.power) if c.variable == "F_N" and c.kind in
-                            ("poly", "product") else
-                            ("motor_sign", c.variable) if c.kind == "sign" else
-                            ("motor_sine", c.variable) if c.kind == "sine" else None)
-    physical_of = {}
-    for j, (c, *_) in enumerate(pairs):
-        if c.kind in ("load", "motor_sign", "motor_sine"):
-            key = (c.kind, c.power if c.kind == "load" else c.variable)
-            physical_of.setdefault(key, []).append(j)
-    physical = {i: physical_of[stands_for(c)] for i, (c, *_) in enumerate(pairs)
-                if stands_for(c) in physical_of}
     chosen = _forward(joint, [(P, D, c.scanned) for c, _, _, P, D in pairs], alpha, min_share,
                       per_axis, frozenset(i for i, pair in enumerate(pairs)
-                                          if pair[0].variable in responses), physical,
+                                          if pair[0].variable in responses),
+                      _physical_forms(pairs),
                       [c.variable for c, *_ in pairs])
     if not chosen:
         return empty
@@ -896,28 +931,7 @@ def joint_form(fit, Jm: np.ndarray, JS: np.ndarray, r0: np.ndarray, alpha: float
         for k in pairs[j][1]:
             shares[j, k] = (max(without[k] - p_full[k], 0.0) / p0_axes[k]
                             if p0_axes[k] > 0 else 0.0)
-    # a term on several axes is listed on those where it explains at least a joining term's
-    # share, and on its strongest
-    listed = {(j, k) for (j, k), share in shares.items()
-              if share >= min_share or share == max(v for (m, _), v in shares.items() if m == j)}
-    form = []
-    for k in axes:
-        terms = []
-        for j, c in zip(chosen, per_term):
-            if (j, k) in listed:
-                term = pairs[j][0].describe(c[pairs[j][1][k]])
-                term["explained_fraction"] = shares[j, k]
-                terms.append(term)
-        if not terms:
-            continue
-        terms.sort(key=lambda t: -t["explained_fraction"])
-        n_val = max(int(np.sum(joint.axis_of == k)), 1)
-        if p0_axes[k] <= 0 or 1.0 - p_full[k] / p0_axes[k] < min_share:
-            continue        # the joint fit left this axis' terms less than a joining term's share
-        form.append({"axis": AXES[k], "terms": terms,
-                     "explained_fraction": 1.0 - p_full[k] / p0_axes[k],
-                     "val_rms_nm": float(np.sqrt(p0_axes[k] / n_val) * 1e9),
-                     "val_rms_after_nm": float(np.sqrt(p_full[k] / n_val) * 1e9)})
+    form = _form_rows(pairs, chosen, per_term, shares, axes, joint, p0_axes, p_full, min_share)
     G = np.concatenate([C.dense(meas.y.shape) if isinstance(C, Placed) else C
                         for C in (pairs[j][2] for j in chosen)], axis=2)
     return form, G, 1.0 - float(p_full.sum()) / p0
