@@ -144,3 +144,17 @@ def test_every_function_of_the_diagnosis_reads_at_once():
                 if lines > DIAGNOSIS_FUNCTION_LINES:
                     long.append(f"{path.name}:{node.lineno} {node.name} ({lines} lines)")
     assert not long, long
+
+
+def test_no_private_name_is_imported_across_modules():
+    """A name with a leading underscore belongs to its module: no module of the package imports
+    one from another (a shared helper is public in the one place it lives)."""
+    crossing = []
+    for folder in (*LAYERS, "deltatwin"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("deltatwin"):
+                    crossing += [f"{path.relative_to(ROOT)}: {node.module}.{a.name}"
+                                 for a in node.names
+                                 if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not crossing, crossing

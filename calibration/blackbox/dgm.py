@@ -7,14 +7,14 @@ import numpy as np
 from deltatwin.calibration.blackbox.estimator import (
     AXIS_COLUMNS,
     NM,
-    _StepwiseModel,
+    StepwiseModel,
     thermal_sensors,
 )
 from deltatwin.calibration.blackbox.features import JOINT_INPUTS, thermal_preset
 from deltatwin.calibration.errors import MissingColumnsError
 
 
-class DGM(_StepwiseModel):
+class DGM(StepwiseModel):
     """Direct geometric model per axis: ``reading = f(q, T, dT/dt, d2T/dt2)`` (first paper).
 
     ``features``: ``"thermal"`` (the preset: 19 geometric, temperatures, geometric x

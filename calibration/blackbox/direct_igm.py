@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from deltatwin.calibration.blackbox.estimator import MOTOR_COLUMNS, _StepwiseModel
+from deltatwin.calibration.blackbox.estimator import MOTOR_COLUMNS, StepwiseModel
 from deltatwin.calibration.blackbox.features import CARTESIAN_INPUTS, force_preset
 from deltatwin.calibration.errors import CalibrationInputError
 
 
-class DirectIGM(_StepwiseModel):
+class DirectIGM(StepwiseModel):
     """Direct IGM per motor: ``q_i = f(X, Y, Z, F)`` (second paper).  Outputs in rad.
 
     ``features``: ``"force"`` (the preset: 19 geometric monomials of X, Y, Z; F, F^2, F^3;

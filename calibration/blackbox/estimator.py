@@ -21,7 +21,7 @@ from deltatwin.calibration.blackbox.features import (
     temperature_variables,
     variable_unit,
 )
-from deltatwin.calibration.blackbox.stepwise import _PENTER_DEFAULT, resolve_thresholds, stepwisefit
+from deltatwin.calibration.blackbox.stepwise import PENTER_DEFAULT, resolve_thresholds, stepwisefit
 from deltatwin.calibration.errors import (
     CalibrationInputError,
     DroppedRowsWarning,
@@ -337,7 +337,7 @@ class _Evaluator:
         return f, J
 
 
-def _solve3(J: np.ndarray, r: np.ndarray):
+def solve3(J: np.ndarray, r: np.ndarray):
     """Solve J x = r for stacks laid out J (3, 3, n), r (3, n) by cofactors; also det."""
     a, b, c = J[0]
     d, e, f = J[1]
@@ -356,7 +356,7 @@ def _solve3(J: np.ndarray, r: np.ndarray):
 
 # ----- shared estimator machinery ------------------------------------------------------
 
-class _StepwiseModel:
+class StepwiseModel:
     """Shared by DGM and DirectIGM: features -> per-output stepwise fits."""
     kind = "?"
     geo_inputs: tuple[str, ...] = ()
@@ -364,7 +364,7 @@ class _StepwiseModel:
     output_columns: dict[str, str] = {}    # output name -> its data column
     output_noun = "output(s)"               # what the outputs are, for error messages
 
-    def __init__(self, features=None, *, sensors=None, penter=_PENTER_DEFAULT,
+    def __init__(self, features=None, *, sensors=None, penter=PENTER_DEFAULT,
                  premove=None, maxiter=None, window_s: float = DEFAULT_WINDOW_S,
                  T_ref_K: float = DEFAULT_T_REF_K, outputs=None, min_rows_margin: int = 2):
         if features is None:

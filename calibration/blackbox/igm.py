@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from deltatwin.calibration.blackbox.dgm import DGM
-from deltatwin.calibration.blackbox.estimator import AXIS_COLUMNS, _solve3
+from deltatwin.calibration.blackbox.estimator import AXIS_COLUMNS, solve3
 from deltatwin.calibration.errors import CalibrationInputError
 from deltatwin.models.params import load_params
 
@@ -199,7 +199,7 @@ class IGM:
             conv[idx[ok]] = True
             if it == self.max_iter:
                 break
-            dq, det = _solve3(J, r)
+            dq, det = solve3(J, r)
             step_ok = np.isfinite(det) & (det != 0.0) & np.all(np.isfinite(dq), axis=0)
             keep = ~ok & np.isfinite(rmax) & step_ok
             if not keep.all():

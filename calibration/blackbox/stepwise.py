@@ -51,7 +51,7 @@ class _DefaultFloat(float):
     """The default ``penter``: a float that remembers it was not given by the caller."""
 
 
-_PENTER_DEFAULT = _DefaultFloat(0.05)
+PENTER_DEFAULT = _DefaultFloat(0.05)
 
 
 @dataclass(frozen=True)
@@ -128,7 +128,7 @@ class StepwiseResult:
         return "\n".join(lines)
 
 
-def resolve_thresholds(penter=_PENTER_DEFAULT, premove=None) -> tuple[float, float]:
+def resolve_thresholds(penter=PENTER_DEFAULT, premove=None) -> tuple[float, float]:
     """MATLAB's defaults and check for the entry / removal p-value thresholds."""
     given_penter = not isinstance(penter, _DefaultFloat)
     if premove is None:
@@ -354,7 +354,7 @@ def _next_step(inm, keep, eligible, p, penter, premove):
     return -1, ""
 
 
-def stepwisefit(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=None,
+def stepwisefit(X, y, penter=PENTER_DEFAULT, premove=None, keep=None, inmodel=None,
                 maxiter=None, names=None) -> StepwiseResult:
     """Stepwise linear regression with MATLAB ``stepwisefit`` semantics.
 
@@ -466,7 +466,7 @@ def stepwisefit(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=N
         x_mean=mean, x_std=std, y_mean=y_mean, y_std=y_std)
 
 
-def stepwise_refit_loop(X, y, penter=_PENTER_DEFAULT, premove=None, keep=None, inmodel=None,
+def stepwise_refit_loop(X, y, penter=PENTER_DEFAULT, premove=None, keep=None, inmodel=None,
                         maxiter=None, names=None):
     """The plain reference: the same rules, every p-value from a fresh statsmodels OLS fit.
 

@@ -65,7 +65,7 @@ def mixture_p90(u: np.ndarray) -> float:
     return float(optimize.brentq(coverage, 0.0, 10 * u.max(), xtol=1e-6 * u.max()))
 
 
-def _figures(u: np.ndarray, read: np.ndarray) -> dict:
+def mixture_figures(u: np.ndarray, read: np.ndarray) -> dict:
     """{axis: p90 nm, 'all': p90 nm} of standard uncertainties u (N,3) m on the read entries."""
     out = {a: mixture_p90(u[read[:, k], k]) * 1e9 for k, a in enumerate(AXES)
            if read[:, k].any()}
@@ -309,7 +309,7 @@ def uncertainty_budget(fit: PhysicsFit, df: pd.DataFrame, meta: dict, reading_u_
     everything = rows + noise + by_sensor + [("combined", "all parameters (correlated) and noise",
                                               combined)]
     for kind, name, u in everything:
-        f = _figures(np.where(read, u, np.nan), read)
+        f = mixture_figures(np.where(read, u, np.nan), read)
         share = float(np.nanmean(np.where(read, u ** 2, np.nan))) / total_var
         table.append({"kind": kind, "source": name, **{f"{k}_p90_nm": v for k, v in f.items()},
                       "variance_share": share})
@@ -387,7 +387,7 @@ def _source_errors(sc, robot_seed, scale, df, meta, fit) -> dict:
     return out
 
 
-def _quantile90(e: np.ndarray) -> float:
+def quantile90(e: np.ndarray) -> float:
     """The 90 % quantile of |e| over the finite entries (0 when none)."""
     e = np.abs(e[np.isfinite(e)])
     return float(np.quantile(e, 0.9)) if e.size else 0.0
@@ -449,7 +449,7 @@ def budget_monte_carlo(scenario, effects, campaigns: int, scale: float, seed: in
         b = uncertainty_budget(fit, df, meta, sc.settings.noise_floor_m / np.sqrt(readings),
                                thermometer_u_K(sc.settings), servo, sc.air_wander(), rng)
         read = fit.measurements_.group >= 0
-        sampling = {name: _figures(np.where(read, u, np.nan), read)["all"]
+        sampling = {name: mixture_figures(np.where(read, u, np.nan), read)["all"]
                     for _, name, u in parameter_lines(fit, parameter_covariance(fit, False))}
         b["sampling_p90_nm"] = b.source.map(sampling).fillna(b.all_p90_nm)
         budgets.append(b)
@@ -488,7 +488,7 @@ def budget_monte_carlo(scenario, effects, campaigns: int, scale: float, seed: in
             continue
         predicted = np.array([b.loc[source, "sampling_p90_nm"] for b in named])
         flat = [np.abs(p[np.isfinite(p)]) for p in per]
-        mc = _quantile90(np.concatenate(flat)) * 1e9
+        mc = quantile90(np.concatenate(flat)) * 1e9
         kind = named[0].loc[source, "kind"]
         if kind == "parameters":
             # K campaigns are K - 1 independent draws of the estimate's scatter (about their
@@ -497,7 +497,7 @@ def budget_monte_carlo(scenario, effects, campaigns: int, scale: float, seed: in
             low, high = mc * np.sqrt((campaigns - 1)
                                      / stats.chi2.ppf([0.975, 0.025], campaigns - 1))
         else:
-            resampled = [_quantile90(np.concatenate([flat[i] for i in idx])) * 1e9
+            resampled = [quantile90(np.concatenate([flat[i] for i in idx])) * 1e9
                          for idx in boot]
             low, high = np.quantile(resampled, [0.025, 0.975])
         b = float(np.mean(predicted))

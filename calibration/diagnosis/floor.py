@@ -246,7 +246,7 @@ def air_line_check(scenario: str, scale: float | None, seeds) -> dict:
     the session zeros, "twin_refit": the true model refitted on both runs (from the twin's
     values), the difference of their residuals}. The wander is slow: one campaign sees one
     path of it, so the comparison needs several."""
-    from deltatwin.calibration.design.budget import _figures, _quantile90, air_line, zero_centred
+    from deltatwin.calibration.design.budget import air_line, mixture_figures, quantile90, zero_centred
     from deltatwin.twin.scenario import Scenario
 
     lines = {"budget": [], "twin": [], "twin_refit": []}
@@ -271,12 +271,12 @@ def air_line_check(scenario: str, scale: float | None, seeds) -> dict:
     for name, per in lines.items():
         v = np.concatenate(per)
         if name == "budget":        # standard uncertainties: the mixture's 90 %
-            out[name] = _figures(np.where(val, v, np.nan), val)
+            out[name] = mixture_figures(np.where(val, v, np.nan), val)
         else:                       # errors: their 90 % quantile
             v = np.where(val, v, np.nan)
-            out[name] = {a: _quantile90(v[:, k]) * 1e9
+            out[name] = {a: quantile90(v[:, k]) * 1e9
                          for k, a in enumerate(AXES) if val[:, k].any()}
-            out[name]["all"] = _quantile90(v) * 1e9
+            out[name]["all"] = quantile90(v) * 1e9
     return out
 
 

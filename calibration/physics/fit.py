@@ -185,7 +185,7 @@ class PhysicsFit:
         noise = thermometer_noise(model, meas, meta, prior_theta, self.seed,
                                   (A0, J0) if np.array_equal(prior_theta, theta0) else None)
         if same_data:
-            V = _checked_directions(start_directions, p)
+            V = checked_directions(start_directions, p)
             s, Vt, keep = _directions_report(Js, V)
         else:
             s, Vt, keep, V = _determined_directions(Js, noise.information, self.noise_nm,
@@ -225,7 +225,7 @@ class PhysicsFit:
         r0 = projected(meas, cal, meas.y - A0) * NM
         # convergence of the start is judged in the directions it was fitted in, when given
         V_test = (V if start_directions is None or same_data
-                  else _checked_directions(start_directions, p))
+                  else checked_directions(start_directions, p))
         keep_start = same_data or (
             keep_converged_start and V_test.shape[1] > 0
             and _remaining_step_sigma(-Js @ V_test * NM, r0,
@@ -657,7 +657,7 @@ def _considered(Js: np.ndarray, V: np.ndarray) -> np.ndarray:
     return V @ B - H
 
 
-def _checked_directions(directions, p: int) -> np.ndarray:
+def checked_directions(directions, p: int) -> np.ndarray:
     """``directions`` (p, k) as a float array, refused unless it has one row per parameter and
     orthonormal columns (a fitted model's saved directions: the SVD's, exact to round-off)."""
     V = np.asarray(directions, dtype=float)
@@ -910,12 +910,3 @@ def _same_problem(a: PhysicsFit, b: PhysicsFit) -> bool:
             == (b.noise_nm, b.identifiable_ratio, b.max_evaluations)
             and values(a, a.start) == values(b, b.start)
             and values(a, a.prior) == values(b, b.prior))
-
-
-# ---------------------------------------------------------------------------------------------
-# fitted model files (TOML)
-
-def _or_nan(x):
-    return math.nan if x is None else x
-
-

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from deltatwin.calibration.errors import FitError
-from deltatwin.calibration.physics.fit import PhysicsFit, _checked_directions, _or_nan
+from deltatwin.calibration.physics.fit import PhysicsFit, checked_directions
 from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.calibration.physics.table import correlation_matrix
 from deltatwin.files import CONTENT_SHA256, content_damage, content_sha256, toml_text
@@ -108,6 +108,11 @@ def load_fit(path, trust_effects=False) -> PhysicsFit:
     fit.status_ = f"read from {path}"
     fit.parameters_, fit.covariance_ = saved_uncertainty(doc, model)
     return fit
+
+
+def _or_nan(x):
+    """A fitted figure for a file: NaN where the fit has none (TOML has no null)."""
+    return math.nan if x is None else x
 
 
 def _or_none(x):
@@ -219,7 +224,7 @@ def _check_identification(path: Path, doc: dict, model: PhysicsModel) -> None:
         raise FitError(f"{path}: [identification] directions must be a list of directions, each "
                        f"{model.n_free} finite numbers (one per parameter)")
     try:
-        _checked_directions(saved_directions(doc), model.n_free)
+        checked_directions(saved_directions(doc), model.n_free)
     except FitError:
         raise FitError(f"{path}: [identification] directions must be orthonormal (as the fit "
                        "wrote them)") from None
