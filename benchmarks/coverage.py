@@ -43,6 +43,20 @@ def truth_of(values: dict, label: str) -> float | None:
     return float(arr[idx]) if arr.ndim == len(idx) else float(arr.ravel()[idx[0]])
 
 
+def counted_parameters(fit, values: dict) -> dict:
+    """{label: (value, uncertainty, twin's value)} of the parameters coverage counts: those of
+    ``fit`` that are not geometric errors, that the fit calls identified (``identified_fraction``
+    >= 0.5), with an uncertainty and a twin's value in ``values`` (``true_model``)."""
+    out = {}
+    for p in fit.parameters_:
+        if p["label"].startswith("geometric_errors.") or p["identified_fraction"] < 0.5:
+            continue
+        truth = truth_of(values, p["label"])
+        if truth is not None and p["uncertainty"] > 0:
+            out[p["label"]] = (p["value"], p["uncertainty"], truth)
+    return out
+
+
 def campaign_instances(case, path) -> tuple[list[dict], bool]:
     """Every identified non-geometric parameter of the case's complete model, fitted (label,
     z, covered), and whether the model's validation error 90 % lies in its 95 % band."""
@@ -52,14 +66,9 @@ def campaign_instances(case, path) -> tuple[list[dict], bool]:
     fit = true_fit(df, meta)
     _, values = true_model(meta)
     out = []
-    for p in fit.parameters_:
-        if p["label"].startswith("geometric_errors.") or p["identified_fraction"] < 0.5:
-            continue
-        truth = truth_of(values, p["label"])
-        if truth is None or not p["uncertainty"] > 0:
-            continue
-        z = (p["value"] - truth) / p["uncertainty"]
-        out.append({"label": p["label"], "z": z, "covered": abs(z) <= Z95})
+    for label, (value, u, truth) in counted_parameters(fit, values).items():
+        z = (value - truth) / u
+        out.append({"label": label, "z": z, "covered": abs(z) <= Z95})
     low, high = fit.validation_band(np.random.default_rng(case.seed))["all"]
     return out, bool(low <= fit.val_["all"]["err_p90"] <= high)
 

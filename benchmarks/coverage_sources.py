@@ -34,23 +34,10 @@ from deltatwin.twin.cases import generate_cases
 from deltatwin.twin.scenario import Scenario
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from coverage import Z95, truth_of  # noqa: E402
+from coverage import Z95, counted_parameters  # noqa: E402
 
 MEDIAN_ABS_Z = 0.6745     # the median |z| of a standard normal
 DISCREPANCY_AS_IS = "discrepancy / u as is"
-
-
-def _kept(fit, values) -> dict:
-    """{label: (value, uncertainty, truth)} of the fit's identified non-geometric parameters
-    with a twin's value (as benchmarks/coverage.py counts them)."""
-    out = {}
-    for q in fit.parameters_:
-        if q["label"].startswith("geometric_errors.") or q["identified_fraction"] < 0.5:
-            continue
-        truth = truth_of(values, q["label"])
-        if truth is not None and q["uncertainty"] > 0:
-            out[q["label"]] = (q["value"], q["uncertainty"], truth)
-    return out
 
 
 def campaign_parts(sc: Scenario) -> dict:
@@ -64,7 +51,7 @@ def campaign_parts(sc: Scenario) -> dict:
     for part, scenario in fits.items():
         df, meta = scenario.simulate(sc.reduced_scale)
         values = true_model(meta)[1]
-        kept[part] = _kept(true_fit(df, meta), values)
+        kept[part] = counted_parameters(true_fit(df, meta), values)
     perfect = kept["discrepancy"]
     out = collections.defaultdict(list)
     for part, params in kept.items():
