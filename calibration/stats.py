@@ -315,14 +315,15 @@ class DecisionRule:
     def decide(self, rss0: float, rss1: float, k: int, n: int, df2: int, before: np.ndarray,
                after: np.ndarray, group: np.ndarray, val: np.ndarray,
                inflation: float = 1.0, session: np.ndarray | None = None,
-               t_s: np.ndarray | None = None, explained: float = 0.0,
+               t_s: np.ndarray | None = None, *, explained: float,
                gap_closed: float = 0.0, at_floor: bool = False) -> Verdict:
         """The verdict on ``k`` added directions: calibration sums of squares ``rss0`` /
         ``rss1`` (m^2) over ``n`` readings with ``df2`` residual degrees of freedom and the
         serial ``inflation``; the validation residuals ``before`` / ``after`` (N,3) with their
         (session, axis) ``group`` (N,3) on the rows ``val`` (N,), with the rows' ``session``
         and times ``t_s`` (s) (N,) that cut them into blocks; the relevance figures as
-        ``routes`` takes them."""
+        ``routes`` takes them (``explained`` always: a claim's relevance is part of the rule;
+        ``gap_closed`` 0 and ``at_floor`` False where no floor is known)."""
         p_cal = f_test_p(rss0, rss1, k, df2, inflation)
         d_bic = float(bic_change(n, rss0, rss1, k)) if n else 0.0
         p_val = validation_p(before, after, group, val, session, t_s, self.validation_blocks)
