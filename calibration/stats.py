@@ -235,6 +235,26 @@ def overlapping_batch_means(scores: np.ndarray, batch: int) -> np.ndarray:
     return sums.T @ sums * (n / (batch * (n - batch + 1)))
 
 
+def exponential_kernel_sums(t: np.ndarray, w: np.ndarray, time_s: float) -> np.ndarray:
+    """m_i = sum_j w_j exp(-|t_i - t_j| / time_s) for every i (``w``: (n,) or (n, k), each
+    column alike), in O(n) (a forward and a backward recursion over the sorted times);
+    ``time_s`` 0: white (equal times only)."""
+    order = np.argsort(t, kind="stable")
+    ts, ws = t[order], w[order]
+    gap = np.diff(ts)
+    decay = np.exp(-gap / time_s) if time_s > 0 else (gap == 0).astype(float)
+    decay = decay.reshape(-1, *([1] * (ws.ndim - 1)))
+    forward, backward = ws.copy(), ws.copy()
+    for k in range(1, ts.size):
+        forward[k] += decay[k - 1] * forward[k - 1]
+    for k in range(ts.size - 2, -1, -1):
+        backward[k] += decay[k] * backward[k + 1]
+    out = np.empty_like(ws)
+    out[order] = forward + backward - ws
+    return out
+
+
+
 @dataclass(frozen=True)
 class Verdict:
     """A bigger model against a smaller one: ``p_value`` (calibration rows' F test),

@@ -87,3 +87,29 @@ def causal_fit(t_s, values, window_s: float = DEFAULT_WINDOW_S, degree: int = 2)
     if squeeze:
         return level[:, 0], d1[:, 0], d2[:, 0], count
     return level, d1, d2, count
+
+
+def causal_weights(t_s, window_s: float = DEFAULT_WINDOW_S, degree: int = 2):
+    """The linear maps ``causal_fit`` applies to the samples: sparse (n, n) matrices
+    ``(level, d1)`` with ``level @ v`` equal to ``causal_fit(t_s, v, ...)``'s level (and ``d1``
+    its first derivative, per second) for every ``v`` (n,). Row i holds the weights of the
+    samples of its window only, so they are read from one ``causal_fit`` of as many columns as
+    the widest window: column c has a 1 on every sample j = c mod width, and no window holds two
+    of them."""
+    from scipy import sparse
+
+    t = np.asarray(t_s, dtype=float).ravel()
+    n = t.size
+    if n == 0:
+        return sparse.csr_matrix((0, 0)), sparse.csr_matrix((0, 0))
+    lo = np.searchsorted(t, t - window_s, side="left")
+    count = np.arange(n) - lo + 1
+    width = int(count.max())
+    colour = np.arange(n) % width
+    basis = np.zeros((n, width))
+    basis[np.arange(n), colour] = 1.0
+    level, d1 = causal_fit(t, basis, window_s, degree)[:2]
+    rows = np.repeat(np.arange(n), count)
+    cols = rows - (np.arange(rows.size) - np.repeat(np.cumsum(count) - count, count))
+    return tuple(sparse.csr_matrix((m[rows, colour[cols]], (rows, cols)), shape=(n, n))
+                 for m in (level, d1))

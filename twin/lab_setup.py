@@ -33,7 +33,15 @@ SETUP_FILE_KEYS = ("format_version", "baseline", "known", "instruments", "sensor
 # largest plausible value (a larger one is another unit: nm or mK given as m or K)
 INSTRUMENT_SPECS = {"T_noise_C": ("K", 1.0), "T_resolution_C": ("K", 1.0),
                     "interferometer_noise_m": ("m", 1e-6),
-                    "interferometer_resolution_m": ("m", 1e-6)}
+                    "interferometer_resolution_m": ("m", 1e-6),
+                    # the air a reading sees against its session's zero: the std of its
+                    # pressure and water vapour and their correlation time (0: white, a
+                    # barometer's or hygrometer's record noise; calibration/physics/air.py)
+                    "air_pressure_u_Pa": ("Pa", 1e4), "air_pressure_time_s": ("s", 1e8),
+                    "air_vapour_u_Pa": ("Pa", 1e4), "air_vapour_time_s": ("s", 1e8)}
+# the air's fields a reading sees (as twin.world Points name them) and their two specifications
+AIR_SPECS = {"pressure_Pa": ("air_pressure_u_Pa", "air_pressure_time_s"),
+             "vapour_Pa": ("air_vapour_u_Pa", "air_vapour_time_s")}
 SENSOR_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")   # it becomes a column name, T_<name>_C
 
 

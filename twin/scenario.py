@@ -386,6 +386,15 @@ class Scenario:
         return air_wander(s, climate, s.barometer, s.hygrometer,
                           self.params.reference_temperature_C)
 
+    def air_specification(self) -> dict:
+        """``air_wander`` as the data's instrument specifications state it
+        (twin/lab_setup.py ``AIR_SPECS``)."""
+        from deltatwin.twin.lab_setup import AIR_SPECS
+
+        wander = self.air_wander()
+        return {key: value for field, keys in AIR_SPECS.items()
+                for key, value in zip(keys, wander[field])}
+
     def with_perfect(self, sources) -> Scenario:
         """This scenario with the laboratory's error ``sources`` (keys of ERROR_SOURCES) made
         perfect: the same seed, timeline and random draws (the twin multiplies a perfect
@@ -561,7 +570,8 @@ class Scenario:
                 "instruments": {"T_noise_C": self.settings.T_noise_C,
                                 "T_resolution_C": self.settings.T_resolution_C,
                                 "interferometer_noise_m": self.settings.noise_floor_m,
-                                "interferometer_resolution_m": self.settings.resolution_m},
+                                "interferometer_resolution_m": self.settings.resolution_m,
+                                **self.air_specification()},
                 "truth": {"effects": [e.describe() for e in self.effects],
                           "hidden": self.hidden,
                           "reading_noise_std_nm": self.settings.noise_floor_m * 1e9,

@@ -47,9 +47,11 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
+from deltatwin.calibration.physics.air import air_levers
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.measurements import measurements
-from deltatwin.calibration.physics.model import PhysicsModel, projected
+from deltatwin.calibration.physics.model import PhysicsModel, projected, projected_transpose
+from deltatwin.calibration.stats import exponential_kernel_sums
 from deltatwin.twin.instruments.optics import AXES
 from deltatwin.twin.noise import quantised_u
 
@@ -128,45 +130,6 @@ def zero_centred(meas, v: np.ndarray) -> np.ndarray:
     return out
 
 
-def _air_levers(fit: PhysicsFit, field: str) -> tuple[np.ndarray, np.ndarray]:
-    """((N,3), (N,3)) m per Pa: the fitted model's (with air_refraction) change of each reading
-    with the air's ``field`` ("pressure_Pa" or "vapour_Pa") raised at that reading, and with it
-    raised at its session's zero (first-order differences): the index change over each beam's
-    dead path and displacement, at the reading and at the zero it is counted from."""
-    meas = fit.measurements_
-    air = PhysicsModel(list(dict.fromkeys(fit.effects + ["air_refraction"])), fit.model_.params,
-                       fit.model_.values())
-    pts = meas.points
-    level = getattr(pts, field)
-    if level is None:       # no humidity record: the model's air has the vapour it assumes
-        level = np.full(pts.t_s.size, float(air.values()["air_refraction"]["vapour_pressure_Pa"]))
-    at_readings = np.arange(pts.t_s.size) < meas.y.shape[0]
-    predict = lambda v: air.predict_path(dataclasses.replace(
-        meas, points=dataclasses.replace(pts, **{field: v})))
-    base, step = predict(level), 100.0       # Pa: the index is linear in both to ~1e-5
-    return tuple((predict(level + step * at) - base) / step
-                 for at in (at_readings, ~at_readings))
-
-
-def exponential_kernel_sums(t: np.ndarray, w: np.ndarray, time_s: float) -> np.ndarray:
-    """m_i = sum_j w_j exp(-|t_i - t_j| / time_s) for every i (``w``: (n,) or (n, k), each
-    column alike), in O(n) (a forward and a backward recursion over the sorted times);
-    ``time_s`` 0: white (equal times only)."""
-    order = np.argsort(t, kind="stable")
-    ts, ws = t[order], w[order]
-    gap = np.diff(ts)
-    decay = np.exp(-gap / time_s) if time_s > 0 else (gap == 0).astype(float)
-    decay = decay.reshape(-1, *([1] * (ws.ndim - 1)))
-    forward, backward = ws.copy(), ws.copy()
-    for k in range(1, ts.size):
-        forward[k] += decay[k - 1] * forward[k - 1]
-    for k in range(ts.size - 2, -1, -1):
-        backward[k] += decay[k] * backward[k + 1]
-    out = np.empty_like(ws)
-    out[order] = forward + backward - ws
-    return out
-
-
 def refit_map(fit: PhysicsFit) -> tuple[np.ndarray, np.ndarray] | None:
     """(G, W), each (N,3,k): the fit's first-order refit of a change d (N,3) of the readings
     (its identified directions and each session's zero take up what they can) leaves
@@ -178,14 +141,7 @@ def refit_map(fit: PhysicsFit) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     # the step z = -pinv(A) (the change's calibration part, each group's mean removed)
     solve_T = np.linalg.pinv(projected(meas, meas.cal, JV)).T
-    W, start = np.zeros_like(JV), 0
-    for g in range(len(meas.groups)):
-        m = (meas.group == g) & meas.cal[:, None]
-        if m.any():
-            x = solve_T[start:start + m.sum()]
-            W[m] = x - x.mean(axis=0)
-            start += m.sum()
-    return np.nan_to_num(zero_centred(meas, JV)), W
+    return np.nan_to_num(zero_centred(meas, JV)), projected_transpose(meas, meas.cal, solve_T)
 
 
 def wander_u(meas, row_lever: np.ndarray, zero_lever: np.ndarray, std: float,
@@ -240,8 +196,8 @@ def air_line(fit: PhysicsFit, air: dict) -> tuple[str, np.ndarray] | None:
     """("air (...)", u (N,3) m): the air's pressure and water vapour as the laboratory states
     them (``air``: {"pressure_Pa": (std, correlation time s), "vapour_Pa": (...)}, as
     twin.scenario.air_wander gives; time 0 is a record's white noise) through the fitted
-    model's levers (``_air_levers``), up to the session zeros and the fit's first-order refit
-    (``wander_u``, ``refit_map``); None without either."""
+    model's levers (physics ``air_levers``), up to the session zeros and the fit's first-order
+    refit (``wander_u``, ``refit_map``); None without either."""
     parts, var, refit = [], 0.0, None
     recorded = fit.measurements_.df.columns
     for field, column, what in (("pressure_Pa", "p_Pa", "pressure"),
@@ -249,7 +205,8 @@ def air_line(fit: PhysicsFit, air: dict) -> tuple[str, np.ndarray] | None:
         std, time_s = air.get(field, (0.0, 0.0))
         if std > 0:
             refit = refit_map(fit) if refit is None else refit     # the same for every field
-            u = wander_u(fit.measurements_, *_air_levers(fit, field), std, time_s, refit)
+            levers = air_levers(fit.model_, fit.measurements_, field)
+            u = wander_u(fit.measurements_, *levers, std, time_s, refit)
             var = var + u ** 2
             parts.append(f"{'recorded' if column in recorded else 'unrecorded'} {what} "
                          f"{std:.3g} Pa " + (f"wander over {time_s / 3600:.3g} h" if time_s > 0
@@ -327,7 +284,6 @@ def fixed_robot(sc, robot_seed: int):
     seed (twin/world.py STREAMS): the same robot in every campaign, the environment, noise and
     plan drawn from the campaign's seed. Call it before each simulation: the robot stream
     starts afresh."""
-    import dataclasses
 
     from deltatwin.twin.effects.base import Effect
     from deltatwin.twin.world import random_streams

@@ -11,6 +11,7 @@ import pandas as pd
 from scipy import linalg, special
 
 from deltatwin.calibration.errors import FitError, TooFewPointsError
+from deltatwin.calibration.physics.air import air_covariance
 from deltatwin.calibration.physics.measurements import (
     Measurements,
     check_sensors,
@@ -28,6 +29,7 @@ from deltatwin.calibration.physics.model import (
 from deltatwin.calibration.physics.thermometers import (
     MAX_NOISE_SHARE,
     ThermometerNoise,
+    thermometer_covariance,
     thermometer_noise,
 )
 from deltatwin.calibration.stats import sandwich_covariance
@@ -340,11 +342,7 @@ class PhysicsFit:
         # the identified directions' covariance from the residual as it is (serially
         # correlated: the sandwich), the held directions' from the prior (one typical size),
         # and what the held ones' deviation from it does to the identified (consider_)
-        cov_z = sandwich_covariance(Jz, r, projected_rows(meas, meas.cal),
-                                    meas.df["t_s"].to_numpy(),
-                                    Jz.T @ Jz - noise_z if np.any(noise_z)
-                                    and _correction_defined(Jz.T @ Jz - noise_z, 0.0)
-                                    else None)
+        cov_z = self._covariance_z(model, meas, Jz, r, theta, V, noise_z)
         self.covariance_z_ = cov_z
         S = model.scales
         self.consider_ = _considered(Js, V)
@@ -379,6 +377,24 @@ class PhysicsFit:
             "unidentified_groups": groups,
             "residual_sigma_nm": sigma_r * 1e9,
         }
+
+    def _covariance_z(self, model, meas, Jz, r, theta, V, noise_z) -> np.ndarray:
+        """(k, k) the covariance of the coordinates in the identified directions ``V``: the
+        residual's serially correlated share (the sandwich); the slow sources', which move the
+        parameters and hardly the residual, propagated from the data's instrument
+        specifications (the thermometers' noise through the temperature levels and rates, the
+        air's unrecorded wander through the interferometers' index); and the attenuation by
+        the thermometers' noise in the variables that the fit left uncorrected, as an
+        uncorrected systematic effect (its estimate's outer product)."""
+        information = (Jz.T @ Jz - noise_z if np.any(noise_z)
+                       and _correction_defined(Jz.T @ Jz - noise_z, 0.0) else Jz.T @ Jz)
+        cov = sandwich_covariance(Jz, r, projected_rows(meas, meas.cal),
+                                  meas.df["t_s"].to_numpy(), information)
+        cov = cov + thermometer_covariance(model, meas, self.meta_, theta, Jz, information)
+        cov = cov + air_covariance(model, meas, self.meta_, Jz, information)
+        left = _uncorrected_attenuation(Jz, V, theta / model.scales, self.thermometer_noise_,
+                                        self.thermometer_correction_)
+        return cov + np.outer(left, left)
 
     # -- use ----------------------------------------------------------------------------------
     def summary(self):
@@ -828,6 +844,23 @@ def _corrected_for_thermometers(fun, jac, z, A, J, jz_of, terms_at, y, projected
         z, previous = z + step, moved
         Jz, J = jac(z)
     return (*least_squares, False)
+
+
+def _uncorrected_attenuation(Jz: np.ndarray, V: np.ndarray, t: np.ndarray,
+                             noise: ThermometerNoise, used: ThermometerNoise) -> np.ndarray:
+    """(k,) fit scales: the shift of the coordinates in the directions ``V`` that the
+    thermometers' ``noise`` gives least squares and the correction the fit made (``used``,
+    ThermometerNoise ``restricted``) did not take out, to first order (J^T J)^-1 g at the
+    parameters ``t`` (fit scales; ``Jz`` (n, k) the projected calibration Jacobian in ``V``,
+    m per fit scale): the coefficients of temperatures in every direction, less what the
+    correction took out (none where it was not made, or in the directions where the noise's
+    share was too large to correct stably)."""
+    if not noise or not V.shape[1]:
+        return np.zeros(V.shape[1])
+    shift = noise.restricted(V, Jz, max_share=np.inf).terms(V, t)[1]
+    if used:
+        shift = shift - used.terms(V, t)[1]
+    return np.linalg.pinv(Jz.T @ Jz) @ shift
 
 
 def _correction_defined(H: np.ndarray, least: float) -> bool:

@@ -2,6 +2,7 @@
 currents, part temperatures from the sensors, air), gathered from a dataset table and its metadata."""
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass, field
 
@@ -274,8 +275,6 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
             currents[:, i] = df[f"coil{i + 1}_A"].to_numpy(dtype=np.float64)
     T_ref = params.reference_temperature_C
     streams = sensor_streams(df, sensors, where=where)
-    node_T = node_temperatures({k: v[1] for k, v in streams.items()}, sensors, T_ref, n)
-    room = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
     # the laboratory's barometer and hygrometer, when it records them (the air_refraction
     # effect's air); without a record the air is taken at what the interferometers assume
     for c in ("p_Pa", "RH_pct"):
@@ -285,30 +284,58 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
                                         f"{bad[:10].tolist()}: the air record must cover every "
                                         "row (or drop the column: the air is then unrecorded)")
     pressure = df["p_Pa"].to_numpy(dtype=np.float64) if "p_Pa" in df else np.full(n, 101325.0)
-    vapour = (vapour_pressure(df["RH_pct"].to_numpy(dtype=np.float64), room)
-              if "RH_pct" in df else None)
     t_s = df["t_s"].to_numpy(dtype=np.float64)
     # each session's zero: the robot at home with the coils off, in the conditions of the
     # session's first row (the zero is taken just before it)
     names = list(dict.fromkeys(session))
     first = np.array([np.flatnonzero(session == s_)[np.argmin(t_s[session == s_])] for s_ in names])
     zero_row = n + np.array([names.index(s_) for s_ in session], dtype=np.int64)
-    with_zeros = lambda v: np.concatenate([v, v[first]])
-    node_T = {k: with_zeros(v) for k, v in node_T.items()}
     row_dir, zero_dir = move_directions(t_s, q, session)
-    pts = Points(t_s=with_zeros(t_s), q=np.concatenate([q, np.zeros((first.size, 3))]),
+    pts = Points(t_s=_with_zeros(t_s, first), q=np.concatenate([q, np.zeros((first.size, 3))]),
                  currents_A=np.concatenate([currents, np.zeros((first.size, 3))]),
-                 node_T=node_T, room_C=with_zeros(room), pressure_Pa=with_zeros(pressure),
-                 vapour_Pa=None if vapour is None else with_zeros(vapour),
-                 support_C={a: node_T["table"] for a in AXES}, params=params,
-                 home_p=np.zeros(3),
-                 sensor_readings={k: (part, with_zeros(T), with_zeros(r))
-                                  for k, (part, T, r) in streams.items()},
-                 move_direction=np.concatenate([row_dir, zero_dir]))
-    return Measurements(df=df, sensors=dict(sensors), y=y, cos_scale=cos, cos_offset=cos_offset,
+                 node_T={}, room_C=None, pressure_Pa=_with_zeros(pressure, first),
+                 vapour_Pa=None, support_C={}, params=params, home_p=np.zeros(3),
+                 sensor_readings={}, move_direction=np.concatenate([row_dir, zero_dir]))
+    meas = Measurements(df=df, sensors=dict(sensors), y=y, cos_scale=cos, cos_offset=cos_offset,
                         group=group,
                         groups=groups, cal=split == "cal", val=split == "val", points=pts,
-                        zero_row=zero_row, T_ref_C=T_ref, sensor_node_T=node_T)
+                        zero_row=zero_row, T_ref_C=T_ref, sensor_node_T={})
+    return with_sensor_streams(meas, streams)
+
+
+def _with_zeros(v: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """``v`` (N, ...) at the rows, then at each session's zero (S, ...): at the session's
+    first row in time (``first`` (S,), its index)."""
+    return np.concatenate([v, v[first]])
+
+
+def _first_rows(meas: Measurements) -> np.ndarray:
+    """(S,) each session zero's first row in time (the zero is taken just before it)."""
+    t = meas.points.t_s[:meas.n]
+    return np.array([rows[np.argmin(t[rows])] for rows in
+                     (np.flatnonzero(meas.zero_row == meas.n + z)
+                      for z in range(meas.points.t_s.size - meas.n))], dtype=np.int64)
+
+
+def with_sensor_streams(meas: Measurements, streams: dict) -> Measurements:
+    """``meas`` with the temperature conditions made from the sensors' smoothed ``streams``
+    ({sensor: (part, level degC, rate K/s)}, as ``sensor_streams`` gives): the parts'
+    temperatures, the room's and the table's, the air's water vapour where the humidity is
+    recorded; the rest shared. Arrays (N,) are taken at the session zeros as at their first
+    rows; arrays (N + S,) give the zeros' own values."""
+    first = _first_rows(meas)
+    full = lambda v: v if v.shape[0] > meas.n else _with_zeros(v, first)
+    streams = {k: (part, full(T), full(r)) for k, (part, T, r) in streams.items()}
+    size = meas.n + first.size
+    node_T = node_temperatures({k: v[1] for k, v in streams.items()}, meas.sensors,
+                               meas.T_ref_C, size)
+    room = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
+    vapour = (vapour_pressure(full(meas.df["RH_pct"].to_numpy(dtype=np.float64)), room)
+              if "RH_pct" in meas.df else None)
+    pts = dataclasses.replace(meas.points, node_T=node_T, room_C=room, vapour_Pa=vapour,
+                              support_C={a: node_T["table"] for a in AXES},
+                              sensor_readings=streams)
+    return dataclasses.replace(meas, points=pts, sensor_node_T=node_T)
 
 
 def thermometer_draw(meas: Measurements, meta: dict | None, params: RobotParams,

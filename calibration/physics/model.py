@@ -1019,6 +1019,22 @@ def projected(meas: Measurements, rows: np.ndarray, v: np.ndarray,
     return out
 
 
+def projected_transpose(meas: Measurements, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The transpose of ``projected``: (N,3,...) weights w, zero off the readings of ``rows``,
+    with sum(w * v) equal to sum(x * projected(meas, rows, v)) for every v (N,3,...), ``x``
+    (n_readings, ...) laid out as ``projected`` lays out its output (a group's mean removal is
+    its own transpose)."""
+    out = np.zeros(meas.group.shape + x.shape[1:])
+    start = 0
+    for m in ((meas.group == g) & rows[:, None] for g in range(len(meas.groups))):
+        count = int(np.count_nonzero(m))
+        if count:
+            block = x[start:start + count]
+            out[m] = block - block.mean(axis=0)
+            start += count
+    return out
+
+
 def projected_rows(meas: Measurements, rows: np.ndarray) -> np.ndarray:
     """The data row of each reading ``projected`` lays out on ``rows`` (n_readings,), in its
     order."""

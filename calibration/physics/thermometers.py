@@ -20,11 +20,14 @@ from scipy import linalg
 
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.measurements import (
+    TEMPERATURE_WINDOW_S,
     Measurements,
     data_sha256,
     thermometer_draw,
+    with_sensor_streams,
 )
-from deltatwin.calibration.physics.model import PhysicsModel, projected
+from deltatwin.calibration.physics.model import PhysicsModel, projected, projected_transpose
+from deltatwin.calibration.streams import causal_weights
 from deltatwin.twin.noise import quantised_u
 
 # draws of the thermometers' noise that estimate what it alone gives the fit
@@ -151,3 +154,63 @@ def thermometer_noise(model: PhysicsModel, meas: Measurements, meta: dict | None
             _KEPT.pop(next(iter(_KEPT)))
         _KEPT[key] = out
     return out
+
+
+# the steps of the temperature levels (K) and rates (K/s) that measure the prediction's lever
+# on them: the prediction is linear in both to parts per million (an expansion coefficient
+# times a temperature), so the size only has to stand well above the float64 rounding
+LEVEL_STEP_K, RATE_STEP_K_S = 0.01, 1e-5
+
+
+def thermometer_covariance(model: PhysicsModel, meas: Measurements, meta: dict | None,
+                           theta: np.ndarray, Jz: np.ndarray, information: np.ndarray
+                           ) -> np.ndarray:
+    """(k, k) the covariance the thermometers' noise gives a fit's coordinates in its
+    identified directions, propagated exactly to first order (GUM, law of propagation): each
+    sensor's reading noise (``thermometer_u_K``, independent between scans; rows that read the
+    same scan share it) passes linearly through the causal smoothing into the temperature
+    levels and rates (``causal_weights``), from them through the model's lever on each row's
+    reading (``LEVEL_STEP_K``, ``RATE_STEP_K_S``) into the calibration residual, and from it
+    into the coordinates through the fit's estimating equations, dz = information^-1 Jz^T dr
+    (``Jz`` (n, k) the projected calibration Jacobian in them, m per fit scale; ``information``
+    (k, k) the equations' derivative, Jz^T Jz or its corrected form). A noise that moves the
+    readings slowly enters the parameters and hardly the residual: what the residual's sandwich
+    cannot see. Zeros without temperature-reading effects or sensors."""
+    k = Jz.shape[1]
+    u = thermometer_u_K(meta)
+    reads = any(e.reads_temperatures for e in model.effects)
+    if not k or not reads or u <= 0 or not meas.sensors:
+        return np.zeros((k, k))
+    W = projected_transpose(meas, meas.cal, Jz @ np.linalg.pinv(information))   # (N,3,k)
+    order, scan = _scans(meas)
+    level_map, rate_map = causal_weights(meas.points.t_s[:meas.n][order],
+                                         TEMPERATURE_WINDOW_S, degree=1)
+    base = model.predict_path(meas, theta)
+    streams = meas.points.sensor_readings
+    cov = np.zeros((k, k))
+    for s, (part, level, rate) in streams.items():
+        to_raw = np.zeros((meas.n, k))
+        for which, (step, smoothing) in enumerate(((LEVEL_STEP_K, level_map),
+                                                   (RATE_STEP_K_S, rate_map))):
+            moved = [level, rate]
+            moved[which] = moved[which] + step * (np.arange(level.size) < meas.n)
+            lever = (model.predict_path(with_sensor_streams(
+                meas, {**streams, s: (part, *moved)}), theta) - base) / step      # (N,3)
+            weights = np.einsum("na,nak->nk", np.nan_to_num(lever), W)
+            to_raw[order] += smoothing.T @ weights[order]
+        per_scan = np.zeros((scan.max() + 1, k))
+        np.add.at(per_scan, scan, to_raw)
+        cov += per_scan.T @ per_scan
+    return u ** 2 * cov
+
+
+def _scans(meas: Measurements) -> tuple[np.ndarray, np.ndarray]:
+    """(order, scan): the rows in time order (N,), and each row's scan index (N,): rows that
+    follow each other in time with every sensor's reading the same read one scan (a scanner
+    slower than the points), whose noise they share."""
+    order = np.argsort(meas.points.t_s[:meas.n], kind="stable")
+    T = meas.df[[f"T_{s}_C" for s in meas.sensors]].to_numpy(dtype=np.float64)[order]
+    new = np.concatenate([[True], np.any(T[1:] != T[:-1], axis=1)])
+    scan = np.empty(meas.n, dtype=np.int64)
+    scan[order] = np.cumsum(new) - 1
+    return order, scan

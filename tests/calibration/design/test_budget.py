@@ -7,7 +7,6 @@ from scipy import stats
 
 from deltatwin.calibration.design.budget import (
     budget_monte_carlo,
-    exponential_kernel_sums,
     fixed_robot,
     mixture_p90,
     refit_map,
@@ -15,6 +14,7 @@ from deltatwin.calibration.design.budget import (
     wander_u,
 )
 from deltatwin.calibration.physics.fit import PhysicsFit
+from deltatwin.calibration.stats import exponential_kernel_sums
 from deltatwin.twin.scenario import Scenario
 
 
