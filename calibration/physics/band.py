@@ -4,12 +4,14 @@ model were right, from its parameters' uncertainty and the calibration residual'
 A model whose validation error lies above its band is misspecified (an effect missing, or
 conditions it extrapolates to wrongly); one inside it is as good as these data can tell.
 ``validation_band`` draws the fitted parameters' error from their covariance along the
-identified directions (``PhysicsFit.covariance_z_``, the sandwich of calibration/stats.py) and
-from the held directions' deviation from the prior (``PhysicsFit.consider_``) and the
-readings' noise as a first-order autoregressive series per (session, axis) group, with the
-standard deviation and lag-1 correlation of the calibration residual of the same axis; each
-draw's prediction change is zeroed on the calibration rows as the fit zeroes the data; the
-band is the draws' 2.5 and 97.5 % quantiles of the validation error 90 %.
+identified directions (``PhysicsFit.covariance_z_``: the residual's sandwich and the slow
+sources propagated) and from the held directions' deviation from the prior
+(``PhysicsFit.consider_``), and the readings' noise as the calibration residual of the same
+axis shows it, resampled in blocks (a moving-block bootstrap: its own distribution, whose
+tails a Gaussian of the same standard deviation overstates at the 90 % point, and its serial
+correlation); each draw's prediction change is zeroed on the calibration rows as the fit
+zeroes the data; the band is the draws' 2.5 and 97.5 % quantiles of the validation error
+90 %.
 """
 from __future__ import annotations
 
@@ -21,9 +23,9 @@ BAND_DRAWS = 200
 BAND_LEVEL = 0.95
 
 
-def _noise_of_axis(fit, k: int) -> tuple[float, float]:
-    """(sigma m, lag-1 correlation) of the calibration residual on axis ``k``, its groups'
-    means out, readings in time order within each group."""
+def _residual_of_axis(fit, k: int) -> np.ndarray:
+    """The calibration residual (m) on axis ``k``, each group's mean out, readings in time
+    order within each group, the groups one after the other."""
     meas = fit.measurements_
     t = meas.df["t_s"].to_numpy()
     parts = []
@@ -35,24 +37,30 @@ def _noise_of_axis(fit, k: int) -> tuple[float, float]:
         e = e[np.isfinite(e)]
         if e.size > 2:
             parts.append(e - e.mean())
-    if not parts:
-        return 0.0, 0.0
-    ss = sum(float(e @ e) for e in parts)
-    rho = sum(float(e[1:] @ e[:-1]) for e in parts) / ss if ss > 0 else 0.0
-    sigma = np.sqrt(ss / max(sum(e.size for e in parts) - len(parts), 1))
-    return float(sigma), float(np.clip(rho, 0.0, 0.999))
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
-def _ar1(rng: np.random.Generator, n: int, draws: int, sigma: float, rho: float) -> np.ndarray:
-    """(n, draws) stationary AR(1) series of standard deviation ``sigma``, lag-1 ``rho``."""
-    w = rng.standard_normal((n, draws)) * sigma
-    out = np.empty_like(w)
-    if n:
-        out[0] = w[0]
-        c = np.sqrt(1.0 - rho * rho)
-        for i in range(1, n):
-            out[i] = rho * out[i - 1] + c * w[i]
-    return out
+def block_length(e: np.ndarray) -> int:
+    """Rows per block of a moving-block bootstrap of the series ``e``: twice its integrated
+    correlation time (1 + rho) / (1 - rho) for its lag-1 correlation rho (an AR(1)'s), at
+    least 1, at most a quarter of the series."""
+    ss = float(e @ e)
+    rho = float(np.clip(e[1:] @ e[:-1] / ss, 0.0, 0.99)) if ss > 0 and e.size > 1 else 0.0
+    return int(np.clip(np.ceil(2 * (1 + rho) / (1 - rho)), 1, max(e.size // 4, 1)))
+
+
+def block_bootstrap(rng: np.random.Generator, e: np.ndarray, n: int, draws: int) -> np.ndarray:
+    """(n, draws) series resampled from ``e`` in moving blocks of ``block_length`` rows, each
+    block starting at a random row and wrapping round (Künsch 1989; the circular variant of
+    Politis and Romano 1992): the residual's own distribution, tails and serial correlation,
+    with no shape assumed."""
+    if e.size == 0 or n == 0:
+        return np.zeros((n, draws))
+    size = block_length(e)
+    blocks = -(-n // size)
+    starts = rng.integers(0, e.size, (blocks, draws))
+    index = (starts[:, None, :] + np.arange(size)[None, :, None]) % e.size
+    return e[index.reshape(blocks * size, draws)[:n]]
 
 
 def _square_root(cov: np.ndarray) -> np.ndarray:
@@ -80,7 +88,7 @@ def validation_band(fit, rng: np.random.Generator, draws: int = BAND_DRAWS,
     t = meas.df["t_s"].to_numpy()
     errors = np.full(meas.y.shape + (draws,), np.nan)
     for a in range(3):
-        sigma, rho = _noise_of_axis(fit, a)
+        noise = _residual_of_axis(fit, a)
         change = JR[:, a, :] @ rng.standard_normal((root.shape[1], draws))
         for g in np.unique(meas.group[:, a][meas.group[:, a] >= 0]):
             in_g = meas.group[:, a] == g
@@ -88,7 +96,7 @@ def validation_band(fit, rng: np.random.Generator, draws: int = BAND_DRAWS,
             zero = change[cal].mean(axis=0) if cal.any() else change[in_g].mean(axis=0)
             rows = np.flatnonzero(in_g & val[:, a])
             rows = rows[np.argsort(t[rows], kind="stable")]
-            errors[rows, a] = change[rows] - zero + _ar1(rng, rows.size, draws, sigma, rho)
+            errors[rows, a] = change[rows] - zero + block_bootstrap(rng, noise, rows.size, draws)
     q = ((1 - level) / 2, 1 - (1 - level) / 2)
     out = {}
     for name, cols in [*((a, [i]) for i, a in enumerate(AXES)), ("all", [0, 1, 2])]:
