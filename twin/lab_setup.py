@@ -304,4 +304,8 @@ def describe(meta: dict) -> str:
         words.append(f"thermometer noise {spec['T_noise_C'] * 1e3:g} mK")
     if "interferometer_noise_m" in spec:
         words.append(f"interferometer noise {spec['interferometer_noise_m'] * 1e9:g} nm")
+    if spec.get("air_pressure_u_Pa"):
+        time_s = spec.get("air_pressure_time_s", 0.0)
+        words.append(f"air pressure {spec['air_pressure_u_Pa']:g} Pa "
+                     + (f"over {time_s / 3600:g} h" if time_s else "white"))
     return "; ".join(words) + (f" (from {setup['source']})" if setup.get("source") else "")

@@ -78,11 +78,13 @@ def mixture_figures(u: np.ndarray, read: np.ndarray) -> dict:
 def parameter_covariance(fit: PhysicsFit, prior: bool = True) -> np.ndarray:
     """(p, p) covariance (SI) of the fitted parameters: the fit's on its identified directions;
     on the directions the data cannot determine (held at their starting values), the prior's,
-    one typical size (fit scale) per scaled unit (``prior=False``: left out, the estimate's
-    sampling covariance alone)."""
+    each parameter's prior width (Parameter ``tolerance``) projected on them (``prior=False``:
+    left out, the estimate's sampling covariance alone)."""
     meas, S, V = fit.measurements_, fit.model_.scales, fit.identified_directions_
     held = np.eye(S.size) - V @ V.T                        # unidentified subspace (scaled)
-    C = S[:, None] * held * S[None, :] if prior else np.zeros((S.size, S.size))
+    width = fit.model_.tolerances / S
+    C = ((S[:, None] * held * width ** 2) @ (held * S[None, :]) if prior
+         else np.zeros((S.size, S.size)))
     if V.shape[1]:
         Jz = projected(meas, meas.cal, fit.jacobian_, scale=S) @ V
         sigma = fit.identifiability_["residual_sigma_nm"] * 1e-9

@@ -80,7 +80,7 @@ def validation_band(fit, rng: np.random.Generator, draws: int = BAND_DRAWS,
     if not val.any():
         return {}
     # the parameters' error: the identified directions' (covariance_z_) and what the held
-    # directions' deviation from the prior does (consider_, one typical size each)
+    # directions' deviation from the prior does (consider_, the prior's width each)
     k = fit.covariance_z_.shape[0]
     root = np.hstack([fit.identified_directions_ @ _square_root(fit.covariance_z_)
                       if k else np.zeros((fit.model_.n_free, 0)), fit.consider_])

@@ -87,7 +87,7 @@ class PhysicsFit:
     correction: what tests of nested models compare), ``fitted_again_`` (whether
     ``fitted_again_where_it_ended`` replaced it by its refit), ``consider_`` ((p, p - k), fit
     scales: how the parameters' error depends on the held directions' deviation from the
-    prior, one typical size each: ``_considered``), ``covariance_`` ((p, p), SI: the
+    prior, the prior's width each: ``_considered``), ``covariance_`` ((p, p), SI: the
     parameters' covariance, the identified directions' and the held ones' through
     ``consider_``, whose diagonal gives ``parameters_``' uncertainties).
 
@@ -339,13 +339,13 @@ class PhysicsFit:
         labels = model.labels
         dof = meas.residual_dof(r.size, k)
         sigma_r = float(np.sqrt(np.sum(r ** 2) / dof))
-        # the identified directions' covariance from the residual as it is (serially
-        # correlated: the sandwich), the held directions' from the prior (one typical size),
-        # and what the held ones' deviation from it does to the identified (consider_)
+        # the identified directions' covariance (``_covariance_z``), the held directions'
+        # from the prior (its width), and what the held ones' deviation from it does to the
+        # identified (consider_)
         cov_z = self._covariance_z(model, meas, Jz, r, theta, V, noise_z)
         self.covariance_z_ = cov_z
         S = model.scales
-        self.consider_ = _considered(Js, V)
+        self.consider_ = _considered(Js, V, model.tolerances / S)
         cov = (S[:, None] * V) @ cov_z @ (S[:, None] * V).T if k else np.zeros((p, p))
         cov += (S[:, None] * self.consider_) @ (S[:, None] * self.consider_).T
         self.covariance_ = cov
@@ -460,10 +460,10 @@ class PhysicsFit:
     def parameter_table(self) -> pd.DataFrame:
         """One row per free parameter (index ``effect.parameter[i]``): fitted ``value``,
         ``start``, ``unit``, 1-sigma ``uncertainty`` (same unit: along the directions the data
-        determine, the sandwich covariance of the calibration residual as it is, serially
-        correlated (calibration/stats.py ``sandwich_covariance``); along those held at the
-        start, one typical size, the library's prior) and ``identified_fraction`` (the share
-        of the parameter the data determine)."""
+        determine, the residual's sandwich covariance and the slow sources propagated
+        (``_covariance_z``); along those held at the start, the prior's width, Parameter
+        ``tolerance``) and ``identified_fraction`` (the share of the parameter the data
+        determine)."""
         return pd.DataFrame(self.parameters_).set_index("label")
 
     def residual_table(self) -> pd.DataFrame:
@@ -657,20 +657,27 @@ def _information_directions(Js: np.ndarray, noise_info: np.ndarray):
     return np.sqrt(np.clip(w[order], 0.0, None)), U[:, order].T
 
 
-def _considered(Js: np.ndarray, V: np.ndarray) -> np.ndarray:
+def _considered(Js: np.ndarray, V: np.ndarray, width: np.ndarray) -> np.ndarray:
     """(p, p - k) in fit scales: how the parameters' error depends on the held directions'
-    deviation from the prior, one typical size each (the Schmidt consider covariance: Tapley,
-    Schutz & Born 2004, Statistical Orbit Determination, 6.3). A held direction H's true
-    value is not the prior's, and least squares in the identified directions ``V`` takes up
-    what its column ``Js H`` shares with theirs: the error is (V B - H) d, B the regression of
-    ``Js H`` on ``Js V`` (``Js`` (n, p) the projected calibration Jacobian), d the held
-    directions' deviation in fit scales. Returns V B - H (sign immaterial: d is symmetric)."""
+    deviation from the prior (the Schmidt consider covariance: Tapley, Schutz & Born 2004,
+    Statistical Orbit Determination, 6.3). A held direction H's true value is not the
+    prior's, and least squares in the identified directions ``V`` takes up what its column
+    ``Js H`` shares with theirs: the error is (V B - H) d, B the regression of ``Js H`` on
+    ``Js V`` (``Js`` (n, p) the projected calibration Jacobian), d the held directions'
+    deviation in fit scales, of covariance H^T diag(width^2) H (``width`` (p,) the prior's
+    width of each parameter in fit scales). Returns (V B - H) R with R R^T that covariance:
+    its product with standard normal draws is the error (sign immaterial)."""
     p, k = V.shape
     H = linalg.null_space(V.T) if k else np.eye(p)
-    if not k or not H.size:
+    if not H.size:
         return H
+    prior = (H * width[:, None] ** 2).T @ H
+    value, vector = np.linalg.eigh(0.5 * (prior + prior.T))
+    root = vector * np.sqrt(np.clip(value, 0.0, None))
+    if not k:
+        return -H @ root
     B = np.linalg.lstsq(Js @ V, Js @ H, rcond=None)[0]
-    return V @ B - H
+    return (V @ B - H) @ root
 
 
 def checked_directions(directions, p: int) -> np.ndarray:

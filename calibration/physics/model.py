@@ -199,6 +199,7 @@ class FreeParameter:
     start: np.ndarray
     scale: float
     sl: slice
+    tolerance: float          # the prior's width (Parameter ``tolerance``), unit as above
 
     def labels(self) -> list[str]:
         """One label per scalar: effect.name[i,j]."""
@@ -251,7 +252,8 @@ class PhysicsModel:
                 size = int(np.prod(p.shape))
                 self.free.append(FreeParameter(n, p.name, p.unit, p.shape,
                                                np.asarray(e.values[p.name], float).copy(),
-                                               p.fit_scale, slice(k, k + size)))
+                                               p.fit_scale, slice(k, k + size),
+                                               p.tolerance))
                 k += size
             self.effects.append(e)
         self.names = names
@@ -270,6 +272,12 @@ class PhysicsModel:
     @property
     def scales(self) -> np.ndarray:
         return np.concatenate([np.full(f.sl.stop - f.sl.start, f.scale) for f in self.free]) \
+            if self.free else np.zeros(0)
+
+    @property
+    def tolerances(self) -> np.ndarray:
+        """(p,) the prior's width of every free parameter (its unit, SI)."""
+        return np.concatenate([np.full(f.sl.stop - f.sl.start, f.tolerance) for f in self.free]) \
             if self.free else np.zeros(0)
 
     def theta(self) -> np.ndarray:

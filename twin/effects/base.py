@@ -68,10 +68,20 @@ class Parameter:
     # coefficient): its Jacobian column is made of the thermometers' readings, so a fit
     # corrects its estimate for their noise (calibration/physics/thermometers.py)
     per_kelvin: bool = False
+    # the prior's width: one standard deviation of where a laboratory's value may lie about the
+    # default (unit as above), where the physics spreads wider than ``fit_scale`` (a part of a
+    # material the library cannot know); a fit holding the parameter at its prior counts this
+    # as its uncertainty there (calibration/physics/fit.py, the consider covariance)
+    prior_tolerance: float | None = None
 
     @property
     def shape(self) -> tuple:
         return np.shape(self.default)
+
+    @property
+    def tolerance(self) -> float | None:
+        """The prior's width (``prior_tolerance``, else the ``fit_scale``)."""
+        return self.fit_scale if self.prior_tolerance is None else self.prior_tolerance
 
 
 def shift_reading(optics, axis: str, d_m: np.ndarray) -> None:

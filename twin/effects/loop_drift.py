@@ -21,10 +21,12 @@ class LoopDrift(Effect):
                   "horizontal (x, y) position of the frame's column relative to the robot's axis, "
                   "the robot hanging from a horizontal arm of the frame; (0, 0): a symmetric "
                   "portal, no sideways drift"),
+        # the table's and the frame's material is the laboratory's: steel by default, and
+        # granite (6-8e-6), cast iron (10e-6) and aluminium (23e-6) within two tolerances
         Parameter("table_cte_per_K", "1/K", 11.7e-6, "table (steel)", 0.0, fit_scale=2e-6,
-                  per_kelvin=True),
+                  per_kelvin=True, prior_tolerance=6e-6),
         Parameter("frame_cte_per_K", "1/K", 11.7e-6, "metrology frame (steel)", 0.0,
-                  fit_scale=2e-6, per_kelvin=True),
+                  fit_scale=2e-6, per_kelvin=True, prior_tolerance=6e-6),
         Parameter("support_cte_per_K", "1/K", 23e-6, "instrument supports (aluminium)", 0.0,
                   fit_scale=3e-6, per_kelvin=True),
         Parameter("reference_C", "degC", 20.0, "temperature at which the loop is as drawn"),
