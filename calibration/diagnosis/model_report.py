@@ -76,7 +76,7 @@ def report_model(name: str, model, df, meta: dict | None, source: str = "",
     what = ", ".join(model.effects) or "the nominal robot"
     if model.parameters_ is None:
         return ReportModel(name, source, "physics", what, residual)
-    table = ParameterTable(parameter_rows(model.parameters_, model.model_.scales),
+    table = ParameterTable(parameter_rows(model.parameters_, model.model_.tolerances),
                            title=f"{name}: fitted parameters (SI units)")
     keep = [j for j, p in enumerate(model.parameters_) if p["identified_fraction"] >= IDENTIFIED]
     correlation = None

@@ -6,8 +6,8 @@ Jupyter) and a JSON-ready form (``as_dict``, ``to_json``).
 The 95 % interval is the value +- 1.96 standard uncertainties (a normal distribution of the
 estimate). A parameter is *identified* when the directions the data determine hold at least
 half of it (``identified_fraction`` >= 0.5, the fit's ``not_identifiable`` rule); an
-undetermined one stays at its prior and its uncertainty is the prior's (one typical size, the
-effect library's ``fit_scale``): its interval says what the data did not tell.
+undetermined one stays at its prior and its uncertainty is the prior's (its width, the effect
+library's Parameter ``tolerance``): its interval says what the data did not tell.
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ HEADER_NAMES = {"n_parameters": "free parameters", "n_identified_directions":
 def parameter_rows(parameters: list[dict], prior_sigma) -> list[dict]:
     """The table's rows from a fit's ``parameters_`` ({label, value, start, unit, uncertainty,
     identified_fraction}; ``start`` is the prior the undetermined directions are held at) and
-    the prior's standard uncertainty of each parameter (its ``fit_scale``, same unit)."""
+    the prior's standard uncertainty of each parameter (its ``tolerance``, same unit)."""
     rows = []
     for p, s in zip(parameters, np.asarray(prior_sigma, dtype=float)):
         u = float(p["uncertainty"])
@@ -147,5 +147,5 @@ def summary_of(fit) -> FitSummary:
     if fit.parameters_ is None:          # a file written before the uncertainties were saved
         table = ParameterTable([], "fitted parameters: their file holds no uncertainties")
     else:
-        table = ParameterTable(parameter_rows(fit.parameters_, fit.model_.scales))
+        table = ParameterTable(parameter_rows(fit.parameters_, fit.model_.tolerances))
     return FitSummary(header, table, details)
