@@ -213,13 +213,19 @@ def sandwich_covariance(J: np.ndarray, r: np.ndarray, row: np.ndarray,
     if k == 0 or r.size == 0:
         return np.zeros((k, k))
     used, inverse = np.unique(row, return_inverse=True)
+    bread = np.linalg.pinv(J.T @ J if information is None else information)
+    # a row's own share of the fit (its leverage h: the readings' diagonal of J (J^T J)^-1 J^T
+    # summed over the row) is taken out of its residual by the fit; its score over
+    # sqrt(1 - h) restores it (MacKinnon & White 1985, HC2), unbiased for independent rows
+    leverage = np.zeros(used.size)
+    np.add.at(leverage, inverse, np.einsum("ij,jk,ik->i", J, np.linalg.pinv(J.T @ J), J))
     scores = np.zeros((used.size, k))
     np.add.at(scores, inverse, J * r[:, None])
+    scores /= np.sqrt(np.clip(1.0 - leverage, 0.05, 1.0))[:, None]
     scores = scores[np.argsort(t_s[used], kind="stable")]
     n = scores.shape[0]
     tau = max(correlation_rows(scores[:, j]) for j in range(k))
     batch = int(min(max(n // 4, 1), max(np.floor(4 * (n / 100.0) ** (2 / 9)), np.ceil(2 * tau))))
-    bread = np.linalg.pinv(J.T @ J if information is None else information)
     return bread @ overlapping_batch_means(scores, batch) @ bread
 
 
