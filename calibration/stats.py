@@ -213,12 +213,13 @@ def sandwich_covariance(J: np.ndarray, r: np.ndarray, row: np.ndarray,
     if k == 0 or r.size == 0:
         return np.zeros((k, k))
     used, inverse = np.unique(row, return_inverse=True)
-    bread = np.linalg.pinv(J.T @ J if information is None else information)
+    inverse_JTJ = np.linalg.pinv(J.T @ J)
+    bread = inverse_JTJ if information is None else np.linalg.pinv(information)
     # a row's own share of the fit (its leverage h: the readings' diagonal of J (J^T J)^-1 J^T
     # summed over the row) is taken out of its residual by the fit; its score over
     # sqrt(1 - h) restores it (MacKinnon & White 1985, HC2), unbiased for independent rows
     leverage = np.zeros(used.size)
-    np.add.at(leverage, inverse, np.einsum("ij,jk,ik->i", J, np.linalg.pinv(J.T @ J), J))
+    np.add.at(leverage, inverse, np.einsum("ij,jk,ik->i", J, inverse_JTJ, J))
     scores = np.zeros((used.size, k))
     np.add.at(scores, inverse, J * r[:, None])
     scores /= np.sqrt(np.clip(1.0 - leverage, 0.05, 1.0))[:, None]

@@ -16,9 +16,9 @@ import numpy as np
 
 from deltatwin.calibration.errors import FitError
 from deltatwin.calibration.physics.measurements import Measurements
-from deltatwin.calibration.physics.model import PhysicsModel, projected_transpose
+from deltatwin.calibration.physics.model import PhysicsModel
 from deltatwin.calibration.stats import exponential_kernel_sums
-from deltatwin.twin.lab_setup import AIR_SPECS
+from deltatwin.twin.lab_setup import AIR_SPECS, INSTRUMENT_SPECS
 
 STEP_PA = 100.0          # the lever's step: the index is linear in both fields to ~1e-5
 
@@ -41,9 +41,10 @@ def stated_air(meta: dict | None, df) -> dict:
         values = []
         for key, given in zip(keys, default[field]):
             v = spec.get(key, given)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1e8:
-                raise FitError(f"metadata 'instruments' {key!r} = {v!r}: expected a number "
-                               "from 0 (Pa or s)")
+            unit, largest = INSTRUMENT_SPECS[key]        # the ranges a setup file is held to
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < largest:
+                raise FitError(f"metadata 'instruments' {key!r} = {v!r}: expected a number in "
+                               f"{unit}, 0 to {largest:g}")
             values.append(float(v))
         out[field] = tuple(values)
     return out
@@ -71,25 +72,24 @@ def air_levers(model: PhysicsModel, meas: Measurements, field: str
 
 
 def air_covariance(model: PhysicsModel, meas: Measurements, meta: dict | None,
-                   Jz: np.ndarray, information: np.ndarray) -> np.ndarray:
+                   response: np.ndarray) -> np.ndarray:
     """(k, k) the covariance the air's unrecorded wander (``stated_air``: a stationary
     Ornstein-Uhlenbeck process of that std and correlation time) gives a fit's coordinates in
     its identified directions: through each reading's and its zero's levers (``air_levers``)
-    into the calibration residual and through the estimating equations, dz = information^-1
-    Jz^T dr (``Jz`` (n, k) the projected calibration Jacobian, m per fit scale), exactly under
+    into the calibration residual and through the estimating equations (``response``
+    (N,3,k), model.py ``reading_response``), exactly under
     the wander's covariance std^2 exp(-|dt| / time) (``exponential_kernel_sums``)."""
-    k = Jz.shape[1]
+    k = response.shape[2]
     cov = np.zeros((k, k))
     if not k:
         return cov
-    W = projected_transpose(meas, meas.cal, Jz @ np.linalg.pinv(information))    # (N,3,k)
     t = meas.points.t_s
     for field, (std, time_s) in stated_air(meta, meas.df).items():
         if std <= 0:
             continue
         row_lever, zero_lever = (np.nan_to_num(v) for v in air_levers(model, meas, field))
         at_times = np.zeros((t.size, k))
-        at_times[:meas.n] = np.einsum("na,nak->nk", row_lever, W)
-        np.add.at(at_times, meas.zero_row, np.einsum("na,nak->nk", zero_lever, W))
+        at_times[:meas.n] = np.einsum("na,nak->nk", row_lever, response)
+        np.add.at(at_times, meas.zero_row, np.einsum("na,nak->nk", zero_lever, response))
         cov += std ** 2 * at_times.T @ exponential_kernel_sums(t, at_times, time_s)
     return cov

@@ -24,6 +24,7 @@ from deltatwin.calibration.physics.model import (
     group_offsets,
     projected,
     projected_rows,
+    reading_response,
     residuals,
 )
 from deltatwin.calibration.physics.thermometers import (
@@ -390,8 +391,9 @@ class PhysicsFit:
                        and _correction_defined(Jz.T @ Jz - noise_z, 0.0) else Jz.T @ Jz)
         cov = sandwich_covariance(Jz, r, projected_rows(meas, meas.cal),
                                   meas.df["t_s"].to_numpy(), information)
-        cov = cov + thermometer_covariance(model, meas, self.meta_, theta, Jz, information)
-        cov = cov + air_covariance(model, meas, self.meta_, Jz, information)
+        response = reading_response(meas, Jz, information)
+        cov = cov + thermometer_covariance(model, meas, self.meta_, theta, response)
+        cov = cov + air_covariance(model, meas, self.meta_, response)
         left = _uncorrected_attenuation(Jz, V, theta / model.scales, self.thermometer_noise_,
                                         self.thermometer_correction_)
         return cov + np.outer(left, left)

@@ -1043,6 +1043,15 @@ def projected_transpose(meas: Measurements, rows: np.ndarray, x: np.ndarray) -> 
     return out
 
 
+def reading_response(meas: Measurements, Jz: np.ndarray, information: np.ndarray) -> np.ndarray:
+    """(N,3,k) how a fit's coordinates respond to a change of the readings: dz = sum over the
+    entries of W * dA for a change dA (N,3) of the calibration readings (up to its sign), by
+    the estimating equations dz = information^-1 Jz^T dr (``Jz`` (n, k) the projected
+    calibration Jacobian, m per fit scale; ``information`` (k, k) the equations' derivative)
+    and dr = projected(dA) (``projected_transpose``)."""
+    return projected_transpose(meas, meas.cal, Jz @ np.linalg.pinv(information))
+
+
 def projected_rows(meas: Measurements, rows: np.ndarray) -> np.ndarray:
     """The data row of each reading ``projected`` lays out on ``rows`` (n_readings,), in its
     order."""

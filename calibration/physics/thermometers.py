@@ -26,7 +26,7 @@ from deltatwin.calibration.physics.measurements import (
     thermometer_draw,
     with_sensor_streams,
 )
-from deltatwin.calibration.physics.model import PhysicsModel, projected, projected_transpose
+from deltatwin.calibration.physics.model import PhysicsModel, projected
 from deltatwin.calibration.streams import causal_weights
 from deltatwin.twin.noise import quantised_u
 
@@ -163,25 +163,22 @@ LEVEL_STEP_K, RATE_STEP_K_S = 0.01, 1e-5
 
 
 def thermometer_covariance(model: PhysicsModel, meas: Measurements, meta: dict | None,
-                           theta: np.ndarray, Jz: np.ndarray, information: np.ndarray
-                           ) -> np.ndarray:
+                           theta: np.ndarray, response: np.ndarray) -> np.ndarray:
     """(k, k) the covariance the thermometers' noise gives a fit's coordinates in its
     identified directions, propagated exactly to first order (GUM, law of propagation): each
     sensor's reading noise (``thermometer_u_K``, independent between scans; rows that read the
     same scan share it) passes linearly through the causal smoothing into the temperature
     levels and rates (``causal_weights``), from them through the model's lever on each row's
     reading (``LEVEL_STEP_K``, ``RATE_STEP_K_S``) into the calibration residual, and from it
-    into the coordinates through the fit's estimating equations, dz = information^-1 Jz^T dr
-    (``Jz`` (n, k) the projected calibration Jacobian in them, m per fit scale; ``information``
-    (k, k) the equations' derivative, Jz^T Jz or its corrected form). A noise that moves the
+    into the coordinates through the fit's estimating equations (``response`` (N,3,k),
+    model.py ``reading_response``). A noise that moves the
     readings slowly enters the parameters and hardly the residual: what the residual's sandwich
     cannot see. Zeros without temperature-reading effects or sensors."""
-    k = Jz.shape[1]
+    k = response.shape[2]
     u = thermometer_u_K(meta)
     reads = any(e.reads_temperatures for e in model.effects)
     if not k or not reads or u <= 0 or not meas.sensors:
         return np.zeros((k, k))
-    W = projected_transpose(meas, meas.cal, Jz @ np.linalg.pinv(information))   # (N,3,k)
     order, scan = _scans(meas)
     level_map, rate_map = causal_weights(meas.points.t_s[:meas.n][order],
                                          TEMPERATURE_WINDOW_S, degree=1)
@@ -196,7 +193,7 @@ def thermometer_covariance(model: PhysicsModel, meas: Measurements, meta: dict |
             moved[which] = moved[which] + step * (np.arange(level.size) < meas.n)
             lever = (model.predict_path(with_sensor_streams(
                 meas, {**streams, s: (part, *moved)}), theta) - base) / step      # (N,3)
-            weights = np.einsum("na,nak->nk", np.nan_to_num(lever), W)
+            weights = np.einsum("na,nak->nk", np.nan_to_num(lever), response)
             to_raw[order] += smoothing.T @ weights[order]
         per_scan = np.zeros((scan.max() + 1, k))
         np.add.at(per_scan, scan, to_raw)

@@ -12,7 +12,12 @@ import pytest
 from deltatwin.calibration.physics.air import air_covariance, air_levers, stated_air
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.measurements import measurements
-from deltatwin.calibration.physics.model import PhysicsModel, projected, projected_transpose
+from deltatwin.calibration.physics.model import (
+    PhysicsModel,
+    projected,
+    projected_transpose,
+    reading_response,
+)
 from deltatwin.calibration.physics.thermometers import (
     thermometer_covariance,
     thermometer_u_K,
@@ -74,7 +79,8 @@ def test_projected_transpose_is_the_adjoint_of_projected(fitted):
 def test_thermometer_covariance_agrees_with_a_monte_carlo_of_the_thermometers(fitted):
     df, meta, fit, Jz, information = fitted
     model, meas = fit.model_, fit.measurements_
-    exact = thermometer_covariance(model, meas, meta, fit.theta_, Jz, information)
+    exact = thermometer_covariance(model, meas, meta, fit.theta_,
+                                   reading_response(meas, Jz, information))
     u = thermometer_u_K(meta)
     columns = [f"T_{s}_C" for s in meas.sensors]
     base = model.predict_path(meas, fit.theta_)
@@ -106,7 +112,7 @@ def test_air_covariance_agrees_with_a_monte_carlo_of_the_wander(fitted):
     model, meas = fit.model_, fit.measurements_
     std, time_s = stated_air(meta, df)["pressure_Pa"]
     assert std == 80.0 and time_s == 86400.0          # the papers' laboratory, as simulated
-    exact = air_covariance(model, meas, meta, Jz, information)
+    exact = air_covariance(model, meas, meta, reading_response(meas, Jz, information))
     air = PhysicsModel(model.names + ["air_refraction"], model.params, model.values())
     pts = meas.points
     base = air.predict_path(meas)
