@@ -36,9 +36,10 @@ from deltatwin.calibration.diagnosis.conditions import (
 )
 from deltatwin.calibration.diagnosis.floor import floor_of
 from deltatwin.calibration.errors import CalibrationInputError
+from deltatwin.calibration.physics.band import prediction_band
 from deltatwin.calibration.physics.measurements import Measurements, check_sensors, measurements
 from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, residuals
-from deltatwin.calibration.physics.model_file import load_fitted
+from deltatwin.calibration.physics.model_file import load_fitted, saved_uncertainty
 from deltatwin.calibration.physics.readings import session_zeros
 from deltatwin.calibration.stats import AT_FLOOR
 from deltatwin.calibration.streams import DEFAULT_WINDOW_S
@@ -47,7 +48,8 @@ from deltatwin.models.kinematics import forward
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.dataset import AXES, temperature_columns
 
-__all__ = ["ModelEvaluation", "evaluate", "compare", "load_model_file", "dgm_reading_m",
+__all__ = ["ModelEvaluation", "evaluate", "compare", "load_model_file",
+           "load_model_and_covariance", "validation_band", "dgm_reading_m",
            "RESIDUAL_SIGN"]
 
 RESIDUAL_SIGN = "model minus measurement"
@@ -110,6 +112,15 @@ def load_model_file(path, trust_effects=False):
                                     "coordinates, not readings; compare takes a fitted physics "
                                     "model (.toml) or a DGM (.json)")
     return model
+
+
+def load_model_and_covariance(path, trust_effects=False):
+    """(model, covariance): ``load_model_file``'s model and, for a fitted physics model whose
+    file holds its [uncertainty], its parameters' covariance (p, p; SI), else None."""
+    if Path(path).suffix.lower() != ".toml" or not Path(path).is_file():
+        return load_model_file(path, trust_effects), None
+    model, doc = load_fitted(path, trust_effects)
+    return model, saved_uncertainty(doc, model)[1]
 
 
 def dgm_reading_m(model, df: pd.DataFrame) -> np.ndarray:
@@ -297,15 +308,46 @@ def _by_variable(df: pd.DataFrame, long, rows: np.ndarray, n_bins: int,
     return variables, constant
 
 
+def validation_band(ev: ModelEvaluation, model, covariance: np.ndarray | None,
+                    rng: np.random.Generator | None = None) -> dict | None:
+    """{axis or "all": {"low", "high", "within"}} (nm): the 95 % band the validation error 90 %
+    of a physics ``model`` of parameter ``covariance`` falls in on the evaluated data ``ev``
+    if the model is right (calibration/physics/band.py ``prediction_band``: the parameters'
+    uncertainty through the model's Jacobian on these data, the readings' noise as these
+    data's calibration residual under the model shows it), and whether the validation error
+    lies within it; None for a DGM, without a covariance or without validation rows."""
+    if covariance is None or not isinstance(model, PhysicsModel) or not ev.meas.val.any():
+        return None
+    covariance = np.asarray(covariance, dtype=float)
+    if covariance.shape != (model.n_free, model.n_free):
+        raise CalibrationInputError(f"covariance {covariance.shape}: expected "
+                                    f"({model.n_free}, {model.n_free}), one row per parameter")
+    J = model.jacobian(ev.meas, model.theta())[1]
+    rng = rng if rng is not None else np.random.default_rng(0)
+    # the fit's residual convention (measurement minus model): the fit's own band, draw for draw
+    band = prediction_band(ev.meas, J, covariance, -ev.residual_m, rng)
+    val = figures_nm(ev.residual_m, ev.meas.val)
+    out = {}
+    for a, (lo, hi) in band.items():
+        err = (val.get(a) or {}).get("err_p90")
+        out[a] = {"low": lo, "high": hi,
+                  "within": None if err is None else bool(lo <= err <= hi)}
+    return out
+
+
 def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
             n_time_windows: int = 8, n_bins: int = 5, n_worst: int = 3,
-            min_readings: int = 10, params=None) -> dict:
+            min_readings: int = 10, params=None, covariance: np.ndarray | None = None,
+            rng: np.random.Generator | None = None) -> dict:
     """Where ``model`` fails on a dataset: JSON-ready dict (see the module docstring).
 
     ``split``: the rows the breakdowns use, ``"val"`` (default), ``"cal"`` or ``"all"``.
     ``n_time_windows``: equal windows of ``t_s``. ``n_bins``: quantile bins per variable.
     ``n_worst``: length of the worst lists, over bins with at least ``min_readings``
     (row, axis) readings. ``params``: robot parameters for a DGM's positions (default nominal).
+    ``covariance`` (p, p; SI): a physics model's parameter covariance (a fitted model file's
+    [uncertainty]): the validation error's 95 % band is drawn with ``rng`` (default seeded 0)
+    on these data (``validation_band``).
     """
     if split not in ("val", "cal", "all"):
         raise CalibrationInputError(f"split {split!r}: expected 'val', 'cal' or 'all'")
@@ -338,6 +380,7 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
     variables, constant = _by_variable(df, long, rows, n_bins, min_readings)
     spread = sorted((v["p90_ratio_max_min"], k) for k, v in variables.items()
                     if v["p90_ratio_max_min"] is not None)[::-1]
+    band = validation_band(ev, model, covariance, rng)
     truth = (meta or {}).get("truth") or {}
     floor = truth.get("noise_floor_nm")
     judged, kind = floor_of(meta)
@@ -362,6 +405,7 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
                           "message": extrapolation_message(extrapolated)},
         "unused_temperature_columns": unused,
         "axes": axes,
+        "validation_band_95_nm": band,
         "regions": {"scheme": "octants of the platform's nominal kinematic position about the "
                               "centre of the bounding box of the rows' positions",
                     "centre_mm": [float(c * 1e3) for c in centre], "bins": regions},

@@ -3,15 +3,15 @@ model were right, from its parameters' uncertainty and the calibration residual'
 
 A model whose validation error lies above its band is misspecified (an effect missing, or
 conditions it extrapolates to wrongly); one inside it is as good as these data can tell.
-``validation_band`` draws the fitted parameters' error from their covariance along the
-identified directions (``PhysicsFit.covariance_z_``: the residual's sandwich and the slow
-sources propagated) and from the held directions' deviation from the prior
-(``PhysicsFit.consider_``), and the readings' noise as the calibration residual of the same
-axis shows it, resampled in blocks (a moving-block bootstrap: its own distribution, whose
-tails a Gaussian of the same standard deviation overstates at the 90 % point, and its serial
-correlation); each draw's prediction change is zeroed on the calibration rows as the fit
-zeroes the data; the band is the draws' 2.5 and 97.5 % quantiles of the validation error
-90 %.
+``prediction_band`` draws the fitted parameters' error from their covariance (``PhysicsFit
+.covariance_``: along the identified directions the residual's sandwich and the slow sources
+propagated, along the held ones the prior's width through the consider covariance), and the
+readings' noise as the calibration residual of the same axis shows it, resampled in blocks (a
+moving-block bootstrap: its own distribution, whose tails a Gaussian of the same standard
+deviation overstates at the 90 % point, and its serial correlation); each draw's prediction
+change is zeroed on the calibration rows as the fit zeroes the data; the band is the draws' 2.5
+and 97.5 % quantiles of the validation error 90 %. ``validation_band`` is that of a fit on its
+own data; ``deltatwin compare`` draws that of a saved model on any dataset.
 """
 from __future__ import annotations
 
@@ -23,17 +23,17 @@ BAND_DRAWS = 200
 BAND_LEVEL = 0.95
 
 
-def _residual_of_axis(fit, k: int) -> np.ndarray:
-    """The calibration residual (m) on axis ``k``, each group's mean out, readings in time
-    order within each group, the groups one after the other."""
-    meas = fit.measurements_
+def _residual_of_axis(meas, residual: np.ndarray, k: int) -> np.ndarray:
+    """The calibration residual (m, ``residual`` (N,3) on ``meas``) on axis ``k``, each
+    group's mean out, readings in time order within each group, the groups one after the
+    other."""
     t = meas.df["t_s"].to_numpy()
     parts = []
     for g, (_, axis) in enumerate(meas.groups):
         if axis != AXES[k]:
             continue
         rows = np.flatnonzero((meas.group[:, k] == g) & meas.cal)
-        e = fit.residual_[rows[np.argsort(t[rows], kind="stable")], k]
+        e = residual[rows[np.argsort(t[rows], kind="stable")], k]
         e = e[np.isfinite(e)]
         if e.size > 2:
             parts.append(e - e.mean())
@@ -64,32 +64,43 @@ def block_bootstrap(rng: np.random.Generator, e: np.ndarray, n: int, draws: int)
 
 
 def _square_root(cov: np.ndarray) -> np.ndarray:
-    """L with L L^T = ``cov`` (symmetric, positive semi-definite up to round-off: the
-    sandwich's eigenvalues below zero, round-off, are taken as zero)."""
-    w, U = np.linalg.eigh(0.5 * (cov + cov.T))
-    return U * np.sqrt(np.clip(w, 0.0, None))
+    """L with L L^T = ``cov`` (symmetric, positive semi-definite up to round-off), taken on the
+    correlation matrix (parameters of unlike units differ in variance by 20 orders of
+    magnitude: on ``cov`` itself the small ones would be round-off of the large), its
+    eigenvalues below zero (round-off) taken as zero."""
+    sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    unit = np.where(sigma > 0, sigma, 1.0)
+    corr = cov / np.outer(unit, unit)
+    w, U = np.linalg.eigh(0.5 * (corr + corr.T))
+    return unit[:, None] * U * np.sqrt(np.clip(w, 0.0, None))
 
 
 def validation_band(fit, rng: np.random.Generator, draws: int = BAND_DRAWS,
                     level: float = BAND_LEVEL) -> dict:
     """{axis or "all": (low, high) nm}: the band the validation error 90 % of ``fit`` (a
-    fitted PhysicsFit) falls in with probability ``level`` if its model is right (module
+    fitted PhysicsFit) falls in with probability ``level`` if its model is right
+    (``prediction_band`` on its own data); ``rng`` draws parameters and noise."""
+    return prediction_band(fit.measurements_, fit.jacobian_, fit.covariance_, fit.residual_,
+                           rng, draws, level)
+
+
+def prediction_band(meas, jacobian: np.ndarray, covariance: np.ndarray, residual: np.ndarray,
+                    rng: np.random.Generator, draws: int = BAND_DRAWS,
+                    level: float = BAND_LEVEL) -> dict:
+    """{axis or "all": (low, high) nm}: the band of the validation error 90 % on the data
+    ``meas`` of a model of Jacobian ``jacobian`` there ((N, 3, p), m per parameter unit) whose
+    parameters have the ``covariance`` (p, p; SI) and whose ``residual`` there ((N, 3) m,
+    after each session's zero) shows the readings' noise on the calibration rows (module
     docstring); ``rng`` draws parameters and noise. Empty without validation readings."""
-    meas = fit.measurements_
-    val = meas.val[:, None] & (meas.group >= 0) & np.isfinite(fit.residual_)
+    val = meas.val[:, None] & (meas.group >= 0) & np.isfinite(residual)
     if not val.any():
         return {}
-    # the parameters' error: the identified directions' (covariance_z_) and what the held
-    # directions' deviation from the prior does (consider_, the prior's width each)
-    k = fit.covariance_z_.shape[0]
-    root = np.hstack([fit.identified_directions_ @ _square_root(fit.covariance_z_)
-                      if k else np.zeros((fit.model_.n_free, 0)), fit.consider_])
-    JR = (fit.jacobian_ * fit.model_.scales) @ root                     # (N, 3, k + held)
+    JR = np.nan_to_num(jacobian) @ _square_root(covariance)             # (N, 3, p)
     t = meas.df["t_s"].to_numpy()
     errors = np.full(meas.y.shape + (draws,), np.nan)
     for a in range(3):
-        noise = _residual_of_axis(fit, a)
-        change = JR[:, a, :] @ rng.standard_normal((root.shape[1], draws))
+        noise = _residual_of_axis(meas, residual, a)
+        change = JR[:, a, :] @ rng.standard_normal((JR.shape[2], draws))
         for g in np.unique(meas.group[:, a][meas.group[:, a] >= 0]):
             in_g = meas.group[:, a] == g
             cal = in_g & meas.cal
@@ -105,4 +116,3 @@ def validation_band(fit, rng: np.random.Generator, draws: int = BAND_DRAWS,
             p90 = np.quantile(e, 0.9, axis=0) * 1e9
             out[name] = tuple(float(x) for x in np.quantile(p90, q))
     return out
-

@@ -54,6 +54,23 @@ CORRECTION_STEPS = 8
 log = logging.getLogger(__name__)
 
 
+class _FromCovariance:
+    """A fitted attribute of the parameters' uncertainty, computed with the others on first
+    read (PhysicsFit ``_uncertainty``); an assigned value (a model file's) stands."""
+    NAMES = ("covariance_z_", "consider_", "covariance_", "parameters_")
+
+    def __set_name__(self, owner, name):
+        self.name = name
+
+    def __get__(self, fit, owner=None):
+        if fit is None:
+            return self
+        if "_uncertainty_inputs" not in fit.__dict__:
+            raise AttributeError(f"{self.name}: the model is not fitted")
+        fit._uncertainty()
+        return fit.__dict__[self.name]
+
+
 class PhysicsFit:
     """Fit a physics model's free parameters to a dataset's calibration rows.
 
@@ -96,6 +113,12 @@ class PhysicsFit:
     readings, m), ``score(df)`` (minus the validation error 90 %, m: higher is better),
     ``save(path)`` and ``PhysicsFit.load(path)`` (the file ``deltatwin fit -o`` writes).
     """
+
+    # the parameters' uncertainty, computed on first use (``_uncertainty``)
+    covariance_z_ = _FromCovariance()
+    consider_ = _FromCovariance()
+    covariance_ = _FromCovariance()
+    parameters_ = _FromCovariance()
 
     def __init__(self, effects, params: RobotParams | None = None, start: dict | None = None,
                  noise_nm: float = 5.0, identifiable_ratio: float = 0.3,
@@ -332,30 +355,21 @@ class PhysicsFit:
         return self
 
     def _identifiability(self, model, s, Vt, keep, Js, meas, r, V, theta, theta0, noise_z):
-        """``Js``: the projected calibration Jacobian in fit scales (n, p) where the fit
-        ended; ``noise_z`` (k, k): the thermometers' share of its information in the
-        directions ``V`` (ThermometerNoise ``information``)."""
+        """The identifiability report (``identifiability_``) now, and the parameters'
+        uncertainty (``covariance_z_``, ``consider_``, ``covariance_``, ``parameters_``) on
+        first use (``_uncertainty``: most of the fits a diagnosis makes never read it, and
+        its slow sources cost a few predictions per sensor). ``Js``: the projected
+        calibration Jacobian in fit scales (n, p) where the fit ended; ``noise_z`` (k, k):
+        the thermometers' share of its information in the directions ``V``
+        (ThermometerNoise ``information``)."""
         p, k = model.n_free, int(keep.sum())
-        Jz = Js @ V
         labels = model.labels
         dof = meas.residual_dof(r.size, k)
         sigma_r = float(np.sqrt(np.sum(r ** 2) / dof))
-        # the identified directions' covariance (``_covariance_z``), the held directions'
-        # from the prior (its width), and what the held ones' deviation from it does to the
-        # identified (consider_)
-        cov_z = self._covariance_z(model, meas, Jz, r, theta, V, noise_z)
-        self.covariance_z_ = cov_z
-        S = model.scales
-        self.consider_ = _considered(Js, V, model.tolerances / S)
-        cov = (S[:, None] * V) @ cov_z @ (S[:, None] * V).T if k else np.zeros((p, p))
-        cov += (S[:, None] * self.consider_) @ (S[:, None] * self.consider_).T
-        self.covariance_ = cov
         frac = np.sum(V ** 2, axis=1) if k else np.zeros(p)
-        units = [f.unit for f in model.free for _ in range(f.sl.stop - f.sl.start)]
-        self.parameters_ = [
-            {"label": labels[j], "value": float(theta[j]), "start": float(theta0[j]),
-             "unit": units[j], "uncertainty": float(np.sqrt(max(cov[j, j], 0.0))),
-             "identified_fraction": float(frac[j])} for j in range(p)]
+        self._uncertainty_inputs = (model, Js, meas, r, V, theta, theta0, noise_z, frac)
+        for name in _FromCovariance.NAMES:
+            self.__dict__.pop(name, None)
         groups = []
         for i in np.flatnonzero(~keep):
             v = Vt[i]
@@ -378,6 +392,27 @@ class PhysicsFit:
             "unidentified_groups": groups,
             "residual_sigma_nm": sigma_r * 1e9,
         }
+
+    def _uncertainty(self):
+        """Sets ``covariance_z_`` (the identified directions' covariance, ``_covariance_z``),
+        ``consider_`` (what the held directions' deviation from the prior, its width each,
+        does to the identified), ``covariance_`` (p, p; SI) and ``parameters_`` from the
+        fit's ``_uncertainty_inputs``."""
+        model, Js, meas, r, V, theta, theta0, noise_z, frac = self._uncertainty_inputs
+        p, k = model.n_free, V.shape[1]
+        S = model.scales
+        cov_z = self._covariance_z(model, meas, Js @ V, r, theta, V, noise_z)
+        consider = _considered(Js, V, model.tolerances / S)
+        cov = (S[:, None] * V) @ cov_z @ (S[:, None] * V).T if k else np.zeros((p, p))
+        cov += (S[:, None] * consider) @ (S[:, None] * consider).T
+        units = [f.unit for f in model.free for _ in range(f.sl.stop - f.sl.start)]
+        self.__dict__.update(
+            covariance_z_=cov_z, consider_=consider, covariance_=cov,
+            parameters_=[{"label": label, "value": float(theta[j]),
+                          "start": float(theta0[j]), "unit": units[j],
+                          "uncertainty": float(np.sqrt(max(cov[j, j], 0.0))),
+                          "identified_fraction": float(frac[j])}
+                         for j, label in enumerate(model.labels)])
 
     def _covariance_z(self, model, meas, Jz, r, theta, V, noise_z) -> np.ndarray:
         """(k, k) the covariance of the coordinates in the identified directions ``V``: the

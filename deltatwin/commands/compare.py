@@ -76,12 +76,20 @@ def format_report(rep: dict) -> str:
         lines.append(f"at the {judged['kind']} floor (within {judged['factor']}x): "
                      + ", ".join(f"{a} {'yes' if ok else 'no'}"
                                  for a, ok in judged["axes"].items()))
+    band = rep.get("validation_band_95_nm") or {}
     lines.append(f"{'split':<6}{'axis':<5}{'n':>6}{'mean nm':>9}{'p90 nm':>9}{'1.645s nm':>10}"
-                 f"{'max nm':>9}")
+                 f"{'max nm':>9}" + (f"  {'p90 95 % band nm':<18}" if band else ""))
     for split, axes in rep["axes"].items():
         for a, r in axes.items():
+            b = band.get(a) if split == "val" else None
             lines.append(f"{split:<6}{a:<5}{r['n']:>6}{_f(r['mean_nm'])}{_f(r['err_p90_nm'])}"
-                         f"{_f(r['err_1645sigma_nm'], 10)}{_f(r['max_abs_nm'])}")
+                         f"{_f(r['err_1645sigma_nm'], 10)}{_f(r['max_abs_nm'])}"
+                         + (f"  {b['low']:.1f}-{b['high']:.1f}"
+                            + ("" if b["within"] is not False else "  outside") if b else ""))
+    if band:
+        lines.append("  (p90 95 % band: where the validation error 90 % falls if the model is "
+                     "right: its parameters' uncertainty and the readings' noise as the "
+                     "calibration rows show it)")
     rows = rep["rows"]
     if rep.get("force"):
         lines.append(f"force level ({rows} rows): p90 nm [mean x, y, z nm]")
@@ -106,7 +114,7 @@ def format_report(rep: dict) -> str:
 
 
 def run(args) -> int:
-    from deltatwin.calibration.diagnosis.compare import compare, load_model_file
+    from deltatwin.calibration.diagnosis.compare import compare, load_model_and_covariance
     from deltatwin.calibration.errors import CalibrationInputError
     from deltatwin.commands.report import check_report_folder, write_report_folder
     from deltatwin.files import check_writable
@@ -116,10 +124,11 @@ def run(args) -> int:
         check_writable(args.report, folder=True)
         check_report_folder(args.report)
     df, meta = read_dataset(args.data)
-    model = load_model_file(args.model, trust_of(args))
+    model, covariance = load_model_and_covariance(args.model, trust_of(args))
     try:
         rep = compare(df, meta, model, split=args.split, n_time_windows=args.windows,
-                      n_bins=args.bins, n_worst=args.worst, params=args.params)
+                      n_bins=args.bins, n_worst=args.worst, params=args.params,
+                      covariance=covariance)
     except CalibrationInputError as exc:
         raise CalibrationInputError(f"{args.data} with model {args.model}: {exc}") from exc
     rep = {"data": str(args.data), "model_file": str(args.model), **rep}

@@ -9,7 +9,12 @@ import pandas as pd
 import pytest
 
 from deltatwin.calibration.blackbox.dgm import DGM
-from deltatwin.calibration.diagnosis.compare import compare, evaluate, load_model_file
+from deltatwin.calibration.diagnosis.compare import (
+    compare,
+    evaluate,
+    load_model_and_covariance,
+    load_model_file,
+)
 from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.calibration.physics.model_file import fitted_toml, load_fitted
 from deltatwin.cli import main
@@ -50,7 +55,8 @@ def files(magnetic, baseline, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def report(magnetic, files):
-    return compare(*magnetic, load_model_file(files / "fitted.toml"))
+    model, covariance = load_model_and_covariance(files / "fitted.toml")
+    return compare(*magnetic, model, covariance=covariance)
 
 
 def _p90(v):
@@ -286,3 +292,35 @@ def test_direct_igm_is_refused(force_igm, tmp_path):
     force_igm.save(tmp_path / "igm.json")
     with pytest.raises(ValueError, match=r"igm\.json: holds a DirectIGM, which predicts motor"):
         load_model_file(tmp_path / "igm.json")
+
+
+def test_a_model_file_s_covariance_gives_the_validation_band(magnetic, with_force, tmp_path,
+                                                             capsys):
+    """With a fitted model's covariance, compare draws the validation error's 95 % band on the
+    data: on the data it was fitted to, the fit's own band draw for draw (the same Jacobian,
+    covariance, residual and seed); 'within' is the printed numbers' comparison; a model
+    file carries the covariance to the command line, and a DGM has no band."""
+    df, meta = magnetic
+    own = with_force.validation_band(np.random.default_rng(0))
+    rep = compare(df, meta, with_force.model_, covariance=with_force.covariance_,
+                  rng=np.random.default_rng(0))
+    band = rep["validation_band_95_nm"]
+    for axis, (low, high) in own.items():
+        assert band[axis]["low"] == pytest.approx(low, rel=1e-9)
+        assert band[axis]["high"] == pytest.approx(high, rel=1e-9)
+        err = rep["axes"]["val"][axis]["err_p90_nm"]
+        assert band[axis]["within"] == (low <= err <= high)
+    assert compare(df, meta, with_force.model_)["validation_band_95_nm"] is None
+    with pytest.raises(Exception, match="one row per parameter"):
+        compare(df, meta, with_force.model_, covariance=np.eye(2))
+    data = tmp_path / "magnetic.parquet"
+    write_dataset(df, meta, data)
+    with_force.save(tmp_path / "force.toml", str(data))
+    assert main(["compare", str(data), "--model", str(tmp_path / "force.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "p90 95 % band nm" in out
+    # the file's correlations are rounded: the band as drawn in memory, to a few per cent
+    printed = next(line for line in out.splitlines() if line.startswith("val   x")).split()[7]
+    low, high = (float(v) for v in printed.split("-"))
+    assert low == pytest.approx(band["x"]["low"], rel=0.05)
+    assert high == pytest.approx(band["x"]["high"], rel=0.05)
