@@ -173,7 +173,7 @@ def _latency(sc, df, models) -> None:
         print(f"  direct IGM evaluation (numpy, one point): {us:9.1f} us; the plain Python "
               f"reference evaluator: {ref:9.1f} us")
     model, doc = load_fitted(models["physics"])
-    comp = PhysicsCompensator(model, doc["model"].get("sensors") or {})
+    comp = PhysicsCompensator(model, doc["model"].get("sensors") or {}, known=doc.get("known", {}))
     log = ConditionLog(tuple(comp.sensors))
     T = [float(row[f"T_{s}_C"].iloc[0]) for s in log.sensors]
     log.zero(0.0, T)

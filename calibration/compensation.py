@@ -221,14 +221,18 @@ class PhysicsCompensator(Compensator):
     """A physics model inverted (target + temperatures + currents -> q)."""
     kind = "physics"
 
-    def __init__(self, model: PhysicsModel, sensors: dict, q0=None, **inverse_kw):
+    def __init__(self, model: PhysicsModel, sensors: dict, q0=None, known: dict | None = None,
+                 **inverse_kw):
         self.model = model
         self.sensors = dict(sensors)
+        # the laboratory's constants the model was fitted with (its file's [known]: the set
+        # point of held supports)
+        self.known = dict(known or {})
         self.inverse = PhysicsInverse(model, **inverse_kw)
 
     def measurements(self, frame: pd.DataFrame):
-        return measurements(frame, {"sensors": self.sensors}, self.model.params,
-                            where="compensation conditions")
+        return measurements(frame, {"sensors": self.sensors, "setup": {"known": self.known}},
+                            self.model.params, where="compensation conditions")
 
     def command(self, target_m, frame, q0=None) -> Command:
         meas = self.measurements(frame)
@@ -377,7 +381,8 @@ def load_compensator(path, trust_effects=False) -> Compensator:
         raise FileNotFoundError(f"{path}: no such model file")
     if path.suffix.lower() == ".toml":
         model, doc = load_fitted(path, trust_effects)
-        comp = PhysicsCompensator(model, doc["model"].get("sensors") or {})
+        comp = PhysicsCompensator(model, doc["model"].get("sensors") or {},
+                                  known=doc.get("known", {}))
         comp.calibration_data = doc["model"].get("data")
     else:
         m = load_model(path)

@@ -164,11 +164,18 @@ def load_setup(path) -> dict:
     return {key: checks[key](value, f"{path}: {key}") for key, value in doc.items()}
 
 
-def scenario_setup(hidden: dict | None, source: str) -> dict:
+def scenario_setup(hidden: dict | None, source: str, effects=()) -> dict:
     """The metadata ``setup`` a scenario declares: its [hidden] known constants and baseline
-    (none for a scenario without [hidden]); ``source`` names the scenario."""
+    (none for a scenario without [hidden]), and what its laboratory sets itself and so knows:
+    the set point of Peltier-held interferometer supports (``effects``: the scenario's, a
+    ``peltier_supports`` among them), unless [hidden] states another; ``source`` names the
+    scenario."""
     hidden = hidden or {}
     setup = {"source": source, "known": dict(hidden.get("known", {}))}
+    for e in effects:
+        if e.name == "peltier_supports":
+            setup["known"]["peltier_supports"] = {"setpoint_C": float(e.setpoint_C),
+                                                  **setup["known"].get("peltier_supports", {})}
     if "baseline" in hidden:
         setup["baseline"] = list(hidden["baseline"])
     return setup
@@ -235,6 +242,16 @@ def merged(lower: dict | None, upper: dict | None) -> dict:
     parameter: a given frame arm replaces the setup's arm, not the loop drift's other values."""
     lower, upper = lower or {}, upper or {}
     return {e: {**lower.get(e, {}), **upper.get(e, {})} for e in {**lower, **upper}}
+
+
+def with_known(meta: dict | None, known: dict | None) -> dict:
+    """A copy of the metadata ``meta`` whose setup's known constants have ``known`` ({effect:
+    {parameter: value}}: a fit's, e.g. given by ``--set``) put over them (``merged``)."""
+    meta = dict(meta or {})
+    setup = dict(meta.get(SETUP_KEY) or {})
+    setup["known"] = merged(setup.get("known", {}), known)
+    meta[SETUP_KEY] = setup
+    return meta
 
 
 def _same(a, b) -> bool:

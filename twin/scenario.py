@@ -579,8 +579,10 @@ class Scenario:
                           "cosine_correction": self.cosine},
                 "cosine_dead_path_m": self.dead_path(),
                 # what the laboratory states about itself: its [hidden] known constants and
-                # baseline (twin/lab_setup.py; the instruments and sensors above)
-                "setup": scenario_setup(self.hidden, f"scenario {self.file_name()}")}
+                # baseline, its supports' set point (twin/lab_setup.py; the instruments and
+                # sensors above)
+                "setup": scenario_setup(self.hidden, f"scenario {self.file_name()}",
+                                        self.effects)}
 
     def simulate(self, scale: float | None = None) -> tuple[pd.DataFrame, dict]:
         """The campaign's dataset through the vectorised fast path."""

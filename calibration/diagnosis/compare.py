@@ -335,6 +335,25 @@ def validation_band(ev: ModelEvaluation, model, covariance: np.ndarray | None,
     return out
 
 
+def _floors_and_conditions(df: pd.DataFrame, meta: dict | None, ev: ModelEvaluation,
+                           judged_axes: dict) -> dict:
+    """What compare says beside the residual: the twin's floors and their budget, whether the
+    error figures ``judged_axes`` are at the floor, the conditions the validation rows
+    extrapolate to, and the temperature columns the model does not use."""
+    truth = (meta or {}).get("truth") or {}
+    judged, kind = floor_of(meta)
+    extrapolated = extrapolated_variables(df)
+    used_T = set(ev.description["sensors"])
+    return {"noise_floor_nm": truth.get("noise_floor_nm"),
+            "achievable_floor_nm": truth.get("achievable_floor_nm"),
+            "floor_budget_nm": truth.get("floor_budget_nm"),
+            "at_floor": _at_floor(judged_axes, judged, kind),
+            "extrapolation": {"variables": extrapolated,
+                              "message": extrapolation_message(extrapolated)},
+            "unused_temperature_columns": [c for c in temperature_columns(df)
+                                           if c[2:-2] not in used_T]}
+
+
 def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
             n_time_windows: int = 8, n_bins: int = 5, n_worst: int = 3,
             min_readings: int = 10, params=None, covariance: np.ndarray | None = None,
@@ -380,13 +399,6 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
     variables, constant = _by_variable(df, long, rows, n_bins, min_readings)
     spread = sorted((v["p90_ratio_max_min"], k) for k, v in variables.items()
                     if v["p90_ratio_max_min"] is not None)[::-1]
-    band = validation_band(ev, model, covariance, rng)
-    truth = (meta or {}).get("truth") or {}
-    floor = truth.get("noise_floor_nm")
-    judged, kind = floor_of(meta)
-    extrapolated = extrapolated_variables(df)
-    used_T = set(ev.description["sensors"])
-    unused = [c for c in temperature_columns(df) if c[2:-2] not in used_T]
     return {
         "model": ev.description,
         "residual": f"{RESIDUAL_SIGN} (nm): the model's reading, with each (session, axis) zero "
@@ -397,15 +409,9 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
                                  for (s, a), o in zip(meas.groups, ev.offsets_m)},
                   "estimated_on": {f"{s}.{a}": w for (s, a), w in zip(meas.groups, ev.zero_rows)}},
         "rows": split,
-        "noise_floor_nm": floor,
-        "achievable_floor_nm": truth.get("achievable_floor_nm"),
-        "floor_budget_nm": truth.get("floor_budget_nm"),
-        "at_floor": _at_floor(axes.get("val") or axes.get(split) or {}, judged, kind),
-        "extrapolation": {"variables": extrapolated,
-                          "message": extrapolation_message(extrapolated)},
-        "unused_temperature_columns": unused,
+        **_floors_and_conditions(df, meta, ev, axes.get("val") or axes.get(split) or {}),
         "axes": axes,
-        "validation_band_95_nm": band,
+        "validation_band_95_nm": validation_band(ev, model, covariance, rng),
         "regions": {"scheme": "octants of the platform's nominal kinematic position about the "
                               "centre of the bounding box of the rows' positions",
                     "centre_mm": [float(c * 1e3) for c in centre], "bins": regions},

@@ -36,8 +36,9 @@ from deltatwin.calibration.physics.thermometers import (
 from deltatwin.calibration.stats import sandwich_covariance
 from deltatwin.models.kinematics import KinematicsError
 from deltatwin.models.params import ParameterError, RobotParams
+from deltatwin.twin.effects import EffectError, effect_class
 from deltatwin.twin.instruments.optics import AXES
-from deltatwin.twin.lab_setup import known_constants, merged
+from deltatwin.twin.lab_setup import SetupError, check_known, known_constants, merged, with_known
 
 NM = 1e9   # the solver works on residuals in nm
 RADIUS_MIN = 1e-9   # fit scales: a trust region this small has only round-off left
@@ -136,7 +137,7 @@ class PhysicsFit:
         start = dict(start or {})
         self.known = {e: v for e, v in start.items() if e not in self.effects}
         for name, values in self.known.items():
-            PhysicsModel([name], params, {name: values}, where="known constants")
+            _check_known_constant(name, values, params)
         self.known_ = self.known        # with the data's setup once fitted
         self.start = {e: v for e, v in start.items() if e in self.effects} or None
         self.prior = prior
@@ -180,7 +181,9 @@ class PhysicsFit:
                              self.known)
         stated = {e: v for e, v in setup.items() if e in self.effects}
         model = PhysicsModel(self.effects, self.params, merged(stated, self.start) or None)
-        meas = meas or measurements(df, meta, model.params, where)
+        # the laboratory's constants the fit was given reach the conditions too (the set point
+        # of held supports)
+        meas = meas or measurements(df, with_known(meta, self.known_), model.params, where)
         check_sensors(model.names, meas, where)
         self.data_sha256_ = data_sha256(meas)
         cal = meas.cal
@@ -458,7 +461,8 @@ class PhysicsFit:
         return -validation_error_p90(self.model_, df, self._meta_for(meta))
 
     def _meta_for(self, meta: dict | None) -> dict:
-        return meta if meta is not None else {"sensors": dict(self.meta_.get("sensors") or {})}
+        return meta if meta is not None else {"sensors": dict(self.meta_.get("sensors") or {}),
+                                              "setup": {"known": self.known_}}
 
     def save(self, path, data: str | None = None):
         """Write the fitted model as the TOML file ``deltatwin fit -o`` writes (atomically);
@@ -511,6 +515,19 @@ class PhysicsFit:
                            columns=[f"{a}_nm" for a in AXES])
         out["split"] = meas.df["split"].to_numpy()
         return out
+
+
+def _check_known_constant(name: str, values: dict, params: RobotParams | None) -> None:
+    """A known constant of effect ``name`` checked: a model effect's as a model would take it;
+    one without a model form's (a condition of the laboratory, e.g. the set point of held
+    supports, which the measurements read) against the library; FitError otherwise."""
+    try:
+        if not effect_class(name, where="known constants").model_stages():
+            check_known({name: values}, "known constants")
+            return
+    except (EffectError, SetupError) as exc:
+        raise FitError(str(exc)) from exc
+    PhysicsModel([name], params, {name: values}, where="known constants")
 
 
 def _gauss_newton(fun, jac, z, Jz, dof: int, max_evaluations: int, at_start=None,

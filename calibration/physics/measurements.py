@@ -23,6 +23,7 @@ from deltatwin.twin.instruments.optics import (
     nominal_dead_path,
     vapour_pressure,
 )
+from deltatwin.twin.lab_setup import known_constants
 from deltatwin.twin.statics import Statics
 from deltatwin.twin.thermal import PART_NODES
 from deltatwin.twin.world import Points
@@ -53,6 +54,9 @@ class Measurements:
     zero_row: np.ndarray          # (N,) index in ``points`` of each row's session zero
     T_ref_C: float
     sensor_node_T: dict           # part temperatures taken at their sensors' readings
+    # the interferometer supports' temperature (degC) where the laboratory holds them at a set
+    # point (its setup's peltier_supports setpoint_C); None: they follow the table
+    support_held_C: float | None = None
     _statics: tuple | None = field(default=None, repr=False)
 
     @property
@@ -185,10 +189,11 @@ def move_directions(t_s: np.ndarray, q: np.ndarray, session: np.ndarray):
 def data_sha256(meas: Measurements) -> str | None:
     """A fingerprint of what a fit sees (SHA-256, hex): every column of the dataset, row by row
     (pandas' per-row hash), its split and readings, and what the metadata make of them (the
-    sensor -> part map, the cosine correction's terms, the reference temperature). A fitted
-    model file keeps it, so a diagnosis knows the data are the very ones the model was fitted
-    on. None (never equal to a file's) when a column holds values pandas cannot hash (lists,
-    dicts: possible only for data built in memory; read files are validated)."""
+    sensor -> part map, the cosine correction's terms, the reference temperature, the
+    supports' held temperature). A fitted model file keeps it, so a diagnosis knows the data
+    are the very ones the model was fitted on. None (never equal to a file's) when a column
+    holds values pandas cannot hash (lists, dicts: possible only for data built in memory;
+    read files are validated)."""
     h = hashlib.sha256()
     try:
         h.update(pd.util.hash_pandas_object(meas.df, index=False).to_numpy().tobytes())
@@ -196,6 +201,8 @@ def data_sha256(meas: Measurements) -> str | None:
         return None
     h.update(repr((list(map(str, meas.df.columns)), sorted(meas.sensors.items()),
                    float(meas.T_ref_C))).encode())
+    if meas.support_held_C is not None:     # the supports' temperature the setup states
+        h.update(repr(meas.support_held_C).encode())
     for a in (meas.y, meas.cal, meas.val, meas.cos_scale, meas.cos_offset):
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()
@@ -299,8 +306,20 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
     meas = Measurements(df=df, sensors=dict(sensors), y=y, cos_scale=cos, cos_offset=cos_offset,
                         group=group,
                         groups=groups, cal=split == "cal", val=split == "val", points=pts,
-                        zero_row=zero_row, T_ref_C=T_ref, sensor_node_T={})
+                        zero_row=zero_row, T_ref_C=T_ref, sensor_node_T={},
+                        support_held_C=supports_held_C(meta, where))
     return with_sensor_streams(meas, streams)
+
+
+def supports_held_C(meta: dict | None, where: str = "data") -> float | None:
+    """The temperature (degC) the laboratory holds its interferometer supports at, as its setup
+    states it (known constants, ``peltier_supports`` ``setpoint_C``: Peltier-stabilised heads,
+    as in the papers' laboratory); None where it states none: the supports then sit on the
+    table at its temperature. A loop model that took the table's 1-2 K warming for held
+    supports' biased the table's and frame's expansion coefficients by 2-3 of their
+    uncertainties on the papers' thermal campaigns."""
+    held = known_constants(meta, where).get("peltier_supports", {}).get("setpoint_C")
+    return None if held is None else float(held)
 
 
 def _with_zeros(v: np.ndarray, first: np.ndarray) -> np.ndarray:
@@ -332,8 +351,10 @@ def with_sensor_streams(meas: Measurements, streams: dict) -> Measurements:
     room = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
     vapour = (vapour_pressure(full(meas.df["RH_pct"].to_numpy(dtype=np.float64)), room)
               if "RH_pct" in meas.df else None)
+    supports = (node_T["table"] if meas.support_held_C is None
+                else np.full(size, meas.support_held_C))
     pts = dataclasses.replace(meas.points, node_T=node_T, room_C=room, vapour_Pa=vapour,
-                              support_C={a: node_T["table"] for a in AXES},
+                              support_C={a: supports for a in AXES},
                               sensor_readings=streams)
     return dataclasses.replace(meas, points=pts, sensor_node_T=node_T)
 

@@ -53,10 +53,10 @@ sessions = [{{ name = "xy", axes = ["x", "y"], cal = 700, val = 300 }},
 """
 
 
-def _scenario(tmp_path, contact: bool) -> Scenario:
+def _scenario(tmp_path, contact: bool, more: str = "") -> Scenario:
     sensors = "\n".join(f'{p} = "{p}"' for p in PARTS + ["air_x", "air_y", "air_z"])
     path = tmp_path / "model-is-twin.toml"
-    path.write_text(SCENARIO.format(contact=', "sensor_contact"' if contact else "",
+    path.write_text(SCENARIO.format(contact=(', "sensor_contact"' if contact else "") + more,
                                     sensors=sensors))
     return Scenario.load(path)
 
@@ -87,6 +87,30 @@ def test_true_model_reproduces_noise_free_readings_counted_from_the_zero(tmp_pat
     # without the zero term (the dead path times the index change since the zero) the same
     # model leaves 10.9 nm here
     assert err < 2.0, err
+
+
+def test_held_supports_are_modelled_at_the_set_point_the_laboratory_states(tmp_path):
+    """Peltier-held interferometer supports (the papers' laboratory: 25 degC, +-0.01) sit at
+    their set point while the table warms under them: the data's setup states it (simulate
+    writes it, as a laboratory knows its own set point), and the model's supports are then
+    the twin's to its regulation; the same data without that statement put the supports at
+    the table's temperature, kelvins off; the model reproduces the readings either way to
+    what the loop's support term moves here (under a nanometre)."""
+    sc = _scenario(tmp_path, contact=False, more=', "peltier_supports"')
+    twin, clean, meta = _noise_free(sc)
+    assert meta["setup"]["known"]["peltier_supports"] == {"setpoint_C": 25.0}
+    effects = ["thermal_expansion", "loop_drift", "air_refraction"]
+    err, meas = _true_model_residual_nm(sc, twin, clean, meta, effects)
+    actual = twin.points(clean["t_s"].to_numpy(), np.zeros((len(clean), 3)),
+                         np.zeros((len(clean), 3))).support_C
+    n = meas.n
+    for a in "xyz":
+        assert np.abs(meas.points.support_C[a][:n] - actual[a]).max() < 0.05
+    unstated = {**meta, "setup": {**meta["setup"], "known": {}}}
+    err_unstated, meas = _true_model_residual_nm(sc, twin, clean, unstated, effects)
+    assert meas.support_held_C is None
+    assert np.abs(meas.points.support_C["z"][:n] - actual["z"]).min() > 2.0
+    assert err < 2.0 and err < err_unstated, (err, err_unstated)
 
 
 def test_sensor_contact_inversion_recovers_the_parts(tmp_path):

@@ -13,6 +13,7 @@ from deltatwin.twin.dataset import read_dataset, write_dataset
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "lab-setup.toml"
 ARM = [-0.6, 0.0]
+HELD = {"peltier_supports": {"setpoint_C": 25.0}}    # the supports' set point, as simulated
 OVERRIDE = "--set loop_drift.frame_arm_m overrides the data's setup value [-0.6, 0.0]"
 
 
@@ -41,7 +42,7 @@ def test_simulate_writes_the_scenario_s_setup_and_says_so(drift_data):
     path, printed = drift_data
     _, meta = read_dataset(path)
     assert meta["setup"] == {"source": "scenario hidden/loop-drift",
-                             "known": {"loop_drift": {"frame_arm_m": ARM}},
+                             "known": {"loop_drift": {"frame_arm_m": ARM}, **HELD},
                              "baseline": ["geometric_errors", "thermal_expansion",
                                           "sensor_contact"]}
     line = next(x for x in printed.splitlines() if x.strip().startswith("setup:"))
@@ -56,11 +57,12 @@ def test_fit_takes_the_frame_arm_from_the_data_and_the_model_file_records_it(dri
     model = tmp_path / "m.toml"
     s, err = fit_json(capsys, path, "--effects", "loop_drift", "-o", model)
     assert s["values"]["loop_drift"]["frame_arm_m"] == ARM
-    assert s["constants_from"] == {"loop_drift.frame_arm_m": "the data's setup"}
+    assert s["constants_from"] == {"loop_drift.frame_arm_m": "the data's setup",
+                                   "peltier_supports.setpoint_C": "the data's setup"}
     assert "overrides" not in err
     doc = tomllib.loads(model.read_text())
     assert doc["effects"]["loop_drift"]["frame_arm_m"] == ARM
-    assert doc["known"] == {"loop_drift": {"frame_arm_m": ARM}}
+    assert doc["known"] == {"loop_drift": {"frame_arm_m": ARM}, **HELD}
     # the same fit without the setup in the data hangs the robot from the library's portal
     df, meta = read_dataset(path)
     write_dataset(df, {k: v for k, v in meta.items() if k != "setup"}, tmp_path / "bare.parquet")
@@ -74,7 +76,8 @@ def test_set_overrides_the_data_s_setup_and_says_so_in_one_line(drift_data, tmp_
                       "--set", "loop_drift.frame_arm_m=-0.5,0", "-o", tmp_path / "m.toml")
     assert err.strip().splitlines() == [OVERRIDE]
     assert s["values"]["loop_drift"]["frame_arm_m"] == [-0.5, 0.0]
-    assert s["constants_from"] == {"loop_drift.frame_arm_m": "--set"}
+    assert s["constants_from"] == {"loop_drift.frame_arm_m": "--set",
+                                   "peltier_supports.setpoint_C": "the data's setup"}
     # the same value as the setup's overrides nothing
     _, err = fit_json(capsys, path, "--effects", "loop_drift",
                       "--set", "loop_drift.frame_arm_m=-0.6,0")
@@ -86,7 +89,7 @@ def test_fit_without_effects_fits_the_data_s_baseline(drift_data, capsys):
     s, _ = fit_json(capsys, path)
     assert s["effects"] == ["geometric_errors", "thermal_expansion", "sensor_contact"]
     # loop drift is not in the baseline: its arm is kept for the candidates a diagnosis adds
-    assert s["constants"] == {"loop_drift": {"frame_arm_m": ARM}}
+    assert s["constants"] == {"loop_drift": {"frame_arm_m": ARM}, **HELD}
 
 
 def test_fit_without_effects_on_data_without_a_baseline_is_one_line(tmp_path, capsys):
@@ -110,7 +113,7 @@ def test_a_laboratory_s_setup_file_is_put_into_its_own_csv(drift_data, tmp_path,
     printed = capsys.readouterr().out
     assert "loop_drift.frame_arm_m = [-0.6, 0.0]" in printed and str(EXAMPLE) in printed
     _, meta = read_dataset(out)
-    assert meta["setup"]["known"] == {"loop_drift": {"frame_arm_m": ARM}}
+    assert meta["setup"]["known"] == {"loop_drift": {"frame_arm_m": ARM}, **HELD}
     assert meta["setup"]["baseline"][-1] == "loop_drift"
     assert meta["instruments"]["T_noise_C"] == 0.003
     assert meta["sensors"]["frame"] == "frame"
@@ -165,7 +168,7 @@ def test_compensate_says_where_the_model_s_constants_are_not_the_data_s_setup(dr
     assert (f"{model}: the model's loop_drift.frame_arm_m = [0.0, 0.0] overrides the data's "
             "setup value [-0.6, 0.0]") in err, err
     _, meta = read_dataset(tmp_path / "comp.parquet")
-    assert meta["setup"]["known"] == {"loop_drift": {"frame_arm_m": ARM}}
+    assert meta["setup"]["known"] == {"loop_drift": {"frame_arm_m": ARM}, **HELD}
     assert meta["instruments"]["kind"] == "sim" and "T_noise_C" in meta["instruments"]
 
 

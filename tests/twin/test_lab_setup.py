@@ -27,19 +27,21 @@ ARM = {"loop_drift": {"frame_arm_m": [-0.6, 0.0]}}
 def test_a_hidden_scenario_s_metadata_carries_its_known_constants_and_baseline():
     sc = Scenario.load("hidden/loop-drift")
     meta = sc.metadata(sc.build(0.01)[0], 0.01)
-    assert meta["setup"] == {"source": "scenario hidden/loop-drift", "known": ARM,
+    # and the set point of its Peltier-held supports, which the laboratory sets and so knows
+    held = {"peltier_supports": {"setpoint_C": 25.0}}
+    assert meta["setup"] == {"source": "scenario hidden/loop-drift", "known": {**ARM, **held},
                              "baseline": ["geometric_errors", "thermal_expansion",
                                           "sensor_contact"]}
-    assert known_constants(meta) == ARM
-    # a scenario without [hidden] states no constant and no baseline
+    assert known_constants(meta) == {**ARM, **held}
+    # a scenario without [hidden] states no other constant and no baseline
     plain = Scenario.load("paper-thermal")
     assert plain.metadata(plain.build(0.01)[0], 0.01)["setup"] == {
-        "source": "scenario paper-thermal", "known": {}}
+        "source": "scenario paper-thermal", "known": held}
 
 
 def test_the_documented_example_setup_file_is_read_as_written():
     setup = load_setup(EXAMPLE)
-    assert setup["known"] == ARM
+    assert setup["known"] == {**ARM, "peltier_supports": {"setpoint_C": 25.0}}
     assert setup["baseline"] == ["geometric_errors", "thermal_expansion", "sensor_contact",
                                  "loop_drift"]
     assert setup["instruments"]["T_noise_C"] == 0.003
