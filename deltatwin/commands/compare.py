@@ -51,6 +51,14 @@ def _f(v, width=9, digits=1) -> str:
     return f"{'-':>{width}}" if v is None else f"{v:>{width}.{digits}f}"
 
 
+def _side(err, band: dict) -> str:
+    """Where a validation error lies against its band: "" within, else above (the model misses
+    something the validation rows show) or below it."""
+    if band["within"] is not False or err is None:
+        return ""
+    return "  above" if err > band["high"] else "  below"
+
+
 def format_report(rep: dict) -> str:
     """Compact human-readable summary of a ``compare`` result."""
     from deltatwin.calibration.diagnosis.floor import budget_lines
@@ -84,8 +92,8 @@ def format_report(rep: dict) -> str:
             b = band.get(a) if split == "val" else None
             lines.append(f"{split:<6}{a:<5}{r['n']:>6}{_f(r['mean_nm'])}{_f(r['err_p90_nm'])}"
                          f"{_f(r['err_1645sigma_nm'], 10)}{_f(r['max_abs_nm'])}"
-                         + (f"  {b['low']:.1f}-{b['high']:.1f}"
-                            + ("" if b["within"] is not False else "  outside") if b else ""))
+                         + (f"  {b['low']:.1f}-{b['high']:.1f}{_side(r['err_p90_nm'], b)}"
+                            if b else ""))
     if band:
         lines.append("  (p90 95 % band: where the validation error 90 % falls if the model is "
                      "right: its parameters' uncertainty and the readings' noise as the "

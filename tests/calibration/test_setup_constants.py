@@ -11,13 +11,14 @@ from deltatwin.calibration.physics.fit import PhysicsFit
 from deltatwin.twin.scenario import Scenario
 
 ARM = {"loop_drift": {"frame_arm_m": [-0.6, 0.0]}}
+HELD = {"peltier_supports": {"setpoint_C": 25.0}}    # the supports' set point, as simulated
 
 
 @pytest.fixture(scope="module")
 def drift():
     sc = Scenario.load("hidden/loop-drift")
     df, meta = sc.simulate(sc.reduced_scale)
-    assert meta["setup"]["known"] == ARM
+    assert meta["setup"]["known"] == {**ARM, **HELD}
     return sc.hidden["baseline"], df, meta
 
 
@@ -28,7 +29,7 @@ def loop_drift_row(d: dict) -> dict:
 def test_the_loop_drift_candidate_hangs_from_the_setup_s_frame_arm(drift):
     baseline, df, meta = drift
     fit = PhysicsFit(baseline).fit(df, meta, where="drift.parquet")
-    assert fit.known_ == ARM
+    assert fit.known_ == {**ARM, **HELD}
     d = diagnose(fit, "drift.parquet")
     bare = {k: v for k, v in meta.items() if k != "setup"}
     portal = PhysicsFit(baseline).fit(df, bare)
@@ -45,7 +46,7 @@ def test_the_loop_drift_candidate_hangs_from_the_setup_s_frame_arm(drift):
 def test_the_next_command_carries_the_user_s_override(drift):
     baseline, df, meta = drift
     fit = PhysicsFit(baseline, start={"loop_drift": {"frame_arm_m": [-0.55, 0.0]}}).fit(df, meta)
-    assert fit.known_ == {"loop_drift": {"frame_arm_m": [-0.55, 0.0]}}
+    assert fit.known_ == {"loop_drift": {"frame_arm_m": [-0.55, 0.0]}, **HELD}
     d = diagnose(fit, "drift.parquet")
     assert d["missing_effect"] == "loop_drift", [c["effect"] for c in d["ranking"][:3]]
     assert d["next_command"].endswith(" --set loop_drift.frame_arm_m=-0.55,0.0 -o fitted.toml")
