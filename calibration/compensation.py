@@ -39,10 +39,11 @@ from deltatwin.calibration.blackbox.model_file import load_model
 from deltatwin.calibration.blackbox.validation import evaluate
 from deltatwin.calibration.errors import CalibrationInputError, ModelFileError
 from deltatwin.calibration.metrics import error_figures
+from deltatwin.calibration.physics.band import BAND_DRAWS, BAND_LEVEL, square_root
 from deltatwin.calibration.physics.inverse import PhysicsInverse
 from deltatwin.calibration.physics.measurements import TEMPERATURE_WINDOW_S, measurements
 from deltatwin.calibration.physics.model import PhysicsModel, figures_nm, group_offsets, residuals
-from deltatwin.calibration.physics.model_file import load_fitted
+from deltatwin.calibration.physics.model_file import load_fitted, saved_uncertainty
 from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.instruments.optics import AXES
 
@@ -143,6 +144,7 @@ class Compensator:
     kind = "?"
     model_path: str | None = None
     calibration_data: str | None = None      # the dataset a physics model file names
+    covariance: np.ndarray | None = None     # a physics model file's parameter covariance (SI)
 
     def zero(self, frame: pd.DataFrame) -> None:
         """Nothing to transfer by default."""
@@ -206,6 +208,12 @@ def pairwise_differences(err: np.ndarray, group: np.ndarray, shifts: int = PAIR_
     return np.concatenate(out) if out else np.zeros(0)
 
 
+def _by_session(err: np.ndarray, group: np.ndarray) -> list[np.ndarray]:
+    """The finite errors ``err`` (n,) of each ``group`` (n,) of at least two of them."""
+    parts = [err[(group == g) & np.isfinite(err)] for g in np.unique(group)]
+    return [p for p in parts if p.size > 1]
+
+
 def _figures(fitted: dict, zero: dict | None = None, pairwise: dict | None = None) -> dict:
     """The three predictions (see ``Compensator.predicted``) of one axis, nm."""
     main = pairwise if pairwise is not None else fitted
@@ -250,14 +258,52 @@ class PhysicsCompensator(Compensator):
         return self.inverse.predict(meas, idx, q)
 
     def predicted(self, df, meta):
-        meas = measurements(df, meta, self.model.params, where="calibration data")
-        pred = self.model.predict_path(meas)
+        meas, res = self._calibration_errors(df, meta)
+        pred = meas.y - res
         fig = figures_nm(residuals(meas, pred, group_offsets(meas, pred, meas.cal)), meas.val)
-        res = residuals(meas, pred, np.zeros(len(meas.groups)))
         zero = figures_nm(res, meas.val)
         return {a: _figures(fig[a], zero[a], error_figures(pairwise_differences(
                     res[meas.val, k], meas.group[meas.val, k])))
                 for k, a in enumerate(AXES) if a in fig}
+
+    def _calibration_errors(self, df, meta):
+        """(measurements, (N,3) m): the model's error at each row of its calibration data,
+        referenced to each session's zero (no constant fitted)."""
+        meas = measurements(df, meta, self.model.params, where="calibration data")
+        pred = self.model.predict_path(meas)
+        return meas, residuals(meas, pred, np.zeros(len(meas.groups)))
+
+    def band(self, covariance: np.ndarray, achieved: pd.DataFrame, rows: np.ndarray,
+             cal_df: pd.DataFrame, cal_meta: dict | None, rng: np.random.Generator,
+             zero_settles: int = 1, draws: int = BAND_DRAWS, level: float = BAND_LEVEL) -> dict:
+        """{axis: (low, high) nm}: the band the achieved error 90 % over the compensated
+        campaign's ``rows`` (of ``achieved``, its dataset: the conditions each target was
+        commanded in) falls in with probability ``level`` if the model is right: its
+        parameters' error, drawn from their ``covariance`` (p, p; SI; the model file's), moves
+        each target by the model's Jacobian there, in those conditions (the temperatures of
+        hours later: the extrapolation in time), counted from the session's zero; the rest of
+        a target's error is one of the model's validation errors on its calibration data
+        ``cal_df`` (its own noise and misfit) less the zero's, another drawn over
+        sqrt(``zero_settles``): the zero is the mean of that many home settles, its noise
+        averaged (a model's misfit at home is not: where misfit dominates, the band is that
+        much too narrow); drawn with ``rng``."""
+        meas = self.measurements(achieved)
+        J = np.nan_to_num(self.model.jacobian(meas, self.model.theta())[1][rows])
+        change = J @ square_root(covariance) @ rng.standard_normal((J.shape[2], draws))
+        cal, res = self._calibration_errors(cal_df, cal_meta)
+        out = {}
+        for k, a in enumerate(AXES):
+            # each session's constant out, as the pairs of ``predicted`` cancel it
+            sessions = _by_session(res[cal.val, k], cal.group[cal.val, k])
+            if not sessions or not np.isfinite(meas.y[rows, k]).any():
+                continue
+            e = np.concatenate([part - part.mean() for part in sessions])
+            noise = (e[rng.integers(0, e.size, (rows.sum(), draws))]
+                     - e[rng.integers(0, e.size, draws)] / np.sqrt(zero_settles))
+            p90 = np.quantile(np.abs(change[:, k] + noise), 0.9, axis=0) * 1e9
+            q = np.quantile(p90, ((1 - level) / 2, 1 - (1 - level) / 2))
+            out[a] = (float(q[0]), float(q[1]))
+        return out
 
 
 class NominalCompensator(PhysicsCompensator):
@@ -383,6 +429,7 @@ def load_compensator(path, trust_effects=False) -> Compensator:
         model, doc = load_fitted(path, trust_effects)
         comp = PhysicsCompensator(model, doc["model"].get("sensors") or {},
                                   known=doc.get("known", {}))
+        comp.covariance = saved_uncertainty(doc, model)[1]
         comp.calibration_data = doc["model"].get("data")
     else:
         m = load_model(path)

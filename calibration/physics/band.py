@@ -63,7 +63,7 @@ def block_bootstrap(rng: np.random.Generator, e: np.ndarray, n: int, draws: int)
     return e[index.reshape(blocks * size, draws)[:n]]
 
 
-def _square_root(cov: np.ndarray) -> np.ndarray:
+def square_root(cov: np.ndarray) -> np.ndarray:
     """L with L L^T = ``cov`` (symmetric, positive semi-definite up to round-off), taken on the
     correlation matrix (parameters of unlike units differ in variance by 20 orders of
     magnitude: on ``cov`` itself the small ones would be round-off of the large), its
@@ -95,7 +95,7 @@ def prediction_band(meas, jacobian: np.ndarray, covariance: np.ndarray, residual
     val = meas.val[:, None] & (meas.group >= 0) & np.isfinite(residual)
     if not val.any():
         return {}
-    JR = np.nan_to_num(jacobian) @ _square_root(covariance)             # (N, 3, p)
+    JR = np.nan_to_num(jacobian) @ square_root(covariance)             # (N, 3, p)
     t = meas.df["t_s"].to_numpy()
     errors = np.full(meas.y.shape + (draws,), np.nan)
     for a in range(3):

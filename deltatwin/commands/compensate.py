@@ -172,6 +172,35 @@ def _ranges(cal_df, records, sensors) -> dict:
     return out
 
 
+def _axis_record(achieved: dict, uncompensated: dict, predicted: dict | None,
+                 band: tuple | None) -> dict:
+    """One axis of the report (nm): the achieved and uncompensated figures, the prediction from
+    the model's calibration data (``Compensator.predicted``) and, for a physics model with its
+    covariance, the achieved error's 95 % band (``PhysicsCompensator.band``) and whether the
+    achieved error lies in it."""
+    rec = {"achieved_err90_nm": achieved["err_p90"],
+           "achieved_1645sigma_nm": achieved["err_1645sigma"],
+           "achieved_mean_nm": achieved["mean"],
+           "uncompensated_err90_nm": uncompensated.get("err_p90"),
+           "uncompensated_1645sigma_nm": uncompensated.get("err_1645sigma"),
+           "predicted_err90_nm": None, "predicted_1645sigma_nm": None}
+    if predicted and predicted["err_p90"]:
+        rec["predicted_err90_nm"] = predicted["err_p90"]
+        rec["predicted_1645sigma_nm"] = predicted["err_1645sigma"]
+        rec["achieved_over_predicted"] = achieved["err_p90"] / predicted["err_p90"]
+        rec[f"within_{WITHIN:g}x"] = bool(rec["achieved_over_predicted"] <= WITHIN)
+        # the validation as its fit reports it (a constant fitted per session) and
+        # referenced to the calibration session's own zero (calibration.compensation)
+        rec["predicted_offset_fitted_err90_nm"] = predicted["fitted_err_p90"]
+        rec["predicted_offset_fitted_1645sigma_nm"] = predicted["fitted_err_1645sigma"]
+        rec["predicted_zero_referenced_err90_nm"] = predicted.get("zero_err_p90")
+        rec["predicted_zero_referenced_1645sigma_nm"] = predicted.get("zero_err_1645sigma")
+    if band is not None:
+        rec["predicted_band_err90_nm"] = list(band)
+        rec["within_band"] = bool(band[0] <= achieved["err_p90"] <= band[1])
+    return rec
+
+
 def run(args) -> int:
     import numpy as np
 
@@ -306,29 +335,13 @@ def run(args) -> int:
     achieved = achieved_figures(err, is_model & ok)
     uncompensated = achieved_figures(err, ~is_model & ok)
     predicted = comp.predicted(cal_df, cal_meta) if cal_df is not None else None
-    report_axes = {}
-    for a in AXES:
-        if a not in achieved:
-            continue
-        rec = {"achieved_err90_nm": achieved[a]["err_p90"],
-               "achieved_1645sigma_nm": achieved[a]["err_1645sigma"],
-               "achieved_mean_nm": achieved[a]["mean"],
-               "uncompensated_err90_nm": uncompensated.get(a, {}).get("err_p90"),
-               "uncompensated_1645sigma_nm": uncompensated.get(a, {}).get("err_1645sigma"),
-               "predicted_err90_nm": None, "predicted_1645sigma_nm": None}
-        if predicted and a in predicted and predicted[a]["err_p90"]:
-            p = predicted[a]
-            rec["predicted_err90_nm"] = p["err_p90"]
-            rec["predicted_1645sigma_nm"] = p["err_1645sigma"]
-            rec["achieved_over_predicted"] = achieved[a]["err_p90"] / p["err_p90"]
-            rec[f"within_{WITHIN:g}x"] = bool(rec["achieved_over_predicted"] <= WITHIN)
-            # the validation as its fit reports it (a constant fitted per session) and
-            # referenced to the calibration session's own zero (calibration.compensation)
-            rec["predicted_offset_fitted_err90_nm"] = p["fitted_err_p90"]
-            rec["predicted_offset_fitted_1645sigma_nm"] = p["fitted_err_1645sigma"]
-            rec["predicted_zero_referenced_err90_nm"] = p.get("zero_err_p90")
-            rec["predicted_zero_referenced_1645sigma_nm"] = p.get("zero_err_1645sigma")
-        report_axes[a] = rec
+    band = (comp.band(comp.covariance, df, is_model & ok, cal_df, cal_meta,
+                      np.random.default_rng(seed), args.zero_settles)
+            if comp.covariance is not None and cal_df is not None and (is_model & ok).any()
+            else {})
+    report_axes = {a: _axis_record(achieved[a], uncompensated.get(a, {}),
+                                   (predicted or {}).get(a), band.get(a))
+                   for a in AXES if a in achieved}
     model_records = [r for r, m in zip(records, modes) if m == "model"]
     not_conv = [{"target": int(plan.pos_id[k]), "status": r["status"], "reason": r["reason"]}
                 for k, (r, m) in enumerate(zip(records, modes)) if r["status"] != "converged"]
@@ -366,12 +379,19 @@ def run(args) -> int:
         print(f"compensated campaign: {sc.name}, model {args.model} ({comp.kind}), "
               f"{args.targets} targets, {len(not_conv)} not converged")
         print(f"{'axis':>4} {'achieved err90':>15} {'1.645 sigma':>12} {'uncompensated':>14} "
-              f"{'predicted':>12} {'offset-fitted':>14}")
+              f"{'predicted':>12} {'offset-fitted':>14}" + ("  95 % band" if band else ""))
         fmt = lambda v: f"{v:10.1f}" if v is not None else f"{'-':>10}"
         for a, r in report_axes.items():
+            b = r.get("predicted_band_err90_nm")
             print(f"{a:>4} {fmt(r['achieved_err90_nm'])} nm {fmt(r['achieved_1645sigma_nm'])} "
                   f"{fmt(r['uncompensated_err90_nm'])} nm {fmt(r['predicted_err90_nm'])} nm "
-                  f"{fmt(r.get('predicted_offset_fitted_err90_nm'))} nm")
+                  f"{fmt(r.get('predicted_offset_fitted_err90_nm'))} nm"
+                  + (f"  {b[0]:.1f}-{b[1]:.1f} nm{'' if r['within_band'] else ' (outside)'}"
+                     if b else ""))
+        if band:
+            print("  (95 % band: where the achieved error 90 % falls if the model is right: "
+                  "its parameters' uncertainty through the model in the conditions each target "
+                  "was commanded in, and its own validation errors' differences)")
         if report["outside_calibration_range"]:
             print("conditions outside the calibration range: "
                   + ", ".join(report["outside_calibration_range"]))

@@ -265,15 +265,34 @@ def test_the_band_draws_from_a_covariance_that_round_off_left_indefinite():
     """The sandwich covariance is positive semi-definite only to round-off: its square root
     for the band's draws takes a slightly negative eigenvalue as zero (a Cholesky
     factorisation refused one on a generated force case)."""
-    from deltatwin.calibration.physics.band import _square_root
+    from deltatwin.calibration.physics.band import square_root
 
     rng = np.random.default_rng(3)
     A = rng.standard_normal((6, 3))
     cov = A @ A.T                                    # rank 3: three zero eigenvalues
     cov[0, 0] -= 1e-12                               # one of them slightly negative
     assert np.linalg.eigvalsh(cov).min() < 0
-    L = _square_root(cov)
+    L = square_root(cov)
     assert np.allclose(L @ L.T, cov, atol=1e-10)
+
+
+def test_the_band_s_square_root_keeps_parameters_of_every_unit():
+    """Parameters in SI differ in variance by twenty orders of magnitude (an expansion
+    coefficient's 1e-12 /K^2 beside a coil moment's 1): the square root is taken on the
+    correlation matrix, so L L^T gives back every variance and correlation; on the covariance
+    itself the small ones are round-off of the large."""
+    from deltatwin.calibration.physics.band import square_root
+
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((12, 8))                  # rank 8: held directions, as a fit's
+    corr = A @ A.T / np.outer(np.linalg.norm(A, axis=1), np.linalg.norm(A, axis=1))
+    sigma = 10.0 ** rng.uniform(-20, 0, 12)
+    cov = corr * np.outer(sigma, sigma)
+    L = square_root(cov)
+    np.testing.assert_allclose((L @ L.T) / np.outer(sigma, sigma), corr, atol=1e-12)
+    w, U = np.linalg.eigh(cov)                        # what the unscaled root would keep
+    unscaled = U * np.sqrt(np.clip(w, 0.0, None))
+    assert np.max(np.abs(np.diag(unscaled @ unscaled.T) / np.diag(cov) - 1)) > 1e-3
 
 
 def test_the_fits_new_inputs_are_refused_in_one_line(tmp_path, capsys):

@@ -126,3 +126,31 @@ def test_a_controller_file_that_cannot_be_written_is_refused_before_the_run(lab,
                  "--controller", str(lab)])
     assert code == 2 and "is a folder" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_fitted_model_s_band_holds_what_it_achieves_and_a_model_lacking_an_effect_s_does_not(
+        lab):
+    """A fitted model file carries its covariance: compensate reports the achieved error's 95 %
+    band (its parameters' uncertainty in the conditions each target was commanded in, and its
+    own validation errors' differences). The twin's effects fitted to the calibration data
+    reach their targets within it on every axis; without the loop's drift the model misses
+    the targets by more than its band on the axis the drift moves most."""
+    for effects, name in ((MODEL_EFFECTS, "fitted"), (["thermal_expansion", "air_refraction"],
+                                                      "no-drift")):
+        assert main(["fit", str(lab / "cal.parquet"), "--effects", ",".join(effects), "-q",
+                     "-o", str(lab / f"{name}.toml")]) == 0
+    reports = {}
+    for name in ("fitted", "no-drift"):
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            assert main(["compensate", str(lab / "lab.toml"), "--model", str(lab / f"{name}.toml"),
+                         "--data", str(lab / "cal.parquet"), "--targets", str(TARGETS),
+                         "--seed", "3", "-o", str(lab / f"{name}.parquet"), "--json",
+                         "--quiet"]) == 0
+        reports[name] = json.loads(out.getvalue().strip().splitlines()[-1])["axes"]
+    for a, r in reports["fitted"].items():
+        low, high = r["predicted_band_err90_nm"]
+        assert low <= r["achieved_err90_nm"] <= high and r["within_band"], (a, r)
+    missed = [a for a, r in reports["no-drift"].items()
+              if r["achieved_err90_nm"] > r["predicted_band_err90_nm"][1]]
+    assert missed and all(not reports["no-drift"][a]["within_band"] for a in missed), reports
