@@ -166,16 +166,25 @@ def load_setup(path) -> dict:
 
 def scenario_setup(hidden: dict | None, source: str, effects=()) -> dict:
     """The metadata ``setup`` a scenario declares: its [hidden] known constants and baseline
-    (none for a scenario without [hidden]), and what its laboratory sets itself and so knows:
-    the set point of Peltier-held interferometer supports (``effects``: the scenario's, a
-    ``peltier_supports`` among them), unless [hidden] states another; ``source`` names the
-    scenario."""
+    (none for a scenario without [hidden]), and what its laboratory sets itself or measures
+    once, and so knows (unless [hidden] states otherwise): the set point of Peltier-held
+    interferometer supports (``effects``: the scenario's, a ``peltier_supports`` among them),
+    and the shares of the beams' air temperature the supports and the table set
+    (room_climate's ``air_support_share``, ``air_table_share``: what the room's estimate
+    from the air thermometers by the beams needs; twin/thermal.py ``beam_air_shares``);
+    ``source`` names the scenario."""
+    from deltatwin.twin.thermal import beam_air_shares
+
     hidden = hidden or {}
-    setup = {"source": source, "known": dict(hidden.get("known", {}))}
-    for e in effects:
-        if e.name == "peltier_supports":
-            setup["known"]["peltier_supports"] = {"setpoint_C": float(e.setpoint_C),
-                                                  **setup["known"].get("peltier_supports", {})}
+    known = dict(hidden.get("known", {}))
+    held = next((e for e in effects if e.name == "peltier_supports"), None)
+    if held is not None:
+        known["peltier_supports"] = {"setpoint_C": float(held.setpoint_C),
+                                     **known.get("peltier_supports", {})}
+    support, table = beam_air_shares(held is not None)
+    known["room_climate"] = {"air_support_share": support, "air_table_share": table,
+                             **known.get("room_climate", {})}
+    setup = {"source": source, "known": known}
     if "baseline" in hidden:
         setup["baseline"] = list(hidden["baseline"])
     return setup

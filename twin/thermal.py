@@ -87,6 +87,20 @@ SUPPORT_LINKS = (("support_x", "table", 3.5), ("support_y", "table", 3.5), ("sup
 HEATED = ("motor1", "motor2", "motor3", "coil1", "coil2", "coil3")
 
 
+def beam_air_shares(supports_on: bool, axis: str = "x") -> tuple[float, float]:
+    """(supports' share, table's share) of the temperature of the air by an interferometer's
+    beam (``air_<axis>``) at equilibrium: its conductance to each over its conductances to all
+    (the room's the rest): Peltier-held supports warm it, the table a little. What a
+    laboratory whose only air thermometers sit by the beams states for the room's estimate
+    (sensor_contact's ``air_support_share`` and ``air_table_share``)."""
+    node = f"air_{axis}"
+    g_room = next(g for name, _, g in PART_NODES if name == node)
+    g_table = sum(g for a, b, g in LINKS if {a, b} == {node, "table"})
+    g_support = sum(g for sup, n, g in SUPPORT_LINKS if n == node) if supports_on else 0.0
+    total = g_room + g_table + g_support
+    return g_support / total, g_table / total
+
+
 @dataclass(frozen=True)
 class Sensor:
     """A temperature sensor on ``part`` (a part node or an air node). With ``glue_W_per_K``

@@ -40,7 +40,7 @@ from deltatwin.calibration.physics.measurements import measurements
 from deltatwin.calibration.physics.model import model_effects, projected
 from deltatwin.twin.effects import EffectError, effect_class
 from deltatwin.twin.instruments.optics import AXES
-from deltatwin.twin.lab_setup import baseline_of, merged
+from deltatwin.twin.lab_setup import baseline_of, known_constants, merged
 from deltatwin.twin.noise import quantised_u
 from deltatwin.twin.scenario import ERROR_SOURCES
 
@@ -98,8 +98,12 @@ def true_fit(df, meta: dict, noise_nm: float = 5.0) -> PhysicsFit:
     (``fit_from_starts``). A force campaign's coil moment started at zero can stop in a
     shallow basin the baseline's values avoid."""
     effects, values = true_model(meta)
+    # the twin's constants where the data's setup states none (where it does, the setup's: the
+    # room's estimate from the beams' air is the laboratory's, not a twin's parameter)
+    setup = known_constants(meta)
     fixed = {e: {p: v for p, v in vals.items()
-                 if p not in {q.name for q in effect_class(e).free_parameters()}}
+                 if p not in {q.name for q in effect_class(e).free_parameters()}
+                 and p not in setup.get(e, {})}
              for e, vals in values.items()}
     starts = {"library's starting values": {"start": fixed}}
     baseline = [e for e in baseline_of(meta) or [] if e in effects]

@@ -57,6 +57,9 @@ class Measurements:
     # the interferometer supports' temperature (degC) where the laboratory holds them at a set
     # point (its setup's peltier_supports setpoint_C); None: they follow the table
     support_held_C: float | None = None
+    # the shares of the air thermometers' temperature the supports and the table set (its
+    # setup's room_climate air_support_share, air_table_share): the room is the rest
+    room_shares: tuple = (0.0, 0.0)
     _statics: tuple | None = field(default=None, repr=False)
 
     @property
@@ -190,10 +193,10 @@ def data_sha256(meas: Measurements) -> str | None:
     """A fingerprint of what a fit sees (SHA-256, hex): every column of the dataset, row by row
     (pandas' per-row hash), its split and readings, and what the metadata make of them (the
     sensor -> part map, the cosine correction's terms, the reference temperature, the
-    supports' held temperature). A fitted model file keeps it, so a diagnosis knows the data
-    are the very ones the model was fitted on. None (never equal to a file's) when a column
-    holds values pandas cannot hash (lists, dicts: possible only for data built in memory;
-    read files are validated)."""
+    supports' held temperature, the room's estimate). A fitted model file keeps it, so a
+    diagnosis knows the data are the very ones the model was fitted on. None (never equal to
+    a file's) when a column holds values pandas cannot hash (lists, dicts: possible only for
+    data built in memory; read files are validated)."""
     h = hashlib.sha256()
     try:
         h.update(pd.util.hash_pandas_object(meas.df, index=False).to_numpy().tobytes())
@@ -201,8 +204,8 @@ def data_sha256(meas: Measurements) -> str | None:
         return None
     h.update(repr((list(map(str, meas.df.columns)), sorted(meas.sensors.items()),
                    float(meas.T_ref_C))).encode())
-    if meas.support_held_C is not None:     # the supports' temperature the setup states
-        h.update(repr(meas.support_held_C).encode())
+    if meas.support_held_C is not None or any(meas.room_shares):   # what the setup states
+        h.update(repr((meas.support_held_C, meas.room_shares)).encode())
     for a in (meas.y, meas.cal, meas.val, meas.cos_scale, meas.cos_offset):
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()
@@ -307,7 +310,8 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
                         group=group,
                         groups=groups, cal=split == "cal", val=split == "val", points=pts,
                         zero_row=zero_row, T_ref_C=T_ref, sensor_node_T={},
-                        support_held_C=supports_held_C(meta, where))
+                        support_held_C=supports_held_C(meta, where),
+                        room_shares=room_shares(meta, where))
     return with_sensor_streams(meas, streams)
 
 
@@ -320,6 +324,28 @@ def supports_held_C(meta: dict | None, where: str = "data") -> float | None:
     uncertainties on the papers' thermal campaigns."""
     held = known_constants(meta, where).get("peltier_supports", {}).get("setpoint_C")
     return None if held is None else float(held)
+
+
+def room_shares(meta: dict | None, where: str = "data") -> tuple[float, float]:
+    """(supports' share, table's share) of the air thermometers' temperature, as the data's
+    setup states them (room_climate ``air_support_share``, ``air_table_share``), else none:
+    the air by the beams is then taken for the room's."""
+    stated = known_constants(meta, where).get("room_climate", {})
+    return (float(stated.get("air_support_share", 0.0)),
+            float(stated.get("air_table_share", 0.0)))
+
+
+def room_estimate_C(air_C: np.ndarray, supports_C: np.ndarray, table_C: np.ndarray,
+                    shares: tuple[float, float]) -> np.ndarray:
+    """The room's temperature (degC) from the air thermometers' ``air_C``: at equilibrium the
+    air by the beams is (1 - s - t) room + s supports + t table (``shares`` (s, t)). Taking
+    that air for the room put the papers' room 0.9 K too warm (the Peltier-held supports at
+    25 degC warm it), and the thermometers' contact correction (sensor_contact) then biased
+    its leak by +50 % and the loop's expansion coefficients low."""
+    s, t = shares
+    if not s and not t:
+        return air_C
+    return (air_C - s * supports_C - t * table_C) / (1.0 - s - t)
 
 
 def _with_zeros(v: np.ndarray, first: np.ndarray) -> np.ndarray:
@@ -348,11 +374,12 @@ def with_sensor_streams(meas: Measurements, streams: dict) -> Measurements:
     size = meas.n + first.size
     node_T = node_temperatures({k: v[1] for k, v in streams.items()}, meas.sensors,
                                meas.T_ref_C, size)
-    room = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
-    vapour = (vapour_pressure(full(meas.df["RH_pct"].to_numpy(dtype=np.float64)), room)
-              if "RH_pct" in meas.df else None)
     supports = (node_T["table"] if meas.support_held_C is None
                 else np.full(size, meas.support_held_C))
+    room = room_estimate_C(np.mean([node_T[f"air_{a}"] for a in AXES], axis=0), supports,
+                           node_T["table"], meas.room_shares)
+    vapour = (vapour_pressure(full(meas.df["RH_pct"].to_numpy(dtype=np.float64)), room)
+              if "RH_pct" in meas.df else None)
     pts = dataclasses.replace(meas.points, node_T=node_T, room_C=room, vapour_Pa=vapour,
                               support_C={a: supports for a in AXES},
                               sensor_readings=streams)

@@ -10,10 +10,15 @@ import pytest
 
 from deltatwin.cli import main
 from deltatwin.twin.dataset import read_dataset, write_dataset
+from deltatwin.twin.lab_setup import load_setup
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "lab-setup.toml"
 ARM = [-0.6, 0.0]
-HELD = {"peltier_supports": {"setpoint_C": 25.0}}    # the supports' set point, as simulated
+# what simulate states of the papers' laboratory besides: its supports' set point and the
+# shares of the beams' air the supports and the table warm (the room's estimate)
+HELD = {"peltier_supports": {"setpoint_C": 25.0},
+        "room_climate": {"air_support_share": 0.3 / 1.35, "air_table_share": 0.05 / 1.35}}
+FROM_SETUP = {f"{e}.{p}": "the data's setup" for e, values in HELD.items() for p in values}
 OVERRIDE = "--set loop_drift.frame_arm_m overrides the data's setup value [-0.6, 0.0]"
 
 
@@ -57,8 +62,7 @@ def test_fit_takes_the_frame_arm_from_the_data_and_the_model_file_records_it(dri
     model = tmp_path / "m.toml"
     s, err = fit_json(capsys, path, "--effects", "loop_drift", "-o", model)
     assert s["values"]["loop_drift"]["frame_arm_m"] == ARM
-    assert s["constants_from"] == {"loop_drift.frame_arm_m": "the data's setup",
-                                   "peltier_supports.setpoint_C": "the data's setup"}
+    assert s["constants_from"] == {"loop_drift.frame_arm_m": "the data's setup", **FROM_SETUP}
     assert "overrides" not in err
     doc = tomllib.loads(model.read_text())
     assert doc["effects"]["loop_drift"]["frame_arm_m"] == ARM
@@ -76,8 +80,7 @@ def test_set_overrides_the_data_s_setup_and_says_so_in_one_line(drift_data, tmp_
                       "--set", "loop_drift.frame_arm_m=-0.5,0", "-o", tmp_path / "m.toml")
     assert err.strip().splitlines() == [OVERRIDE]
     assert s["values"]["loop_drift"]["frame_arm_m"] == [-0.5, 0.0]
-    assert s["constants_from"] == {"loop_drift.frame_arm_m": "--set",
-                                   "peltier_supports.setpoint_C": "the data's setup"}
+    assert s["constants_from"] == {"loop_drift.frame_arm_m": "--set", **FROM_SETUP}
     # the same value as the setup's overrides nothing
     _, err = fit_json(capsys, path, "--effects", "loop_drift",
                       "--set", "loop_drift.frame_arm_m=-0.6,0")
@@ -113,7 +116,8 @@ def test_a_laboratory_s_setup_file_is_put_into_its_own_csv(drift_data, tmp_path,
     printed = capsys.readouterr().out
     assert "loop_drift.frame_arm_m = [-0.6, 0.0]" in printed and str(EXAMPLE) in printed
     _, meta = read_dataset(out)
-    assert meta["setup"]["known"] == {"loop_drift": {"frame_arm_m": ARM}, **HELD}
+    assert meta["setup"]["known"] == load_setup(EXAMPLE)["known"]
+    assert meta["setup"]["known"]["loop_drift"] == {"frame_arm_m": ARM}
     assert meta["setup"]["baseline"][-1] == "loop_drift"
     assert meta["instruments"]["T_noise_C"] == 0.003
     assert meta["sensors"]["frame"] == "frame"

@@ -28,7 +28,8 @@ def test_a_hidden_scenario_s_metadata_carries_its_known_constants_and_baseline()
     sc = Scenario.load("hidden/loop-drift")
     meta = sc.metadata(sc.build(0.01)[0], 0.01)
     # and the set point of its Peltier-held supports, which the laboratory sets and so knows
-    held = {"peltier_supports": {"setpoint_C": 25.0}}
+    held = {"peltier_supports": {"setpoint_C": 25.0},
+            "room_climate": {"air_support_share": 0.3 / 1.35, "air_table_share": 0.05 / 1.35}}
     assert meta["setup"] == {"source": "scenario hidden/loop-drift", "known": {**ARM, **held},
                              "baseline": ["geometric_errors", "thermal_expansion",
                                           "sensor_contact"]}
@@ -41,7 +42,9 @@ def test_a_hidden_scenario_s_metadata_carries_its_known_constants_and_baseline()
 
 def test_the_documented_example_setup_file_is_read_as_written():
     setup = load_setup(EXAMPLE)
-    assert setup["known"] == {**ARM, "peltier_supports": {"setpoint_C": 25.0}}
+    assert setup["known"] == {**ARM, "peltier_supports": {"setpoint_C": 25.0},
+                              "room_climate": {"air_support_share": 0.22,
+                                               "air_table_share": 0.037}}
     assert setup["baseline"] == ["geometric_errors", "thermal_expansion", "sensor_contact",
                                  "loop_drift"]
     assert setup["instruments"]["T_noise_C"] == 0.003

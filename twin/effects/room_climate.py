@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deltatwin.twin.effects.base import Effect, Parameter
+from deltatwin.twin.effects.base import Effect, EffectError, Parameter
 from deltatwin.twin.thermal import first_order_filter
 
 
@@ -42,7 +42,22 @@ class RoomClimate(Effect):
         Parameter("vapour_std_Pa", "Pa", 0.0, "std of the water vapour's wander (a closed "
                   "laboratory's few %RH: ~50 Pa)", 0.0),
         Parameter("vapour_time_s", "s", 6 * 3600.0, "correlation time of the water vapour", 1.0),
+        # what a model needs of the air by the beams, where the laboratory's air thermometers
+        # sit: the twin's own beam air follows its thermal network (twin/thermal.py
+        # beam_air_shares); a laboratory states these (docs/lab-setup.toml)
+        Parameter("air_support_share", "1", 0.0, "share of the beams' air temperature the "
+                  "interferometers' supports set: a model takes the room's temperature from "
+                  "the air thermometers less it", 0.0),
+        Parameter("air_table_share", "1", 0.0, "share of the beams' air temperature the "
+                  "table sets (as above)", 0.0),
     )
+
+    def __init__(self, where: str = "effect", check_minimum: bool = True, **values):
+        super().__init__(where, check_minimum, **values)
+        if self.air_support_share + self.air_table_share >= 0.9:
+            raise EffectError(f"{where}: air_support_share + air_table_share = "
+                              f"{self.air_support_share + self.air_table_share:g}: the beams' "
+                              "air must follow the room mostly (the shares sum below 0.9)")
 
     def environment(self, env, rng):
         t = env.t_grid
