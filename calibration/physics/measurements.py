@@ -376,9 +376,10 @@ def with_sensor_streams(meas: Measurements, streams: dict) -> Measurements:
                                meas.T_ref_C, size)
     supports = (node_T["table"] if meas.support_held_C is None
                 else np.full(size, meas.support_held_C))
-    room = room_estimate_C(np.mean([node_T[f"air_{a}"] for a in AXES], axis=0), supports,
-                           node_T["table"], meas.room_shares)
-    vapour = (vapour_pressure(full(meas.df["RH_pct"].to_numpy(dtype=np.float64)), room)
+    beams_air = np.mean([node_T[f"air_{a}"] for a in AXES], axis=0)
+    room = room_estimate_C(beams_air, supports, node_T["table"], meas.room_shares)
+    # the hygrometer's relative humidity is of the air by the beams, where it sits
+    vapour = (vapour_pressure(full(meas.df["RH_pct"].to_numpy(dtype=np.float64)), beams_air)
               if "RH_pct" in meas.df else None)
     pts = dataclasses.replace(meas.points, node_T=node_T, room_C=room, vapour_Pa=vapour,
                               support_C={a: supports for a in AXES},
