@@ -181,8 +181,9 @@ def scenario_setup(hidden: dict | None, source: str, effects=()) -> dict:
     if held is not None:
         known["peltier_supports"] = {"setpoint_C": float(held.setpoint_C),
                                      **known.get("peltier_supports", {})}
-    support, table = beam_air_shares(held is not None)
-    known["room_climate"] = {"air_support_share": support, "air_table_share": table,
+    shares = dict(zip(("air_support_share", "air_table_share"), beam_air_shares(held is not None)))
+    # to four decimals, as a laboratory would state them (10 uK of the room's estimate)
+    known["room_climate"] = {**{k: round(v, 4) for k, v in shares.items() if v},
                              **known.get("room_climate", {})}
     setup = {"source": source, "known": known}
     if "baseline" in hidden:

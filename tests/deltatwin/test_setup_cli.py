@@ -17,7 +17,7 @@ ARM = [-0.6, 0.0]
 # what simulate states of the papers' laboratory besides: its supports' set point and the
 # shares of the beams' air the supports and the table warm (the room's estimate)
 HELD = {"peltier_supports": {"setpoint_C": 25.0},
-        "room_climate": {"air_support_share": 0.3 / 1.35, "air_table_share": 0.05 / 1.35}}
+        "room_climate": {"air_support_share": 0.2222, "air_table_share": 0.037}}
 FROM_SETUP = {f"{e}.{p}": "the data's setup" for e, values in HELD.items() for p in values}
 OVERRIDE = "--set loop_drift.frame_arm_m overrides the data's setup value [-0.6, 0.0]"
 

@@ -29,7 +29,7 @@ def test_a_hidden_scenario_s_metadata_carries_its_known_constants_and_baseline()
     meta = sc.metadata(sc.build(0.01)[0], 0.01)
     # and the set point of its Peltier-held supports, which the laboratory sets and so knows
     held = {"peltier_supports": {"setpoint_C": 25.0},
-            "room_climate": {"air_support_share": 0.3 / 1.35, "air_table_share": 0.05 / 1.35}}
+            "room_climate": {"air_support_share": 0.2222, "air_table_share": 0.037}}
     assert meta["setup"] == {"source": "scenario hidden/loop-drift", "known": {**ARM, **held},
                              "baseline": ["geometric_errors", "thermal_expansion",
                                           "sensor_contact"]}
