@@ -340,8 +340,9 @@ def room_estimate_C(air_C: np.ndarray, supports_C: np.ndarray, table_C: np.ndarr
     """The room's temperature (degC) from the air thermometers' ``air_C``: at equilibrium the
     air by the beams is (1 - s - t) room + s supports + t table (``shares`` (s, t)). Taking
     that air for the room put the papers' room 0.9 K too warm (the Peltier-held supports at
-    25 degC warm it), and the thermometers' contact correction (sensor_contact) then biased
-    its leak by +50 % and the loop's expansion coefficients low."""
+    25 degC warm it), and the thermometers' contact correction (sensor_contact) 50 mK off on
+    every part, which a fit took up in the contact's leak and the loop's expansion
+    coefficients."""
     s, t = shares
     if not s and not t:
         return air_C
