@@ -319,9 +319,8 @@ def supports_held_C(meta: dict | None, where: str = "data") -> float | None:
     """The temperature (degC) the laboratory holds its interferometer supports at, as its setup
     states it (known constants, ``peltier_supports`` ``setpoint_C``: Peltier-stabilised heads,
     as in the papers' laboratory); None where it states none: the supports then sit on the
-    table at its temperature. A loop model that took the table's 1-2 K warming for held
-    supports' biased the table's and frame's expansion coefficients by 2-3 of their
-    uncertainties on the papers' thermal campaigns."""
+    table at its temperature (held supports at 25 degC are kelvins from it: the loop's
+    support term then moved with the table's warming instead of standing still)."""
     held = known_constants(meta, where).get("peltier_supports", {}).get("setpoint_C")
     return None if held is None else float(held)
 
