@@ -10,6 +10,7 @@ from deltatwin.twin.effects import make_effect
 from deltatwin.twin.lab_setup import (
     SetupError,
     beyond_setup,
+    check_known,
     known_constants,
     load_setup,
     merged,
@@ -136,3 +137,15 @@ def test_constants_merge_parameter_by_parameter_and_only_overrides_are_stated():
     # without a setup the constants off the library's defaults are stated
     assert set_options(beyond_setup(used_constants([drift], {}, {}), {})) == \
         " --set loop_drift.frame_arm_m=-0.6,0.0"
+
+
+@pytest.mark.parametrize("shares, words", [
+    ({"air_support_share": 0.8, "air_table_share": 0.2}, "sum below 0.9"),
+    ({"air_support_share": -0.1}, "not negative"),
+])
+def test_the_room_s_shares_of_the_beams_air_are_refused_where_no_room_is_left(shares, words):
+    """A setup's shares of the beams' air temperature (room_climate air_support_share,
+    air_table_share) that leave the room no share, or are negative, are refused by name: a
+    room estimated from them would be meaningless."""
+    with pytest.raises(SetupError, match=words):
+        check_known({"room_climate": shares}, "lab.toml known")

@@ -54,6 +54,10 @@ class RoomClimate(Effect):
 
     def __init__(self, where: str = "effect", check_minimum: bool = True, **values):
         super().__init__(where, check_minimum, **values)
+        if min(self.air_support_share, self.air_table_share) < 0:
+            raise EffectError(f"{where}: air_support_share = {self.air_support_share:g}, "
+                              f"air_table_share = {self.air_table_share:g}: shares of the "
+                              "beams' air temperature are not negative")
         if self.air_support_share + self.air_table_share >= 0.9:
             raise EffectError(f"{where}: air_support_share + air_table_share = "
                               f"{self.air_support_share + self.air_table_share:g}: the beams' "
