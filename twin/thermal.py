@@ -92,7 +92,7 @@ def beam_air_shares(supports_on: bool, axis: str = "x") -> tuple[float, float]:
     beam (``air_<axis>``) at equilibrium: its conductance to each over its conductances to all
     (the room's the rest): Peltier-held supports warm it, the table a little. What a
     laboratory whose only air thermometers sit by the beams states for the room's estimate
-    (sensor_contact's ``air_support_share`` and ``air_table_share``)."""
+    (room_climate's ``air_support_share`` and ``air_table_share``)."""
     node = f"air_{axis}"
     g_room = next(g for name, _, g in PART_NODES if name == node)
     g_table = sum(g for a, b, g in LINKS if {a, b} == {node, "table"})

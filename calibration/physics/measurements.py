@@ -284,6 +284,7 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
         if f"coil{i + 1}_A" in df:
             currents[:, i] = df[f"coil{i + 1}_A"].to_numpy(dtype=np.float64)
     T_ref = params.reference_temperature_C
+    stated = known_constants(meta, where)       # the laboratory's setup: supports, room
     streams = sensor_streams(df, sensors, where=where)
     # the laboratory's barometer and hygrometer, when it records them (the air_refraction
     # effect's air); without a record the air is taken at what the interferometers assume
@@ -310,26 +311,26 @@ def measurements(df: pd.DataFrame, meta: dict | None, params: RobotParams,
                         group=group,
                         groups=groups, cal=split == "cal", val=split == "val", points=pts,
                         zero_row=zero_row, T_ref_C=T_ref, sensor_node_T={},
-                        support_held_C=supports_held_C(meta, where),
-                        room_shares=room_shares(meta, where))
+                        support_held_C=supports_held_C(stated), room_shares=room_shares(stated))
     return with_sensor_streams(meas, streams)
 
 
-def supports_held_C(meta: dict | None, where: str = "data") -> float | None:
+def supports_held_C(known: dict) -> float | None:
     """The temperature (degC) the laboratory holds its interferometer supports at, as its setup
-    states it (known constants, ``peltier_supports`` ``setpoint_C``: Peltier-stabilised heads,
+    states it (``known``: its known constants, ``known_constants``; ``peltier_supports``
+    ``setpoint_C``: Peltier-stabilised heads,
     as in the papers' laboratory); None where it states none: the supports then sit on the
     table at its temperature (held supports at 25 degC are kelvins from it: the loop's
     support term then moved with the table's warming instead of standing still)."""
-    held = known_constants(meta, where).get("peltier_supports", {}).get("setpoint_C")
+    held = known.get("peltier_supports", {}).get("setpoint_C")
     return None if held is None else float(held)
 
 
-def room_shares(meta: dict | None, where: str = "data") -> tuple[float, float]:
+def room_shares(known: dict) -> tuple[float, float]:
     """(supports' share, table's share) of the air thermometers' temperature, as the data's
-    setup states them (room_climate ``air_support_share``, ``air_table_share``), else none:
-    the air by the beams is then taken for the room's."""
-    stated = known_constants(meta, where).get("room_climate", {})
+    setup states them (``known``: its known constants; room_climate ``air_support_share``,
+    ``air_table_share``), else none: the air by the beams is then taken for the room's."""
+    stated = known.get("room_climate", {})
     return (float(stated.get("air_support_share", 0.0)),
             float(stated.get("air_table_share", 0.0)))
 
