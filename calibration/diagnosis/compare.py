@@ -49,7 +49,7 @@ from deltatwin.models.params import RobotParams, load_params
 from deltatwin.twin.dataset import AXES, temperature_columns
 
 __all__ = ["ModelEvaluation", "evaluate", "compare", "load_model_file",
-           "load_model_and_covariance", "validation_band", "dgm_reading_m",
+           "load_model_and_covariance", "dgm_reading_m",
            "RESIDUAL_SIGN"]
 
 RESIDUAL_SIGN = "model minus measurement"
@@ -308,8 +308,8 @@ def _by_variable(df: pd.DataFrame, long, rows: np.ndarray, n_bins: int,
     return variables, constant
 
 
-def validation_band(ev: ModelEvaluation, model, covariance: np.ndarray | None,
-                    rng: np.random.Generator | None = None) -> dict | None:
+def _validation_band(ev: ModelEvaluation, model, covariance: np.ndarray | None,
+                     rng: np.random.Generator | None = None) -> dict | None:
     """{axis or "all": {"low", "high", "within"}} (nm): the 95 % band the validation error 90 %
     of a physics ``model`` of parameter ``covariance`` falls in on the evaluated data ``ev``
     if the model is right (calibration/physics/band.py ``prediction_band``: the parameters'
@@ -366,7 +366,7 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
     (row, axis) readings. ``params``: robot parameters for a DGM's positions (default nominal).
     ``covariance`` (p, p; SI): a physics model's parameter covariance (a fitted model file's
     [uncertainty]): the validation error's 95 % band is drawn with ``rng`` (default seeded 0)
-    on these data (``validation_band``).
+    on these data (``_validation_band``).
     """
     if split not in ("val", "cal", "all"):
         raise CalibrationInputError(f"split {split!r}: expected 'val', 'cal' or 'all'")
@@ -411,7 +411,7 @@ def compare(df: pd.DataFrame, meta: dict | None, model, *, split: str = "val",
         "rows": split,
         **_floors_and_conditions(df, meta, ev, axes.get("val") or axes.get(split) or {}),
         "axes": axes,
-        "validation_band_95_nm": validation_band(ev, model, covariance, rng),
+        "validation_band_95_nm": _validation_band(ev, model, covariance, rng),
         "regions": {"scheme": "octants of the platform's nominal kinematic position about the "
                               "centre of the bounding box of the rows' positions",
                     "centre_mm": [float(c * 1e3) for c in centre], "bins": regions},
