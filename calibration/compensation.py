@@ -168,6 +168,57 @@ class Compensator:
           axis)."""
         raise NotImplementedError
 
+    def band(self, achieved: pd.DataFrame, rows: np.ndarray, zero_t_s: np.ndarray,
+             cal_df: pd.DataFrame, cal_meta: dict | None, rng: np.random.Generator,
+             zero_settles: int = 1, draws: int = BAND_DRAWS, level: float = BAND_LEVEL) -> dict:
+        """{axis: (low, high) nm}: the band the achieved error 90 % over the compensated
+        campaign's ``rows`` (of ``achieved``, its dataset: the conditions each target was
+        commanded in; ``zero_t_s`` (N,) s: the time of each row's session zero) falls in with
+        probability ``level`` if the model is right; {} for a model whose file holds no
+        covariance. Two parts, drawn ``draws`` times with ``rng``:
+
+        * the model's parameters' error, drawn from their covariance, moves each target by the
+          model's sensitivity there, in those conditions (the temperatures of hours later: the
+          extrapolation in time), counted from the session's zero (``_parameter_change``);
+        * the model's own error (noise and misfit) at a target counted from its zero: the
+          difference of two of the model's validation errors on its calibration data
+          ``cal_df`` as far apart in time, in one session, as the target is from its zero
+          (``time_matched_differences``): a model's misfit drifts, so a target minutes after
+          its zero differs from it by less than two validation rows hours apart; the zero is
+          the mean of ``zero_settles`` home settles, its fast part (the readings' noise)
+          averaged."""
+        change = self._parameter_change(achieved, rows, rng, draws)
+        if change is None:
+            return {}
+        err, group, val = self._validation_errors(cal_df, cal_meta)
+        t_cal = cal_df["t_s"].to_numpy(dtype=float)
+        gap = (achieved["t_s"].to_numpy(dtype=float) - np.asarray(zero_t_s, float))[rows]
+        out = {}
+        for k, a in enumerate(AXES):
+            column = f"{a}_nm"
+            if (column not in achieved
+                    or not np.isfinite(achieved[column].to_numpy(dtype=float)[rows]).any()):
+                continue
+            own = time_matched_differences(err[val, k], group[val, k], t_cal[val], gap, rng,
+                                           draws, zero_settles)
+            if own is None:
+                continue
+            p90 = np.quantile(np.abs(change[:, k] + own), 0.9, axis=0) * 1e9
+            q = np.quantile(p90, ((1 - level) / 2, 1 - (1 - level) / 2))
+            out[a] = (float(q[0]), float(q[1]))
+        return out
+
+    def _parameter_change(self, achieved: pd.DataFrame, rows: np.ndarray,
+                          rng: np.random.Generator, draws: int) -> np.ndarray | None:
+        """(rows, 3, draws) m: each target's reading moved by a draw of the parameters' error
+        (counted from its session's zero); None without a covariance."""
+        return None
+
+    def _validation_errors(self, df: pd.DataFrame, meta: dict | None):
+        """((N, 3) m, (N, 3) int, (N,) bool): the model's error at each row of its calibration
+        data, each reading's (session, axis) group (-1: none) and the validation rows."""
+        raise NotImplementedError
+
     def _zero_referenced(self, df, errors) -> dict:
         """{axis: figures} of ``errors(session rows, zero frame)`` ((rows, 3) m) over the
         validation rows of each session, referenced to the session's zero, and of their
@@ -208,10 +259,46 @@ def pairwise_differences(err: np.ndarray, group: np.ndarray, shifts: int = PAIR_
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def _by_session(err: np.ndarray, group: np.ndarray) -> list[np.ndarray]:
-    """The finite errors ``err`` (n,) of each ``group`` (n,) of at least two of them."""
-    parts = [err[(group == g) & np.isfinite(err)] for g in np.unique(group)]
-    return [p for p in parts if p.size > 1]
+ZERO_SMOOTHING_ROWS = 5    # the rows a zero's slow error is taken over (its fast part the rest)
+
+
+def time_matched_differences(err: np.ndarray, group: np.ndarray, t_s: np.ndarray,
+                             gap_s: np.ndarray, rng: np.random.Generator, draws: int,
+                             zero_settles: int = 1):
+    """(len(gap_s), draws) m: for each gap (s) and draw, e_i - z_j of errors ``err`` (n,)
+    (NaN: none) of one ``group`` (n,; < 0: none) taken at ``t_s`` (n,): i drawn uniformly,
+    j the row of i's group nearest to t_i - gap (t_i + gap where that is before the group's
+    first row; where that is past its last row too, the end farther from t_i). z_j is e_j as
+    a zero averaged over ``zero_settles`` readings sees it: its slow part (the mean of the
+    ZERO_SMOOTHING_ROWS rows about j) as it is, its fast part (the rest: the readings' noise)
+    over sqrt(``zero_settles``). None with no group of two rows."""
+    ok = np.isfinite(err) & (group >= 0)
+    groups = [g for g in np.unique(group[ok]) if np.sum(ok & (group == g)) > 1]
+    if not groups:
+        return None
+    parts = [np.flatnonzero(ok & (group == g)) for g in groups]
+    parts = [p[np.argsort(t_s[p], kind="stable")] for p in parts]
+    sizes = np.array([p.size for p in parts])
+    pick = rng.integers(0, sizes.sum(), (gap_s.size, draws))
+    which = np.searchsorted(np.cumsum(sizes), pick, side="right")
+    out = np.empty(pick.shape)
+    zero = err.copy()
+    for rows in parts:
+        slow = pd.Series(err[rows]).rolling(ZERO_SMOOTHING_ROWS, center=True,
+                                             min_periods=1).mean().to_numpy()
+        zero[rows] = slow + (err[rows] - slow) / np.sqrt(zero_settles)
+    for g, rows in enumerate(parts):
+        mine = which == g
+        i = rows[pick[mine] - (sizes[:g].sum())]
+        gap = np.broadcast_to(gap_s[:, None], pick.shape)[mine]
+        times = t_s[rows]
+        when = np.where(t_s[i] - gap >= times[0], t_s[i] - gap, t_s[i] + gap)
+        farther = np.where(t_s[i] - times[0] >= times[-1] - t_s[i], times[0], times[-1])
+        when = np.where(when > times[-1], farther, when)
+        at = np.clip(np.searchsorted(times, when), 1, rows.size - 1)
+        nearer = np.where(when - times[at - 1] <= times[at] - when, at - 1, at)
+        out[mine] = err[i] - zero[rows[nearer]]
+    return out
 
 
 def _figures(fitted: dict, zero: dict | None = None, pairwise: dict | None = None) -> dict:
@@ -273,37 +360,19 @@ class PhysicsCompensator(Compensator):
         pred = self.model.predict_path(meas)
         return meas, residuals(meas, pred, np.zeros(len(meas.groups)))
 
-    def band(self, covariance: np.ndarray, achieved: pd.DataFrame, rows: np.ndarray,
-             cal_df: pd.DataFrame, cal_meta: dict | None, rng: np.random.Generator,
-             zero_settles: int = 1, draws: int = BAND_DRAWS, level: float = BAND_LEVEL) -> dict:
-        """{axis: (low, high) nm}: the band the achieved error 90 % over the compensated
-        campaign's ``rows`` (of ``achieved``, its dataset: the conditions each target was
-        commanded in) falls in with probability ``level`` if the model is right: its
-        parameters' error, drawn from their ``covariance`` (p, p; SI; the model file's), moves
-        each target by the model's Jacobian there, in those conditions (the temperatures of
-        hours later: the extrapolation in time), counted from the session's zero; the rest of
-        a target's error is one of the model's validation errors on its calibration data
-        ``cal_df`` (its own noise and misfit) less the zero's, another drawn over
-        sqrt(``zero_settles``): the zero is the mean of that many home settles, its noise
-        averaged (a model's misfit at home is not: where misfit dominates, the band is that
-        much too narrow); drawn with ``rng``."""
+    def _parameter_change(self, achieved, rows, rng, draws):
+        """The parameters' error drawn from the model file's ``covariance`` (p, p; SI) through
+        the model's Jacobian in each target's conditions (its reading is counted from the
+        session's zero)."""
+        if self.covariance is None:
+            return None
         meas = self.measurements(achieved)
         J = np.nan_to_num(self.model.jacobian(meas, self.model.theta())[1][rows])
-        change = J @ square_root(covariance) @ rng.standard_normal((J.shape[2], draws))
-        cal, res = self._calibration_errors(cal_df, cal_meta)
-        out = {}
-        for k, a in enumerate(AXES):
-            # each session's constant out, as the pairs of ``predicted`` cancel it
-            sessions = _by_session(res[cal.val, k], cal.group[cal.val, k])
-            if not sessions or not np.isfinite(meas.y[rows, k]).any():
-                continue
-            e = np.concatenate([part - part.mean() for part in sessions])
-            noise = (e[rng.integers(0, e.size, (rows.sum(), draws))]
-                     - e[rng.integers(0, e.size, draws)] / np.sqrt(zero_settles))
-            p90 = np.quantile(np.abs(change[:, k] + noise), 0.9, axis=0) * 1e9
-            q = np.quantile(p90, ((1 - level) / 2, 1 - (1 - level) / 2))
-            out[a] = (float(q[0]), float(q[1]))
-        return out
+        return J @ square_root(self.covariance) @ rng.standard_normal((J.shape[2], draws))
+
+    def _validation_errors(self, df, meta):
+        meas, res = self._calibration_errors(df, meta)
+        return res, meas.group, meas.val
 
 
 class NominalCompensator(PhysicsCompensator):
@@ -327,10 +396,41 @@ class StepwiseCompensator(Compensator):
         self.order = [dgm.output_names_.index(a) for a in AXES]
         self.zero_reading_m = None
 
-    def zero(self, frame):
+    def _zero_values(self, frame: pd.DataFrame) -> dict:
+        """The DGM's variables at the zero: home (q = 0) in the conditions of the frame's
+        first row."""
         v = self.dgm.variables(frame.iloc[[0]])
         v.update(q1=np.zeros(1), q2=np.zeros(1), q3=np.zeros(1))
-        self.zero_reading_m = self.dgm.predict_values(v)[0, self.order]
+        return v
+
+    def zero(self, frame):
+        self.zero_reading_m = self.dgm.predict_values(self._zero_values(frame))[0, self.order]
+
+    def _parameter_change(self, achieved, rows, rng, draws):
+        """Each axis's kept coefficients' error, drawn from their covariance (the model file's:
+        ``deltatwin calibrate`` keeps it), through the terms at the target less the terms at
+        its session's zero (the first row's conditions, home: as ``zero`` takes it)."""
+        outputs = [self.dgm.output(a) for a in AXES if a in self.dgm.output_names_]
+        if any(o.covariance is None for o in outputs):
+            return None
+        values = self.dgm.variables(achieved)
+        session = achieved["session"].astype(str).to_numpy()
+        change = np.zeros((int(rows.sum()), 3, draws))
+        for s in dict.fromkeys(session[rows]):
+            first = np.flatnonzero(session == s)[0]
+            zero = self._zero_values(achieved.iloc[[first]])
+            mine = (session == s)[rows]
+            for o in outputs:
+                X = o.term_matrix(values)[rows][mine] - o.term_matrix(zero)
+                xi = rng.standard_normal((len(o.terms), draws))
+                change[mine, AXES.index(o.output)] = X @ (square_root(o.covariance) @ xi)
+        return change
+
+    def _validation_errors(self, df, meta):
+        err = self.dgm.errors_m(df)[:, self.order]
+        codes = pd.factorize(df["session"].astype(str))[0]
+        group = np.where(np.isfinite(err), codes[:, None], -1)
+        return err, group, (df["split"].astype(str) == "val").to_numpy()
 
     def command(self, target_m, frame) -> Command:
         v = self.dgm.variables(frame)

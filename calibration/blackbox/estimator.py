@@ -19,6 +19,7 @@ from deltatwin.calibration.blackbox.features import (
     FeatureSet,
     Term,
     temperature_variables,
+    term_matrix,
     variable_unit,
 )
 from deltatwin.calibration.blackbox.stepwise import PENTER_DEFAULT, resolve_thresholds, stepwisefit
@@ -30,6 +31,7 @@ from deltatwin.calibration.errors import (
     ModelFileError,
     TooFewPointsError,
 )
+from deltatwin.calibration.stats import sandwich_covariance
 from deltatwin.calibration.streams import DEFAULT_WINDOW_S
 from deltatwin.files import CONTENT_SHA256, atomic_write_text, content_sha256
 
@@ -108,6 +110,10 @@ class OutputModel:
     se: np.ndarray | None = None
     p_value: np.ndarray | None = None
     dfe: int = 0
+    # the kept terms' coefficients' covariance ((k, k), SI as coef): the sandwich with the
+    # calibration residual's serial correlation (calibration/stats.py sandwich_covariance),
+    # what a prediction band draws from; None for a model saved before it was kept
+    covariance: np.ndarray | None = None
 
     @property
     def terms_kept(self) -> int:
@@ -116,6 +122,10 @@ class OutputModel:
     @property
     def coef_standardized(self) -> np.ndarray:
         return self.coef * self.term_std / self.y_std
+
+    def term_matrix(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        """(n, k): the kept terms evaluated on base variables ``values`` (SI arrays)."""
+        return term_matrix(self.terms, values)
 
     def to_dict(self) -> dict:
         return {"output": self.output, "unit": self.unit, "column": self.column,
@@ -132,7 +142,9 @@ class OutputModel:
                 "steps": [[a, n] for a, n in self.steps],
                 **({} if self.se is None else
                    {"se": _finite_or_none(self.se), "p_value": _finite_or_none(self.p_value),
-                    "dfe": int(self.dfe)})}
+                    "dfe": int(self.dfe)}),
+                **({} if self.covariance is None else
+                   {"covariance": [[float(v) for v in row] for row in self.covariance]})}
 
     def coefficient_rows(self) -> list[dict]:
         """The kept terms as stepwisefit lists them: term, coefficient, its unit (SI), standard
@@ -170,7 +182,10 @@ class OutputModel:
                 n_candidates=int(d.get("n_candidates", 0)),
                 steps=[tuple(s) for s in d.get("steps", [])],
                 se=_optional_array(d.get("se")), p_value=_optional_array(d.get("p_value")),
-                dfe=int(d.get("dfe", 0)))
+                dfe=int(d.get("dfe", 0)),
+                covariance=(None if d.get("covariance") is None
+                            else np.array(d["covariance"], dtype=float).reshape(
+                                len(d["terms"]), len(d["terms"]))))
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, ModelFileError):
                 raise
@@ -187,6 +202,11 @@ class OutputModel:
             if v is not None and v.shape != (n,):
                 raise ModelFileError(f"output {om.output!r}: {n} terms but {v.size} {name} "
                                      "values")
+        if om.covariance is not None and not (
+                np.all(np.isfinite(om.covariance)) and np.allclose(om.covariance, om.covariance.T)
+                and np.all(np.diag(om.covariance) >= 0)):
+            raise ModelFileError(f"output {om.output!r}: its covariance is not a finite "
+                                 "symmetric matrix with a non-negative diagonal")
         return om
 
 
@@ -460,6 +480,9 @@ class StepwiseModel:
         else:
             in_split = np.ones(len(df), bool)
         outputs = []
+        # the residual's serial correlation is counted in time order
+        times = (df["t_s"].to_numpy(dtype=float) if "t_s" in df.columns
+                 else np.arange(len(df), dtype=float))
         sessions = (df["session"].astype(str).to_numpy() if "session" in df.columns
                     else np.full(len(df), "all"))
         for name, unit, column, to_si in specs:
@@ -501,7 +524,9 @@ class StepwiseModel:
                 term_std=res.x_std[sel].copy(), y_mean=res.y_mean, y_std=res.y_std,
                 n_cal=n, rmse=res.rmse, n_candidates=len(fs),
                 steps=[(h.action, h.name) for h in res.history],
-                se=res.se[sel].copy(), p_value=res.pval[sel].copy(), dfe=res.dfe))
+                se=res.se[sel].copy(), p_value=res.pval[sel].copy(), dfe=res.dfe,
+                covariance=_coefficient_covariance(Xall[rows][:, sel], y[rows], res, sel,
+                                                   times[rows])))
             setattr(self, f"_stepwise_{name}", res)
         self.features_ = fs
         self.sensors_ = sens
@@ -693,6 +718,18 @@ class StepwiseModel:
         obj.sensors_ = list(d.get("sensors") or [])
         obj._set_outputs([OutputModel.from_dict(o) for o in d["outputs"]], ModelFileError)
         return obj
+
+
+def _coefficient_covariance(X: np.ndarray, y: np.ndarray, res, sel: np.ndarray,
+                            t_s: np.ndarray) -> np.ndarray:
+    """(k, k) SI: the covariance of the kept terms' coefficients (columns ``sel`` of the
+    stepwise result ``res``, fitted to ``y`` on the candidate columns ``X`` (n, k) of rows
+    taken at ``t_s``), the residual's serial correlation counted: a thermal model's misfit
+    drifts over tens of readings, which stepwisefit's standard errors (independent residuals)
+    do not see. Given the terms the stepwise kept: what their selection adds is not in it."""
+    centred = X - X.mean(axis=0)
+    r = y - res.intercept - X @ res.coef[sel]
+    return sandwich_covariance(centred, r, np.arange(y.size), t_s)
 
 
 def _input_source(v: str) -> dict:

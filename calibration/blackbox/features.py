@@ -237,6 +237,28 @@ def force_powers(max_power: int = 3) -> Powers:
     return Powers("F", tuple(range(1, max_power + 1)), name="force")
 
 
+def term_matrix(terms, values: dict[str, np.ndarray]) -> np.ndarray:
+    """(n, len(terms)): each term (a product of powers of base variables) evaluated on
+    ``values`` (base-variable arrays, SI), the powers computed once."""
+    n = len(next(iter(values.values()))) if values else 0
+    cache: dict[tuple[str, int], np.ndarray] = {}
+
+    def power(v, p):
+        key = (v, p)
+        if key not in cache:
+            base = np.asarray(values[v], dtype=float)
+            cache[key] = base if p == 1 else base * power(v, p - 1)
+        return cache[key]
+
+    out = np.empty((n, len(terms)))
+    for j, t in enumerate(terms):
+        col = power(*t.factors[0])
+        for v, p in t.factors[1:]:
+            col = col * power(v, p)
+        out[:, j] = col
+    return out
+
+
 class FeatureSet:
     """An ordered concatenation of families: the candidate columns given to the optimiser."""
 
@@ -282,23 +304,7 @@ class FeatureSet:
         if missing:
             raise MissingColumnsError(f"feature set {self.name!r}: no values for base "
                                       f"variable(s) {missing}")
-        n = len(next(iter(values.values()))) if values else 0
-        cache: dict[tuple[str, int], np.ndarray] = {}
-
-        def power(v, p):
-            key = (v, p)
-            if key not in cache:
-                base = np.asarray(values[v], dtype=float)
-                cache[key] = base if p == 1 else base * power(v, p - 1)
-            return cache[key]
-
-        out = np.empty((n, len(self.terms)))
-        for j, t in enumerate(self.terms):
-            col = power(*t.factors[0])
-            for v, p in t.factors[1:]:
-                col = col * power(v, p)
-            out[:, j] = col
-        return out
+        return term_matrix(self.terms, values)
 
     def to_dict(self) -> dict:
         return {"name": self.name, "preset": self.preset,

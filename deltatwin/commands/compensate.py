@@ -335,10 +335,10 @@ def run(args) -> int:
     achieved = achieved_figures(err, is_model & ok)
     uncompensated = achieved_figures(err, ~is_model & ok)
     predicted = comp.predicted(cal_df, cal_meta) if cal_df is not None else None
-    band = (comp.band(comp.covariance, df, is_model & ok, cal_df, cal_meta,
+    zero_t_s = np.array([points[k]["zero_t_s"] for k in range(len(plan))], dtype=float)
+    band = (comp.band(df, is_model & ok, zero_t_s, cal_df, cal_meta,
                       np.random.default_rng(seed), args.zero_settles)
-            if comp.covariance is not None and cal_df is not None and (is_model & ok).any()
-            else {})
+            if cal_df is not None and (is_model & ok).any() else {})
     report_axes = {a: _axis_record(achieved[a], uncompensated.get(a, {}),
                                    (predicted or {}).get(a), band.get(a))
                    for a in AXES if a in achieved}

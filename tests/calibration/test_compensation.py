@@ -1,14 +1,18 @@
 """Compensation in the loop: the physics model inverted, and each model kind's
 command with the zero transfer, checked against the models' own forward predictions."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from deltatwin.calibration.blackbox.dgm import DGM
 from deltatwin.calibration.compensation import (
     ConditionLog,
     DirectIGMCompensator,
     NominalCompensator,
     StepwiseCompensator,
     pairwise_differences,
+    time_matched_differences,
 )
 from deltatwin.calibration.physics.inverse import PhysicsInverse, with_motor_coordinates
 from deltatwin.calibration.physics.measurements import measurements
@@ -176,3 +180,78 @@ def test_pairwise_differences_cancel_each_sessions_constant():
     small = pairwise_differences(np.array([1.0, 2.0, 4.0, np.nan]), np.zeros(4, int))
     assert sorted(small.tolist()) == [-3.0, -2.0, -1.0, 1.0, 2.0, 3.0]   # every ordered pair
     assert pairwise_differences(np.array([1.0]), np.zeros(1, int)).size == 0
+
+
+def test_a_dgm_s_band_is_its_coefficients_uncertainty_at_the_target_less_at_the_zero(
+        thermal_data, thermal_dgm):
+    """With calibration data the DGM fits to a constant per session (its own error none), the
+    band of one target is that of |d|, d ~ N(0, s^2): s the spread of the reading's change from
+    the zero under the coefficients' error. Checked against DGMs whose coefficients are drawn
+    from the file's covariance, evaluated by the model's own evaluator."""
+    df, meta = thermal_data
+    order = [thermal_dgm.output_names_.index(a) for a in "xyz"]
+    cal = df.copy()
+    exact = thermal_dgm.predict(df)[:, order]
+    for k, a in enumerate("xyz"):
+        cal[f"{a}_nm"] = exact[:, k] * 1e9 + 7.0
+    log = _log(tuple(thermal_dgm.sensors_), np.random.default_rng(6), n=80)
+    frame = log.frame(target_m=np.array([1e-3, -1e-3, 5e-4]))
+    frame.loc[frame.index[-1], ["q1_rad", "q2_rad", "q3_rad"]] = [0.03, -0.02, 0.045]
+    rows = np.zeros(len(frame), bool)
+    rows[-1] = True
+    comp = StepwiseCompensator(thermal_dgm)
+    band = comp.band(frame, rows, np.full(len(frame), frame["t_s"].iloc[0]), cal, meta,
+                     np.random.default_rng(7), draws=4000)
+    # the independent spread: the evaluator at the target less at home in the zero's conditions
+    rng = np.random.default_rng(8)
+    v, v0 = thermal_dgm.variables(frame), thermal_dgm.variables(frame.iloc[[0]])
+    at_target = {k: a[-1:] for k, a in v.items()}
+    home = {**v0, "q1": np.zeros(1), "q2": np.zeros(1), "q3": np.zeros(1)}
+    changes = []
+    for _ in range(400):
+        outputs = [replace(o, coef=rng.multivariate_normal(o.coef, o.covariance))
+                   for o in thermal_dgm.outputs_]
+        drawn = DGM.from_outputs(thermal_dgm.features_, outputs, thermal_dgm.sensors_)
+        changes.append((drawn.predict_values(at_target) - drawn.predict_values(home))[0])
+    s = np.std(changes, axis=0)[order] * 1e9
+    for k, a in enumerate("xyz"):
+        low, high = band[a]
+        assert s[k] > 1.0, (a, s)                 # a spread to see, not round-off
+        assert high == pytest.approx(2.241 * s[k], rel=0.12), (a, band[a], s[k])
+        assert low == pytest.approx(0.0313 * s[k], rel=0.5), (a, band[a], s[k])
+
+
+def test_time_matched_differences_are_the_drift_over_the_gap_within_a_session():
+    """Errors drifting at 2 nm/s in one session and -1 nm/s in another, on a 10 s grid, with
+    each session's own constant: the difference of two rows as far apart as the gap is the
+    drift over the gap, never mixing the sessions, whether the partner comes before or after
+    (near a session's start); for a gap longer than the session the partner is the session's
+    end farther away."""
+    t = np.concatenate([np.arange(0.0, 600.0, 10.0), np.arange(5000.0, 5300.0, 10.0)])
+    group = np.repeat([0, 1], [60, 30])
+    err = np.where(group == 0, 2e-9 * t + 5e-6, -1e-9 * (t - 5000.0) - 3e-6)
+    gaps = np.array([50.0, 120.0, 1000.0])
+    d = time_matched_differences(err, group, t, gaps, np.random.default_rng(1), 500)
+    for k, gap in enumerate(gaps[:2]):
+        drift = np.abs(d[k])
+        assert np.all(np.isclose(drift, 2e-9 * gap, rtol=1e-9, atol=0)
+                      | np.isclose(drift, 1e-9 * gap, rtol=1e-9, atol=0))
+        assert np.isclose(drift, 1e-9 * gap, rtol=1e-9, atol=0).any()
+    # longer than either session: the partner is the end farther away, half a session at least
+    assert np.all(np.abs(d[2]) >= 1e-9 * 150 - 1e-18)
+    assert time_matched_differences(err[:1], group[:1], t[:1], gaps,
+                                    np.random.default_rng(1), 5) is None
+
+
+def test_a_zero_averaged_over_settles_has_its_noise_averaged():
+    """White errors of 1 nm: a target less a single-reading zero differs by sqrt(2) nm; less a
+    zero of 100 settles by about 1 nm (what is left of the zero's noise: the 5-row mean the
+    slow part is taken over, a fifth of the variance)."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 20000.0, 10.0)
+    err = 1e-9 * rng.standard_normal(t.size)
+    group = np.zeros(t.size, int)
+    for settles, expected in ((1, 2.0), (100, 1.0 + 0.2 + 0.8 / 100)):
+        d = time_matched_differences(err, group, t, np.full(50, 600.0),
+                                     np.random.default_rng(4), 400, settles)
+        assert np.var(d) / 1e-18 == pytest.approx(expected, rel=0.06), settles
