@@ -7,8 +7,10 @@ constants as benchmarks/physics_vs_stepwise.py does), write both model files, th
 ``deltatwin compensate`` with each: the same robot, after its calibration campaign, at N
 Cartesian targets, each visited uncompensated (nominal kinematics) and compensated. Prints per
 axis and model kind the achieved err90 against the model's validation err90 (target: within
-1.2x), the ladder uncompensated -> black box -> physics (target: physics at least 2x better than
-the black box on every axis), and the latency of one inverse evaluation per point (a
+1.2x) and its 95 % band (target: within it on every axis, ``deltatwin compensate``'s
+``predicted_band_err90_nm``; also over the further sessions), the ladder uncompensated -> black
+box -> physics (target: physics at least 2x better than the black box on every axis), and the
+latency of one inverse evaluation per point (a
 controller's loop budget is of the order of 100 us):
 
     python benchmarks/bench_compensation.py                       # full scale, 60 targets
@@ -95,17 +97,38 @@ def _sessions(name, models, kinds, data, d, scale, n: int, targets: int,
     (``targets`` targets each, seeds = the hour): one session's err90 carries its zero's error,
     one draw; the mean over sessions is the ladder's expectation."""
     hours = [2.0 + 3.0 * k for k in range(n)]
-    err = {}
+    err, where = {}, {}
     for k, m in models.items():
         reps = [_compensate(name, m, data, d, targets, scale, zero_settles, h, int(h))["axes"]
                 for h in hours]
         err[k] = np.array([[r[a]["achieved_err90_nm"] for a in "xyz"] for r in reps])
+        where[k] = [_side(r[a]) for r in reps for a in "xyz"]
     print(f"  over {n} sessions ({targets} targets each, {hours[0]:g} to {hours[-1]:g} h after "
           f"the calibration): mean achieved err90 (nm), {kinds['blackbox']} -> physics")
     for i, a in enumerate("xyz"):
         b, p = err["blackbox"][:, i].mean(), err["physics"][:, i].mean()
         print(f"  {a:>4} {b:7.1f} -> {p:7.1f}   physics {b / p:.2f}x better (sessions: "
               + ", ".join(f"{v:.0f}" for v in err["physics"][:, i]) + " nm)")
+    print(f"  the achieved err90 against its 95 % band over these sessions' {3 * n} axes "
+          "(target: within on every axis)")
+    for k, sides in where.items():
+        print(f"  {kinds[k]:>10}: " + ", ".join(f"{sides.count(s)} {s}" for s in
+                                               ("within", "above", "below", "no band")))
+
+
+def _band(axis: dict) -> str:
+    """A compensated axis's 95 % band as the table prints it ('-' without one)."""
+    b = axis.get("predicted_band_err90_nm")
+    return "-" if b is None else f"{b[0]:.1f}-{b[1]:.1f}"
+
+
+def _side(axis: dict) -> str:
+    """Where an axis's achieved err90 lies against its band: within, above, below, no band."""
+    b = axis.get("predicted_band_err90_nm")
+    if b is None:
+        return "no band"
+    e = axis["achieved_err90_nm"]
+    return "within" if b[0] <= e <= b[1] else ("above" if e > b[1] else "below")
 
 
 def _servo_floor(sc, compensated: Path) -> None:
@@ -269,7 +292,7 @@ def main(argv=None) -> int:
                   + (", ".join(f"{c} (by {v.get('beyond_K', '-')} K)" for c, v in out.items())
                      if out else "none"))
             print(f"  {'axis':>4} {'model':>10} {'achieved':>9} {'1.645s':>7} {'predicted':>9} "
-                  f"{'ratio':>6} {'fitted':>7} {'zero-ref.':>9}   (err90, nm)")
+                  f"{'ratio':>6} {'fitted':>7} {'zero-ref.':>9} {'95 % band':>14}   (err90, nm)")
             for a in "xyz":
                 for k in ("blackbox", "physics"):
                     r = reps[k]["axes"][a]
@@ -279,7 +302,7 @@ def main(argv=None) -> int:
                     print(f"  {a:>4} {kinds[k]:>10} {r['achieved_err90_nm']:9.1f} "
                           f"{r['achieved_1645sigma_nm']:7.1f} {r['predicted_err90_nm']:9.1f} "
                           f"{ratio:6.2f} {r['predicted_offset_fitted_err90_nm']:7.1f} "
-                          f"{r['predicted_zero_referenced_err90_nm']:9.1f}   "
+                          f"{r['predicted_zero_referenced_err90_nm']:9.1f} {_band(r):>14}   "
                           f"within {WITHIN:g}x: {'met' if ok else 'NOT met'}")
             print(f"  ladder (achieved err90, nm): uncompensated -> {kinds['blackbox']} -> physics")
             for a in "xyz":
