@@ -167,16 +167,17 @@ def load_setup(path) -> dict:
 def scenario_setup(hidden: dict | None, source: str, effects=()) -> dict:
     """The metadata ``setup`` a scenario declares: its [hidden] known constants and baseline
     (none for a scenario without [hidden]), and what its laboratory sets itself or measures
-    once, and so knows (unless [hidden] states otherwise): the set point of Peltier-held
-    interferometer supports (``effects``: the scenario's, a ``peltier_supports`` among them),
-    and the shares of the beams' air temperature the supports and the table set
-    (room_climate's ``air_support_share``, ``air_table_share``: what the room's estimate
-    from the air thermometers by the beams needs; twin/thermal.py ``beam_air_shares``);
-    ``source`` names the scenario."""
+    once, and so knows (unless [hidden] states otherwise): the constants of its effects that
+    a model uses and never fits, where they are not the library's (``effects``: the
+    scenario's; ``fixed_constants``: a frame's arm is measured with a rule), the set point of
+    Peltier-held interferometer supports, and the shares of the beams' air temperature the
+    supports and the table set (room_climate's ``air_support_share``, ``air_table_share``:
+    what the room's estimate from the air thermometers by the beams needs; twin/thermal.py
+    ``beam_air_shares``); ``source`` names the scenario."""
     from deltatwin.twin.thermal import beam_air_shares
 
     hidden = hidden or {}
-    known = dict(hidden.get("known", {}))
+    known = merged(fixed_constants(effects), dict(hidden.get("known", {})))
     held = next((e for e in effects if e.name == "peltier_supports"), None)
     if held is not None:
         known["peltier_supports"] = {"setpoint_C": float(held.setpoint_C),
@@ -189,6 +190,22 @@ def scenario_setup(hidden: dict | None, source: str, effects=()) -> dict:
     if "baseline" in hidden:
         setup["baseline"] = list(hidden["baseline"])
     return setup
+
+
+def fixed_constants(effects) -> dict:
+    """{effect: {parameter: value}}: the parameters of ``effects`` (instances) with a model
+    form that a fit never adjusts (no ``fit_scale``) and whose value is not the library's
+    default: what a laboratory states about its own setup (e.g. the frame's arm)."""
+    out = {}
+    for e in effects:
+        if not type(e).model_stages():
+            continue
+        for p in type(e).parameters:
+            value = e.values[p.name]
+            if p.fit_scale is None and not np.array_equal(np.asarray(value, dtype=np.float64),
+                                                          np.asarray(p.default, dtype=np.float64)):
+                out.setdefault(e.name, {})[p.name] = np.asarray(value, dtype=np.float64).tolist()
+    return out
 
 
 def with_setup(meta: dict, setup: dict, source: str, temperature_columns) -> dict:

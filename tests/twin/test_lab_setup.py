@@ -11,6 +11,7 @@ from deltatwin.twin.lab_setup import (
     SetupError,
     beyond_setup,
     check_known,
+    fixed_constants,
     known_constants,
     load_setup,
     merged,
@@ -35,10 +36,22 @@ def test_a_hidden_scenario_s_metadata_carries_its_known_constants_and_baseline()
                              "baseline": ["geometric_errors", "thermal_expansion",
                                           "sensor_contact"]}
     assert known_constants(meta) == {**ARM, **held}
-    # a scenario without [hidden] states no other constant and no baseline
+    # a scenario without [hidden] states no baseline; its laboratory's geometry, where it is
+    # not the library's (paper-thermal hangs its robot from a 0.6 m arm), it knows
     plain = Scenario.load("paper-thermal")
     assert plain.metadata(plain.build(0.01)[0], 0.01)["setup"] == {
-        "source": "scenario paper-thermal", "known": held}
+        "source": "scenario paper-thermal", "known": {**ARM, **held}}
+
+
+def test_the_setup_states_the_constants_a_model_never_fits_where_they_are_not_the_library_s():
+    """fixed_constants: a parameter without a fit scale, away from its default, of an effect
+    with a model form; a fitted parameter (the loop's expansion coefficients), a default value
+    (its height) or an effect without a model form (the room's climate) is not stated."""
+    effects = [make_effect("loop_drift", {"frame_arm_m": [-0.6, 0.0], "table_cte_per_K": 3e-5}),
+               make_effect("room_climate", {"wander_std_C": 0.3}),
+               make_effect("air_refraction")]
+    assert fixed_constants(effects) == ARM
+    assert fixed_constants([make_effect("loop_drift")]) == {}
 
 
 def test_the_documented_example_setup_file_is_read_as_written():
