@@ -391,7 +391,8 @@ def run(args) -> int:
         if band:
             print("  (95 % band: where the achieved error 90 % falls if the model is right: "
                   "its parameters' uncertainty through the model in the conditions each target "
-                  "was commanded in, and its own validation errors' differences)")
+                  "was commanded in, and its own validation errors' differences as far apart "
+                  "in time as each target from its zero)")
         if report["outside_calibration_range"]:
             print("conditions outside the calibration range: "
                   + ", ".join(report["outside_calibration_range"]))
