@@ -467,6 +467,11 @@ class DirectIGMCompensator(Compensator):
         self.zero_reading_m = None
 
     def zero(self, frame):
+        self.zero_reading_m = self._home_reading(frame)
+
+    def _home_reading(self, frame: pd.DataFrame) -> np.ndarray:
+        """(3,) m: where the model puts home (q = 0, no force) in the conditions of the
+        frame's first row, by Newton on its Jacobian."""
         v = self.model.variables(frame.iloc[[0]].assign(x_nm=0.0, y_nm=0.0, z_nm=0.0, F_N=0.0))
         X = np.zeros(3)
         for _ in range(self.max_iter):
@@ -484,7 +489,7 @@ class DirectIGMCompensator(Compensator):
         else:
             raise CalibrationInputError(f"direct IGM: the home reading at the zero did not "
                                         f"converge (last step {np.max(np.abs(dX)):.3g} m)")
-        self.zero_reading_m = X
+        return X
 
     def command(self, target_m, frame) -> Command:
         X = np.asarray(target_m, float) + self.zero_reading_m
@@ -502,6 +507,48 @@ class DirectIGMCompensator(Compensator):
                            f"out of stroke: the model asks q = {q.tolist()} rad, outside "
                            f"[{lo}, {hi}] rad; commanded the nearest stroke end")
         return Command(q, "converged", 0.0, "evaluated: q = f(X, Y, Z, F)")
+
+    def _parameter_change(self, achieved, rows, rng, draws):
+        """The motors' models' coefficients' error, drawn from their covariance (the file's),
+        as a position: the robot goes where the true q = f(X) equals the commanded f^(X_t),
+        so a target moves by J^-1 df there, and the zero's transfer by J^-1 df at home (J =
+        dq/dX, df the drawn error of the motors' q at X); a reading counts the difference."""
+        outputs = self.model.outputs_
+        if any(o.covariance is None for o in outputs):
+            return None
+        session = achieved["session"].astype(str).to_numpy()
+        target = np.column_stack([achieved[f"target_{a}_nm"].to_numpy(dtype=float) * 1e-9
+                                  for a in AXES])
+        xi = [square_root(o.covariance) @ rng.standard_normal((len(o.terms), draws))
+              for o in outputs]
+        change = np.zeros((int(rows.sum()), 3, draws))
+        for s in dict.fromkeys(session[rows]):
+            first = np.flatnonzero(session == s)[0]
+            X0 = self._home_reading(achieved.iloc[[first]])
+            home = self.model.variables(achieved.iloc[[first]].assign(F_N=0.0, **{
+                f"{a}_nm": X0[k] * 1e9 for k, a in enumerate(AXES)}))
+            at = self.model.variables(achieved.assign(**{
+                f"{a}_nm": (target[:, k] + X0[k]) * 1e9 for k, a in enumerate(AXES)}))
+            mine = (session == s)[rows]
+            change[mine] = (self._moved(at, xi)[rows][mine]
+                            - self._moved(home, xi)[0][None])
+        return change
+
+    def _moved(self, values: dict, xi: list) -> np.ndarray:
+        """(n, 3, draws) m: J^-1 df at each point of ``values``, df the motors' q error of
+        the drawn coefficient errors ``xi`` (one (k, draws) per motor)."""
+        dq = np.stack([o.term_matrix(values) @ x for o, x in zip(self.model.outputs_, xi)],
+                      axis=1)                                             # (n, 3, draws)
+        return np.linalg.solve(self.model.jacobian(values), dq)
+
+    def _validation_errors(self, df, meta):
+        v = self.model.variables(df)
+        dq = self.model.predict_values(v) - self.model.targets(df)
+        err = np.linalg.solve(self.model.jacobian(v), dq[:, :, None])[:, :, 0]
+        reading = np.column_stack([df[f"{a}_nm"].to_numpy(dtype=float) for a in AXES])
+        codes = pd.factorize(df["session"].astype(str))[0]
+        group = np.where(np.isfinite(err) & np.isfinite(reading), codes[:, None], -1)
+        return err, group, (df["split"].astype(str) == "val").to_numpy()
 
     def predicted(self, df, meta):
         ev = evaluate(self.model, df).get("position") or {}

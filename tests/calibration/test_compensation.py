@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from deltatwin.calibration.blackbox.dgm import DGM
+from deltatwin.calibration.blackbox.direct_igm import DirectIGM
 from deltatwin.calibration.compensation import (
     ConditionLog,
     DirectIGMCompensator,
@@ -255,3 +256,45 @@ def test_a_zero_averaged_over_settles_has_its_noise_averaged():
         d = time_matched_differences(err, group, t, np.full(50, 600.0),
                                      np.random.default_rng(4), 400, settles)
         assert np.var(d) / 1e-18 == pytest.approx(expected, rel=0.06), settles
+
+
+def test_a_direct_igm_s_band_is_where_its_coefficients_error_sends_the_robot(force_data,
+                                                                             force_igm):
+    """With calibration data the direct IGM fits exactly, the band of one target is that of
+    |d|, d the reading's error when models drawn from the file's covariance command the robot
+    (their own zero transfer and command) and the fitted model is the robot (Newton on it
+    finds where the commanded q takes it, read from its own home)."""
+    df, meta = force_data
+    cal = df.copy()
+    exact = force_igm.predict(df)
+    for k, motor in enumerate(("q1", "q2", "q3")):
+        cal[f"{motor}_rad"] = exact[:, k]
+    target, force = np.array([0.4e-3, 0.3e-3, -0.2e-3]), 1.3
+    frame = _log((), np.random.default_rng(5), n=5).frame(np.full(3, force), force, target)
+    frame = frame.assign(**{f"target_{a}_nm": target[k] * 1e9 for k, a in enumerate("xyz")})
+    rows = np.zeros(len(frame), bool)
+    rows[-1] = True
+    band = DirectIGMCompensator(force_igm).band(
+        frame, rows, np.full(len(frame), frame["t_s"].iloc[0]), cal, meta,
+        np.random.default_rng(7), draws=4000)
+    robot = DirectIGMCompensator(force_igm)
+    robot.zero(frame.iloc[[0]])
+    home = robot.zero_reading_m
+    rng = np.random.default_rng(8)
+    errors = []
+    for _ in range(300):
+        drawn = DirectIGMCompensator(DirectIGM.from_outputs(
+            force_igm.features_, [replace(o, coef=rng.multivariate_normal(o.coef, o.covariance))
+                                  for o in force_igm.outputs_], force_igm.sensors_))
+        drawn.zero(frame.iloc[[0]])
+        q = drawn.command(target, frame).q
+        x = target + home
+        for _ in range(8):
+            at = {"X": x[:1], "Y": x[1:2], "Z": x[2:], "F": np.array([force])}
+            x = x - np.linalg.solve(force_igm.jacobian(at)[0], force_igm.predict_values(at)[0] - q)
+        errors.append(x - home - target)
+    s = np.std(errors, axis=0) * 1e9
+    for k, a in enumerate("xyz"):
+        low, high = band[a]
+        assert s[k] > 1.0, (a, s)
+        assert high == pytest.approx(2.241 * s[k], rel=0.12), (a, band[a], s[k])
