@@ -203,7 +203,8 @@ class OutputModel:
                 raise ModelFileError(f"output {om.output!r}: {n} terms but {v.size} {name} "
                                      "values")
         if om.covariance is not None and not (
-                np.all(np.isfinite(om.covariance)) and np.allclose(om.covariance, om.covariance.T)
+                np.all(np.isfinite(om.covariance))
+                and np.allclose(om.covariance, om.covariance.T, rtol=1e-12, atol=0.0)
                 and np.all(np.diag(om.covariance) >= 0)):
             raise ModelFileError(f"output {om.output!r}: its covariance is not a finite "
                                  "symmetric matrix with a non-negative diagonal")
@@ -729,7 +730,12 @@ def _coefficient_covariance(X: np.ndarray, y: np.ndarray, res, sel: np.ndarray,
     do not see. Given the terms the stepwise kept: what their selection adds is not in it."""
     centred = X - X.mean(axis=0)
     r = y - res.intercept - X @ res.coef[sel]
-    return sandwich_covariance(centred, r, np.arange(y.size), t_s)
+    # in standardised columns: a cubic term's column in m^3 and a temperature's in K are
+    # decades apart, and the sandwich's inverse in raw units loses the small ones
+    scale = centred.std(axis=0)
+    scale[scale == 0] = 1.0
+    cov = sandwich_covariance(centred / scale, r, np.arange(y.size), t_s) / np.outer(scale, scale)
+    return 0.5 * (cov + cov.T)
 
 
 def _input_source(v: str) -> dict:
