@@ -193,12 +193,16 @@ def scenario_setup(hidden: dict | None, source: str, effects=()) -> dict:
 
 
 def fixed_constants(effects) -> dict:
-    """{effect: {parameter: value}}: the parameters of ``effects`` (instances) with a model
-    form that a fit never adjusts (no ``fit_scale``) and whose value is not the library's
-    default: what a laboratory states about its own setup (e.g. the frame's arm)."""
+    """{effect: {parameter: value}}: the parameters of ``effects`` (instances) of library
+    effects with a model form that a fit never adjusts (no ``fit_scale``) and whose value is
+    not the library's default: what a laboratory states about its own setup (e.g. the frame's
+    arm). A researcher's own effect carries its constants in its own code, not in the setup
+    (which names library effects only)."""
+    from deltatwin.twin.effects import LIBRARY
+
     out = {}
     for e in effects:
-        if not type(e).model_stages():
+        if LIBRARY.get(e.name) is not type(e) or not type(e).model_stages():
             continue
         for p in type(e).parameters:
             value = e.values[p.name]
