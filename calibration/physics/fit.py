@@ -50,8 +50,8 @@ LENGTH_ROUND_OFF = 1e-9
 UNSEEN_FRACTION = 1e-16
 STEP_SIGMA = 0.1   # converged: a further step moves the parameters by < 0.1 of their uncertainty
 # at most this many Newton steps (and Jacobians) of the score corrected for the thermometers'
-# noise: a bound, not a tuning; most corrections take two, one along a direction where the
-# corrected objective is flat creeps in steps of a few tenths of an uncertainty (ten steps)
+# noise: a bound, not a tuning (most corrections take two; along a direction where the
+# corrected objective is flat the descent creeps, a few tenths of an uncertainty a step)
 CORRECTION_STEPS = 16
 LINE_SEARCH_HALVINGS = 5   # a correction step is halved at most this many times
 log = logging.getLogger(__name__)
@@ -883,9 +883,8 @@ def _corrected_for_thermometers(fun, jac, z, A, J, jz_of, terms_at, y, projected
     reduced paper-thermal), halved until Q falls (at most LINE_SEARCH_HALVINGS times), until
     the step left is below STEP_SIGMA (the converged fit's test), at most CORRECTION_STEPS of
     them. Without the merit function, full Newton steps overshoot along a direction where Q is
-    flat and oscillate, growing, away from the least-squares solution (the steps' lengths
-    4.9, 3.9, 3.0, 2.6, 2.9 uncertainties, each nearly opposite the one before, on
-    paper-thermal's reduced campaign with seed 1). Where Q falls no further, or the steps run
+    flat and oscillate away from the least-squares solution
+    (tests/calibration/test_thermometer_noise.py). Where Q falls no further, or the steps run
     out, the corrected score has no root found near the least-squares solution (the
     correction's moment equation need not have one where the noise's share is large: Fuller
     1987, 2.5.1), and the least-squares solution stays (``corrected`` False)."""
