@@ -301,6 +301,14 @@ def time_matched_differences(err: np.ndarray, group: np.ndarray, t_s: np.ndarray
     return out
 
 
+def _by_session(df: pd.DataFrame, err: np.ndarray):
+    """(``err`` (N, 3) m, (N, 3) its (session, axis) group: the session's code, -1 where the
+    error is not finite, (N,) the validation rows): a black box's ``_validation_errors``."""
+    codes = pd.factorize(df["session"].astype(str))[0]
+    group = np.where(np.isfinite(err), codes[:, None], -1)
+    return err, group, (df["split"].astype(str) == "val").to_numpy()
+
+
 def _figures(fitted: dict, zero: dict | None = None, pairwise: dict | None = None) -> dict:
     """The three predictions (see ``Compensator.predicted``) of one axis, nm."""
     main = pairwise if pairwise is not None else fitted
@@ -413,24 +421,21 @@ class StepwiseCompensator(Compensator):
         outputs = [self.dgm.output(a) for a in AXES if a in self.dgm.output_names_]
         if any(o.covariance is None for o in outputs):
             return None
-        values = self.dgm.variables(achieved)
+        # one draw of the model's error for every session: the same model commands them all
+        drawn = [square_root(o.covariance) @ rng.standard_normal((len(o.terms), draws))
+                 for o in outputs]
+        at = [o.term_matrix(self.dgm.variables(achieved))[rows] for o in outputs]
         session = achieved["session"].astype(str).to_numpy()
         change = np.zeros((int(rows.sum()), 3, draws))
         for s in dict.fromkeys(session[rows]):
-            first = np.flatnonzero(session == s)[0]
-            zero = self._zero_values(achieved.iloc[[first]])
+            zero = self._zero_values(achieved.iloc[[np.flatnonzero(session == s)[0]]])
             mine = (session == s)[rows]
-            for o in outputs:
-                X = o.term_matrix(values)[rows][mine] - o.term_matrix(zero)
-                xi = rng.standard_normal((len(o.terms), draws))
-                change[mine, AXES.index(o.output)] = X @ (square_root(o.covariance) @ xi)
+            for o, X, xi in zip(outputs, at, drawn):
+                change[mine, AXES.index(o.output)] = (X[mine] - o.term_matrix(zero)) @ xi
         return change
 
     def _validation_errors(self, df, meta):
-        err = self.dgm.errors_m(df)[:, self.order]
-        codes = pd.factorize(df["session"].astype(str))[0]
-        group = np.where(np.isfinite(err), codes[:, None], -1)
-        return err, group, (df["split"].astype(str) == "val").to_numpy()
+        return _by_session(df, self.dgm.errors_m(df)[:, self.order])
 
     def command(self, target_m, frame) -> Command:
         v = self.dgm.variables(frame)
@@ -546,9 +551,7 @@ class DirectIGMCompensator(Compensator):
         dq = self.model.predict_values(v) - self.model.targets(df)
         err = np.linalg.solve(self.model.jacobian(v), dq[:, :, None])[:, :, 0]
         reading = np.column_stack([df[f"{a}_nm"].to_numpy(dtype=float) for a in AXES])
-        codes = pd.factorize(df["session"].astype(str))[0]
-        group = np.where(np.isfinite(err) & np.isfinite(reading), codes[:, None], -1)
-        return err, group, (df["split"].astype(str) == "val").to_numpy()
+        return _by_session(df, np.where(np.isfinite(reading), err, np.nan))
 
     def predicted(self, df, meta):
         ev = evaluate(self.model, df).get("position") or {}
