@@ -160,12 +160,21 @@ def test_a_model_file_keeps_its_covariance(fixture, request, tmp_path):
                                                             np.diag(before)))).min() > 0
 
 
-def test_a_model_file_with_an_asymmetric_covariance_is_refused(thermal_dgm, tmp_path):
+def _asymmetric(covariance):
+    covariance[0][1] *= 1.001
+    return covariance
+
+
+@pytest.mark.parametrize("damage, words", [
+    (_asymmetric, "covariance is not a finite symmetric"),
+    (lambda c: c[:2], "output entry is malformed"),          # the wrong size
+    (lambda c: "text", "output entry is malformed")])
+def test_a_model_file_with_a_bad_covariance_is_refused(thermal_dgm, tmp_path, damage, words):
     path = thermal_dgm.save(tmp_path / "model.json")
     doc = json.loads(path.read_text())
     doc.pop("content_sha256")
     doc["format_version"] = 1                   # files without a checksum: version 1
-    doc["outputs"][0]["covariance"][0][1] *= 1.001
+    doc["outputs"][0]["covariance"] = damage(doc["outputs"][0]["covariance"])
     path.write_text(json.dumps(doc))
-    with pytest.raises(ModelFileError, match="covariance is not a finite symmetric"):
+    with pytest.raises(ModelFileError, match=words):
         load_model(path)
